@@ -1,0 +1,360 @@
+"""The project's own recording format ("evflow h5"): writer and streaming reader.
+
+Layout (format_version 1), all times int64 microseconds:
+
+    /events/x    (N,) int16     column
+    /events/y    (N,) int16     row
+    /events/t    (N,) int64     µs, non-decreasing
+    /events/p    (N,) int8      polarity in {-1, +1}
+    /ms_to_idx   (M+1,) int64   ms_to_idx[m] = index of the first event with
+                                t >= t_start_us + 1000 * m   (like DSEC's)
+    /flow/flow   (K, 2, H, W) float32  ground-truth flow, pixels over [t_from, t_to)   [optional]
+    /flow/valid  (K, H, W) bool
+    /flow/t_from (K,) int64, /flow/t_to (K,) int64
+    /frames/images (F, H, W) uint8, /frames/t (F,) int64                               [optional]
+
+File attributes: format="evflow-h5", format_version=1, sensor_height, sensor_width,
+t_start_us, t_end_us (exclusive), num_events, name, provenance (a JSON string).
+
+Event datasets are chunked (64 Ki events) and gzip-compressed with the shuffle filter; flow
+maps and frames are chunked one map per chunk. A window is read through ``ms_to_idx`` plus a
+binary search inside one millisecond, so neither the file nor the time column is loaded.
+
+The writer writes ``<name>.tmp-<pid>`` next to the target and renames it over the target only
+after a successful close, so a crash or an exception never leaves a half-written file under
+the final name.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from envs.events import EventError, Events
+from envs.readers.base import EventReader, FlowGT
+
+__all__ = ["H5Writer", "H5Reader", "FormatError", "write_h5", "FORMAT_NAME"]
+
+FORMAT_NAME = "evflow-h5"
+FORMAT_VERSION = 1
+EVENT_CHUNK = 1 << 16
+_EVENT_DTYPES = {"x": np.int16, "y": np.int16, "t": np.int64, "p": np.int8}
+_COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True}
+
+
+class FormatError(ValueError):
+    """A file that is not in the expected layout; the message names the file and the dataset."""
+
+
+class H5Writer:
+    """Streams a recording into a project h5 file.
+
+    sensor_size: (height, width). name: stored as the recording's name. provenance: any
+    JSON-serialisable dict (simulator seed, source file, converter version...).
+    t_start_us / t_end_us: the recording's time span; default first event / last event + 1.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        sensor_size: tuple[int, int],
+        *,
+        name: str | None = None,
+        provenance: dict | None = None,
+        t_start_us: int | None = None,
+        t_end_us: int | None = None,
+        overwrite: bool = True,
+    ) -> None:
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} exists (pass overwrite=True to replace it)")
+        self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
+        self.name = name if name is not None else self.path.stem
+        self.provenance = provenance or {}
+        json.dumps(self.provenance)  # fail now, not at close
+        self._t_start = t_start_us
+        self._t_end = t_end_us
+        self._tmp = self.path.with_name(f"{self.path.name}.tmp-{os.getpid()}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = h5py.File(self._tmp, "w")
+        group = self._file.create_group("events")
+        self._events = {
+            field: group.create_dataset(
+                field, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(EVENT_CHUNK,), **_COMPRESSION
+            )
+            for field, dtype in _EVENT_DTYPES.items()
+        }
+        self._n = 0
+        self._last_t: int | None = None
+        self._first_t: int | None = None
+        self._flows: list[tuple[int, int, np.ndarray, np.ndarray]] = []
+        self._flow_group = None
+        self._frame_group = None
+        self._closed = False
+
+    # -- events ---------------------------------------------------------------------------
+    def append_events(self, events: Events) -> None:
+        """Append the next events of the stream (validated, continuing in time order)."""
+        if events.sensor_size != self.sensor_size:
+            raise EventError(
+                f"{self.path}: events for sensor {events.sensor_size} appended to a "
+                f"{self.sensor_size} recording"
+            )
+        n = len(events)
+        if n == 0:
+            return
+        if np.issubdtype(events.x.dtype, np.floating):
+            raise EventError(f"{self.path}: the project h5 stores integer pixel coordinates; got float x/y")
+        if self._last_t is not None and events.t[0] < self._last_t:
+            raise EventError(
+                f"{self.path}: field 't' must be non-decreasing across appends: "
+                f"{events.t[0]} follows {self._last_t}"
+            )
+        for field, ds in self._events.items():
+            ds.resize((self._n + n,))
+            ds[self._n :] = getattr(events, field).astype(_EVENT_DTYPES[field], copy=False)
+        if self._first_t is None:
+            self._first_t = int(events.t[0])
+        self._last_t = int(events.t[-1])
+        self._n += n
+
+    # -- ground truth and frames -----------------------------------------------------------
+    def add_flow(self, t_from_us: int, t_to_us: int, flow: np.ndarray, valid: np.ndarray | None = None) -> None:
+        """Ground-truth flow over [t_from, t_to): flow (2,H,W) pixels, valid (H,W) bool."""
+        h, w = self.sensor_size
+        flow = np.asarray(flow, np.float32)
+        if flow.shape != (2, h, w):
+            raise ValueError(f"{self.path}: flow must be (2, {h}, {w}), got {flow.shape}")
+        valid = np.ones((h, w), bool) if valid is None else np.asarray(valid, bool)
+        if valid.shape != (h, w):
+            raise ValueError(f"{self.path}: flow valid mask must be ({h}, {w}), got {valid.shape}")
+        if not t_to_us > t_from_us:
+            raise ValueError(f"{self.path}: flow interval must have t_to > t_from, got [{t_from_us}, {t_to_us})")
+        if self._flow_group is None:
+            g = self._file.create_group("flow")
+            g.create_dataset("flow", (0, 2, h, w), np.float32, maxshape=(None, 2, h, w), chunks=(1, 2, h, w), **_COMPRESSION)
+            g.create_dataset("valid", (0, h, w), bool, maxshape=(None, h, w), chunks=(1, h, w), **_COMPRESSION)
+            g.create_dataset("t_from", (0,), np.int64, maxshape=(None,), chunks=(1024,))
+            g.create_dataset("t_to", (0,), np.int64, maxshape=(None,), chunks=(1024,))
+            self._flow_group = g
+        g = self._flow_group
+        k = g["t_from"].shape[0]
+        for key, value in (("flow", flow), ("valid", valid), ("t_from", t_from_us), ("t_to", t_to_us)):
+            g[key].resize((k + 1,) + g[key].shape[1:])
+            g[key][k] = value
+
+    def add_frame(self, t_us: int, image: np.ndarray) -> None:
+        """An intensity frame taken at t_us: (H, W) uint8."""
+        h, w = self.sensor_size
+        image = np.asarray(image)
+        if image.shape != (h, w):
+            raise ValueError(f"{self.path}: frame must be ({h}, {w}), got {image.shape}")
+        if self._frame_group is None:
+            g = self._file.create_group("frames")
+            g.create_dataset("images", (0, h, w), np.uint8, maxshape=(None, h, w), chunks=(1, h, w), **_COMPRESSION)
+            g.create_dataset("t", (0,), np.int64, maxshape=(None,), chunks=(1024,))
+            self._frame_group = g
+        g = self._frame_group
+        k = g["t"].shape[0]
+        if k and t_us < g["t"][k - 1]:
+            raise ValueError(f"{self.path}: frame times must be non-decreasing ({t_us} after {g['t'][k - 1]})")
+        g["images"].resize((k + 1, h, w))
+        g["images"][k] = image.astype(np.uint8)
+        g["t"].resize((k + 1,))
+        g["t"][k] = t_us
+
+    # -- finishing -------------------------------------------------------------------------
+    def _build_index(self, t_start: int, t_end: int) -> np.ndarray:
+        n_ms = max(1, -(-(t_end - t_start) // 1000))
+        bounds = t_start + 1000 * np.arange(n_ms + 1, dtype=np.int64)
+        index = np.empty(n_ms + 1, np.int64)
+        # one pass over the time column, a chunk at a time
+        t_ds = self._events["t"]
+        pos = 0
+        for i0 in range(0, self._n, EVENT_CHUNK * 16):
+            chunk = t_ds[i0 : i0 + EVENT_CHUNK * 16]
+            upto = np.searchsorted(bounds, chunk[-1], side="right")  # bounds <= last t in chunk
+            index[pos:upto] = i0 + np.searchsorted(chunk, bounds[pos:upto], side="left")
+            pos = upto
+        index[pos:] = self._n
+        return index
+
+    def close(self) -> None:
+        """Write the index and attributes, then move the file to its final name."""
+        if self._closed:
+            return
+        t_start = self._t_start if self._t_start is not None else (self._first_t or 0)
+        t_end = self._t_end if self._t_end is not None else ((self._last_t + 1) if self._last_t is not None else t_start + 1)
+        if self._first_t is not None and (self._first_t < t_start or self._last_t >= t_end):
+            self.abort()
+            raise EventError(
+                f"{self.path}: events span [{self._first_t}, {self._last_t}] us, outside the "
+                f"declared recording span [{t_start}, {t_end})"
+            )
+        index = self._build_index(t_start, t_end)
+        self._file.create_dataset("ms_to_idx", data=index, chunks=(min(len(index), 1 << 14),), **_COMPRESSION)
+        attrs = self._file.attrs
+        attrs["format"] = FORMAT_NAME
+        attrs["format_version"] = FORMAT_VERSION
+        attrs["sensor_height"], attrs["sensor_width"] = self.sensor_size
+        attrs["t_start_us"] = t_start
+        attrs["t_end_us"] = t_end
+        attrs["num_events"] = self._n
+        attrs["name"] = self.name
+        attrs["provenance"] = json.dumps(self.provenance)
+        self._file.close()
+        os.replace(self._tmp, self.path)
+        self._closed = True
+
+    def abort(self) -> None:
+        """Discard everything written (the final path is left untouched)."""
+        if self._closed:
+            return
+        try:
+            self._file.close()
+        finally:
+            self._tmp.unlink(missing_ok=True)
+            self._closed = True
+
+    def __enter__(self) -> "H5Writer":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_h5(path, events: Events, *, flows=(), frames=(), **kwargs) -> Path:
+    """Write a whole recording at once. flows: iterable of (t_from, t_to, flow, valid);
+    frames: iterable of (t_us, image). Returns the path."""
+    with H5Writer(path, events.sensor_size, **kwargs) as writer:
+        writer.append_events(events)
+        for item in flows:
+            writer.add_flow(*item)
+        for t_us, image in frames:
+            writer.add_frame(t_us, image)
+    return Path(path)
+
+
+class H5Reader(EventReader):
+    """Streams a project h5 file (see the module docstring for the layout).
+
+    Every read is validated against the file's attributes (sensor bounds, time order), so a
+    corrupt or hand-made file fails with a message naming the file and the field.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, validate: bool = True) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise FileNotFoundError(f"{self.path}: no such file")
+        try:
+            self._file = h5py.File(self.path, "r")
+        except OSError as err:
+            raise FormatError(f"{self.path}: not a readable HDF5 file (truncated or corrupt?): {err}") from err
+        f = self._file
+        try:
+            if f.attrs.get("format") != FORMAT_NAME:
+                raise FormatError(
+                    f"{self.path}: attribute 'format' is {f.attrs.get('format')!r}, expected "
+                    f"{FORMAT_NAME!r} (is this a file of another layout? see envs.readers)"
+                )
+            for key in ("events/x", "events/y", "events/t", "events/p", "ms_to_idx"):
+                if key not in f:
+                    raise FormatError(f"{self.path}: missing dataset '/{key}'")
+            for key in ("sensor_height", "sensor_width", "t_start_us", "t_end_us"):
+                if key not in f.attrs:
+                    raise FormatError(f"{self.path}: missing file attribute '{key}'")
+            lengths = {k: f["events"][k].shape[0] for k in ("x", "y", "t", "p")}
+            if len(set(lengths.values())) != 1:
+                raise FormatError(f"{self.path}: event datasets differ in length: {lengths}")
+        except Exception:
+            f.close()
+            raise
+        self.validate = validate
+        self.sensor_size = (int(f.attrs["sensor_height"]), int(f.attrs["sensor_width"]))
+        self.num_events = lengths["t"]
+        self.name = str(f.attrs.get("name", self.path.stem))
+        self.provenance = json.loads(f.attrs.get("provenance", "{}"))
+        self._t_start = int(f.attrs["t_start_us"])
+        self._t_end = int(f.attrs["t_end_us"])
+        self._ds = {k: f["events"][k] for k in ("x", "y", "t", "p")}
+        self._ms_to_idx = f["ms_to_idx"][:]  # (duration_ms + 1) int64: small
+        if "flow" in f:
+            self._flow_from = f["flow/t_from"][:]
+            self._flow_to = f["flow/t_to"][:]
+        else:
+            self._flow_from = self._flow_to = None
+        self._frame_t = f["frames/t"][:] if "frames" in f else None
+
+    # -- events -----------------------------------------------------------------------------
+    @property
+    def t_start(self) -> int:
+        return self._t_start
+
+    @property
+    def t_end(self) -> int:
+        return self._t_end
+
+    def index_at(self, t_us: int) -> int:
+        if t_us <= self._t_start:
+            return 0
+        if t_us >= self._t_end:
+            return self.num_events
+        m = (int(t_us) - self._t_start) // 1000
+        lo, hi = int(self._ms_to_idx[m]), int(self._ms_to_idx[min(m + 1, len(self._ms_to_idx) - 1)])
+        if hi <= lo:
+            return lo
+        return lo + int(np.searchsorted(self._ds["t"][lo:hi], t_us, side="left"))
+
+    def events_range(self, i_start: int, i_end: int) -> Events:
+        i_start, i_end = max(0, int(i_start)), min(self.num_events, int(i_end))
+        if i_end <= i_start:
+            return Events.empty(self.sensor_size)
+        arrays = {k: ds[i_start:i_end] for k, ds in self._ds.items()}
+        try:
+            return Events.create(**arrays, sensor_size=self.sensor_size, source=f"{self.path} (events {i_start}..{i_end})", validate=self.validate)
+        except OSError as err:  # pragma: no cover - h5py read errors surface above
+            raise FormatError(f"{self.path}: could not read events {i_start}..{i_end}: {err}") from err
+
+    def time_of(self, index: int) -> int:
+        return int(self._ds["t"][int(index)])
+
+    # -- ground truth and frames -----------------------------------------------------------
+    @property
+    def has_flow(self) -> bool:
+        return self._flow_from is not None
+
+    def flow_timestamps(self) -> np.ndarray | None:
+        """The ground-truth grid: each map's t_from plus the last map's t_to."""
+        if self._flow_from is None or len(self._flow_from) == 0:
+            return None
+        return np.append(self._flow_from, self._flow_to[-1])
+
+    def flow_between(self, t_start: int, t_end: int) -> FlowGT | None:
+        """The stored map whose interval is exactly [t_start, t_end), else None."""
+        if self._flow_from is None:
+            return None
+        hits = np.flatnonzero((self._flow_from == t_start) & (self._flow_to == t_end))
+        if len(hits) == 0:
+            return None
+        k = int(hits[0])
+        g = self._file["flow"]
+        return g["flow"][k].astype(np.float32), g["valid"][k].astype(bool)
+
+    def frame_timestamps(self) -> np.ndarray | None:
+        return self._frame_t
+
+    def frame(self, index: int) -> np.ndarray:
+        if self._frame_t is None:
+            return super().frame(index)
+        return self._file["frames/images"][int(index)]
+
+    def close(self) -> None:
+        if getattr(self, "_file", None) is not None and self._file.id.valid:
+            self._file.close()

@@ -1,0 +1,87 @@
+import numpy as np
+import pytest
+
+from envs.h5format import write_h5, H5Reader
+from envs.readers import ArrayReader
+from envs.windows import iter_windows, window_bounds
+from tests.conftest import random_events
+
+
+def brute_force_time_windows(t: np.ndarray, t0: int, t1: int, size: int):
+    """Assign each event to a window by a plain loop: the obvious reference."""
+    out, start = [], t0
+    while start < t1:
+        end = min(start + size, t1)
+        out.append((start, end, [i for i in range(len(t)) if start <= t[i] < end]))
+        start = end
+    return out
+
+
+def check_partition(windows, n_events):
+    delivered = np.concatenate([np.arange(w.i_start, w.i_end) for w in windows]) if windows else np.zeros(0)
+    np.testing.assert_array_equal(delivered, np.arange(n_events))
+
+
+@pytest.mark.parametrize("size", [1, 777, 10_000, 250_000])
+def test_time_windows_match_brute_force(rng, size):
+    ev = random_events(rng, 800, t_span=(1000, 101_000))
+    reader = ArrayReader(ev, t_range=(1000, 101_000))
+    windows = list(iter_windows(reader, "time", size))
+    reference = brute_force_time_windows(ev.t, 1000, 101_000, size)
+    assert len(windows) == len(reference)
+    for w, (t0, t1, idx) in zip(windows, reference):
+        assert (w.t_start, w.t_end) == (t0, t1)
+        np.testing.assert_array_equal(w.events.t, ev.t[idx])
+        np.testing.assert_array_equal(w.events.x, ev.x[idx])
+    check_partition(windows, len(ev))
+    assert all(a.t_end == b.t_start for a, b in zip(windows, windows[1:]))
+
+
+@pytest.mark.parametrize("size", [1, 100, 799, 800, 5000])
+def test_count_windows_partition(rng, size):
+    ev = random_events(rng, 800)
+    windows = list(iter_windows(ArrayReader(ev), "count", size))
+    check_partition(windows, len(ev))
+    for k, w in enumerate(windows):
+        np.testing.assert_array_equal(w.events.t, ev.t[k * size : (k + 1) * size])
+        assert w.t_start == w.events.t[0] and w.t_end == w.events.t[-1] + 1
+
+
+def test_frame_windows_follow_the_grid(rng):
+    ev = random_events(rng, 1000, t_span=(0, 100_000))
+    grid = np.array([5_000, 20_000, 33_000, 50_000, 61_000, 90_000])
+    reader = ArrayReader(ev, t_range=(0, 100_000), flow_fn=lambda a, b: None, flow_times=grid)
+    for dt in (1, 2, 4):
+        windows = list(iter_windows(reader, "frames", dt))
+        ts = grid[::dt]
+        assert [(w.t_start, w.t_end) for w in windows] == list(zip(ts[:-1], ts[1:]))
+        for w in windows:
+            np.testing.assert_array_equal(w.events.t, ev.t[(ev.t >= w.t_start) & (ev.t < w.t_end)])
+
+
+def test_frames_mode_without_ground_truth_is_a_clear_error(rng):
+    with pytest.raises(ValueError, match="ground-truth timestamps"):
+        window_bounds(ArrayReader(random_events(rng, 10)), "frames", 1)
+
+
+def test_bad_mode_and_size():
+    reader = ArrayReader(random_events(np.random.default_rng(0), 10))
+    with pytest.raises(ValueError, match="window mode"):
+        window_bounds(reader, "events", 10)
+    with pytest.raises(ValueError, match="positive integer"):
+        window_bounds(reader, "time", 0)
+
+
+def test_h5_windows_equal_memory_windows(rng, tmp_path):
+    ev = random_events(rng, 20_000, sensor_size=(26, 34), t_span=(3_000, 250_000))
+    path = write_h5(tmp_path / "rec.h5", ev, t_start_us=2_500, t_end_us=250_000)
+    memory = ArrayReader(ev, t_range=(2_500, 250_000))
+    with H5Reader(path) as disk:
+        for mode, size in (("time", 10_000), ("time", 3_333), ("count", 3000)):
+            a, b = list(iter_windows(memory, mode, size)), list(iter_windows(disk, mode, size))
+            assert [(w.t_start, w.t_end, w.i_start, w.i_end) for w in a] == [
+                (w.t_start, w.t_end, w.i_start, w.i_end) for w in b
+            ]
+            for wa, wb in zip(a, b):
+                np.testing.assert_array_equal(wa.events.t, wb.events.t)
+                np.testing.assert_array_equal(wa.events.p, wb.events.p)
