@@ -1,0 +1,43 @@
+"""Losses and metrics for unsupervised event-based optical flow (REFERENCE sections 5 and 7).
+
+Pure functions of tensors: no state, no I/O, nothing else of the project imported.
+Flow is (B, 2, H, W) in pixels of displacement over the window at full sensor resolution;
+events come as a padded :class:`EventBatch`.
+"""
+
+from .average_timestamp import average_timestamp_loss
+from .event_count import event_count_loss
+from .events import EventBatch
+from .hmc import LossOutput, accumulated_hmc_loss, at_loss, hmc_loss, to_full_resolution
+from .iwe import average_timestamp_images, warped_event_images
+from .metrics import flow_error, flow_error_torch, fwl, fwl_torch, rsat, rsat_torch
+from .sampling import sample_flow
+from .smoothness import charbonnier_smoothness, event_pixel_mask
+from .splat import bilinear_corners, bilinear_splat
+from .warp import forward_warp_flow, warp_events
+
+__all__ = [
+    "EventBatch",
+    "LossOutput",
+    "hmc_loss",
+    "at_loss",
+    "accumulated_hmc_loss",
+    "to_full_resolution",
+    "sample_flow",
+    "warp_events",
+    "forward_warp_flow",
+    "bilinear_splat",
+    "bilinear_corners",
+    "warped_event_images",
+    "average_timestamp_images",
+    "average_timestamp_loss",
+    "event_count_loss",
+    "charbonnier_smoothness",
+    "event_pixel_mask",
+    "flow_error",
+    "flow_error_torch",
+    "fwl",
+    "fwl_torch",
+    "rsat",
+    "rsat_torch",
+]

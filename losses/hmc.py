@@ -1,0 +1,210 @@
+"""Hybrid motion-compensation loss L_HMC (REFERENCE sec. 5, eq. 17) and the baseline L_AT.
+
+A composite that is only a weighted sum:
+``L_HMC = L_AT(0) + L_AT(1) + lambda_1 (L_EC(0) + L_EC(1)) + lambda_2 L_smooth``;
+the baseline ``L_AT`` drops the L_EC term (same smoothing). Multi-scale input: every scale is
+brought to full resolution, the loss is computed on each and averaged over scales. Over a batch:
+the mean over batch elements; a padded batch gives exactly the per-window results.
+
+Known hole (REFERENCE sec. 5): out-of-image corners are dropped, so a flow that pushes every
+event off the sensor scores L_AT = L_EC = 0. ``components["kept"]`` reports the share of the
+events' splat weight that stayed inside the image (mean over the reference times), and
+``border_penalty`` (default 0, i.e. the paper's loss) adds
+``border_penalty * sum_s (1 - kept_s)`` for the project to close the hole with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+
+from ._validation import check_events, check_flow
+from .average_timestamp import average_timestamp_loss
+from .event_count import event_count_loss
+from .events import EventBatch
+from .iwe import warped_event_images
+from .sampling import sample_flow
+from .smoothness import charbonnier_smoothness, event_pixel_mask
+
+__all__ = ["LossOutput", "hmc_loss", "at_loss", "accumulated_hmc_loss", "to_full_resolution"]
+
+FlowInput = torch.Tensor | Sequence[torch.Tensor]
+
+
+@dataclass(frozen=True)
+class LossOutput:
+    """loss: () scalar, mean of ``per_sample``. per_sample: (B,) loss per window (graph kept).
+    components: (B,) detached tensors, averaged over scales: "at" = L_AT(0) + L_AT(1),
+    "ec" = L_EC(0) + L_EC(1), "smooth" = L_smooth, "kept" = share of valid events' splat weight
+    inside the image (mean over reference times; 1 for an empty window)."""
+
+    loss: torch.Tensor
+    per_sample: torch.Tensor
+    components: dict
+
+
+def to_full_resolution(flow: FlowInput) -> list[torch.Tensor]:
+    """Validate and bring every scale to full resolution.
+
+    flow: (B, 2, H, W) tensor, or a list of such tensors at several resolutions, all in pixels
+    per window at FULL sensor resolution (REFERENCE sec. 1). Full resolution = the largest H and
+    largest W in the list. Coarser scales are bilinearly upsampled (``F.interpolate``,
+    ``align_corners=False``) without rescaling the values, since they are already in full-
+    resolution pixels. Returns a list of (B, 2, H, W) tensors.
+    Raises ValueError for an empty list, a bad shape, NaN/inf, or differing batch sizes.
+    """
+    flows = [flow] if isinstance(flow, torch.Tensor) else list(flow)
+    if not flows:
+        raise ValueError("flow: empty list of scales")
+    for j, f in enumerate(flows):
+        check_flow(f, name="flow" if len(flows) == 1 else f"flow[{j}]")
+    B = flows[0].shape[0]
+    if any(f.shape[0] != B for f in flows):
+        raise ValueError(f"flow scales have different batch sizes {[f.shape[0] for f in flows]}")
+    H = max(f.shape[2] for f in flows)
+    W = max(f.shape[3] for f in flows)
+    return [
+        f if f.shape[2:] == (H, W)
+        else F.interpolate(f, size=(H, W), mode="bilinear", align_corners=False)
+        for f in flows
+    ]
+
+
+def _terms(
+    x, y, t, p, mask, u, flow_for_smooth: Sequence[torch.Tensor], masks_for_smooth,
+    height, width, references, span, alpha, flow_scaling, need_ec,
+) -> dict:
+    """(B,) tensors at, ec, smooth, dropped for one set of (possibly accumulated) events."""
+    count, stamp = warped_event_images(x, y, t, p, mask, u, height, width, references, span)
+    at = average_timestamp_loss(count, stamp).sum(dim=1)  # L_AT(s0) + L_AT(s1)
+    if need_ec:
+        ec = event_count_loss(count, alpha).sum(dim=1)
+    else:
+        with torch.no_grad():
+            ec = event_count_loss(count.detach(), alpha).sum(dim=1)
+    n_valid = mask.sum(dim=1).to(u.dtype)  # (B,)
+    kept = count.sum(dim=(2, 3, 4)) / n_valid.clamp_min(1).unsqueeze(1)  # (B, R)
+    dropped = torch.where(n_valid.unsqueeze(1) > 0, 1 - kept, torch.zeros_like(kept))
+    smooth = sum(
+        charbonnier_smoothness(f, m, flow_scaling) for f, m in zip(flow_for_smooth, masks_for_smooth)
+    ) / len(flow_for_smooth)
+    return {"at": at, "ec": ec, "smooth": smooth, "dropped": dropped}
+
+
+def _combine(terms_per_scale, lambda_1, lambda_2, border_penalty, use_ec) -> LossOutput:
+    per = []
+    for tm in terms_per_scale:
+        s = tm["at"] + lambda_2 * tm["smooth"]
+        if use_ec:
+            s = s + lambda_1 * tm["ec"]
+        if border_penalty:
+            s = s + border_penalty * tm["dropped"].sum(dim=1)
+        per.append(s)
+    n = len(terms_per_scale)
+    per_sample = sum(per) / n
+    comps = {
+        k: (sum(tm[k] for tm in terms_per_scale) / n).detach() for k in ("at", "ec", "smooth")
+    }
+    comps["kept"] = (1 - sum(tm["dropped"] for tm in terms_per_scale) / n).mean(dim=1).detach()
+    return LossOutput(loss=per_sample.mean(), per_sample=per_sample, components=comps)
+
+
+def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_penalty, use_ec):
+    flows = to_full_resolution(flow)
+    B, _, H, W = flows[0].shape
+    check_events(events, batch_size=B)
+    scaling = float(max(H, W)) if flow_scaling is None else float(flow_scaling)
+    ev_mask = event_pixel_mask(events.x, events.y, events.mask, H, W)
+    terms = []
+    for f in flows:
+        u = sample_flow(f, events.x, events.y)
+        terms.append(
+            _terms(events.x, events.y, events.tau, events.p, events.mask, u, [f], [ev_mask],
+                   H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec)
+        )
+    return _combine(terms, lambda_1, lambda_2, border_penalty, use_ec)
+
+
+def hmc_loss(
+    flow: FlowInput,
+    events: EventBatch,
+    *,
+    flow_scaling: float | None = None,
+    lambda_1: float = 1.0,
+    lambda_2: float = 1e-3,
+    alpha: float = 0.6,
+    border_penalty: float = 0.0,
+) -> LossOutput:
+    """Hybrid motion-compensation loss, eq. 17, per window.
+
+    flow: (B, 2, H, W) float, pixels of displacement over the window at full sensor resolution,
+        or a list of such tensors at several resolutions (see ``to_full_resolution``).
+    events: EventBatch of B windows (x, y pixels; tau in [0, 1]; padded with mask).
+    flow_scaling: pixels per network unit for the smoothness term; default max(H, W).
+    lambda_1 = 1, lambda_2 = 1e-3, alpha = 0.6: paper values. border_penalty: 0 (paper).
+    Returns LossOutput (loss = mean over batch of per_sample). Events and flow may be on CPU or
+    CUDA; computations run in flow's dtype.
+    Raises ValueError for a bad flow shape, NaN/inf flow, batch-size mismatch, empty batch or
+    tau outside [0, 1].
+    """
+    return _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_penalty, True)
+
+
+def at_loss(
+    flow: FlowInput,
+    events: EventBatch,
+    *,
+    flow_scaling: float | None = None,
+    lambda_2: float = 1e-3,
+    border_penalty: float = 0.0,
+) -> LossOutput:
+    """Baseline loss "L_AT": ``L_AT(0) + L_AT(1) + lambda_2 L_smooth`` (same args as hmc_loss).
+    ``components["ec"]`` is still reported (detached, alpha = 0.6) for logging."""
+    return _per_window(flow, events, flow_scaling, 1.0, lambda_2, 0.6, border_penalty, False)
+
+
+def accumulated_hmc_loss(
+    flows: Sequence[torch.Tensor],
+    events_list: Sequence[EventBatch],
+    *,
+    flow_scaling: float | None = None,
+    lambda_1: float = 1.0,
+    lambda_2: float = 1e-3,
+    alpha: float = 0.6,
+    border_penalty: float = 0.0,
+) -> LossOutput:
+    """Accumulated-window variant (REFERENCE sec. 5, Hagenaars "sequential learning").
+
+    flows: K tensors (B, 2, H, W), pixels per window, flow k for window k (full resolution).
+    events_list: K EventBatch, window k's events. Event i of window k has time T_i = k + tau_i
+    (in windows) and is warped with its own window's flow: ``x' = x + (s - T_i) u_k(x)`` for
+    references s in {0, K}; its timestamp weight is ``1 - |s - T_i| / K`` (so T_P stays in
+    [0, 1]). L_AT(0) + L_AT(K) + lambda_1 (L_EC(0) + L_EC(K)) + lambda_2 * mean over k of
+    L_smooth(flow k, window k's event pixels). With K = 1 this equals ``hmc_loss``.
+    """
+    flows = list(flows)
+    events_list = list(events_list)
+    if len(flows) == 0 or len(flows) != len(events_list):
+        raise ValueError(
+            f"accumulated_hmc_loss: need K >= 1 flows and K event batches, got {len(flows)} "
+            f"and {len(events_list)}"
+        )
+    for k, f in enumerate(flows):
+        check_flow(f, name=f"flows[{k}]")
+        if f.shape != flows[0].shape:
+            raise ValueError(f"flows[{k}] has shape {tuple(f.shape)} != flows[0] {tuple(flows[0].shape)}")
+    B, _, H, W = flows[0].shape
+    for k, ev in enumerate(events_list):
+        check_events(ev, batch_size=B, name=f"events_list[{k}]")
+    K = len(flows)
+    scaling = float(max(H, W)) if flow_scaling is None else float(flow_scaling)
+    us = [sample_flow(f, ev.x, ev.y) for f, ev in zip(flows, events_list)]
+    cat = lambda name: torch.cat([getattr(ev, name) for ev in events_list], dim=1)  # noqa: E731
+    t = torch.cat([ev.tau.to(flows[0].dtype) + k for k, ev in enumerate(events_list)], dim=1)
+    masks = [event_pixel_mask(ev.x, ev.y, ev.mask, H, W) for ev in events_list]
+    terms = _terms(cat("x"), cat("y"), t, cat("p"), cat("mask"), torch.cat(us, dim=1),
+                   flows, masks, H, W, (0.0, float(K)), float(K), alpha, scaling, True)
+    return _combine([terms], lambda_1, lambda_2, border_penalty, True)

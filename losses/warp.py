@@ -1,0 +1,48 @@
+"""Warps: events to a reference time (REFERENCE eq. 12) and a flow field forward (eq. 9)."""
+
+from __future__ import annotations
+
+import torch
+
+from .splat import bilinear_splat
+
+__all__ = ["warp_events", "forward_warp_flow"]
+
+
+def warp_events(
+    x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, u: torch.Tensor, reference: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Move each event along its flow to the reference time (eq. 12).
+
+    x, y: (...) float pixels; t: (...) float, event time in windows (tau, or k + tau in the
+    accumulated variant); u: (..., 2) float, pixels per window; reference: s, in windows.
+    Returns (x', y'), each (...): ``x' = x + (s - t) * u_x``, ``y' = y + (s - t) * u_y``.
+    """
+    dt = reference - t
+    return x + dt * u[..., 0], y + dt * u[..., 1]
+
+
+def forward_warp_flow(flow: torch.Tensor) -> torch.Tensor:
+    """Prior flow alignment of FGD-Net (REFERENCE eq. 9): ``ubar(x + u(x)) = u(x)``.
+
+    flow: (B, 2, H, W) float, pixels per window at the flow's own resolution.
+    Returns (B, 2, H, W): each pixel's flow vector bilinearly splatted to its displaced position,
+    divided by the splatted weight there; pixels that receive no weight (holes) are 0.
+    Corners that land outside the image are dropped. Differentiable in flow.
+    """
+    if flow.ndim != 4 or flow.shape[1] != 2:
+        raise ValueError(f"forward_warp_flow: flow must be (B, 2, H, W), got {tuple(flow.shape)}")
+    B, _, H, W = flow.shape
+    rows, cols = torch.meshgrid(
+        torch.arange(H, dtype=flow.dtype, device=flow.device),
+        torch.arange(W, dtype=flow.dtype, device=flow.device),
+        indexing="ij",
+    )
+    u = flow.flatten(2).transpose(1, 2)  # (B, HW, 2)
+    x = cols.reshape(1, -1) + u[..., 0]
+    y = rows.reshape(1, -1) + u[..., 1]
+    values = torch.cat([torch.ones_like(u[..., :1]), u], dim=-1)  # (B, HW, 3): weight, u_x, u_y
+    out = bilinear_splat(x, y, values, H, W)  # (B, 3, H, W)
+    weight, moved = out[:, :1], out[:, 1:]
+    hit = weight > 0
+    return torch.where(hit, moved / torch.where(hit, weight, torch.ones_like(weight)), 0.0)
