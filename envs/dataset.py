@@ -1,0 +1,91 @@
+"""Resolving a ``data`` argument into a list of recordings, opened lazily.
+
+``data`` is one of: a synthetic split name (``"synthetic-train"``, ``"synthetic-test"``,
+``"synthetic-mini"``, ...), a path to a recording in any supported format, a directory
+(every recording file inside it, sorted by name), or a list mixing these. Each recording is
+opened only when an episode first needs it, and kept open afterwards.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+from envs.readers.base import EventReader
+
+__all__ = ["SequenceSource", "resolve_data", "RECORDING_SUFFIXES"]
+
+RECORDING_SUFFIXES = (".h5", ".hdf5", ".txt", ".aedat4")
+
+
+@dataclass
+class SequenceSource:
+    """One recording: its name and how to open it."""
+
+    name: str
+    open: Callable[[], EventReader]
+    _reader: EventReader | None = field(default=None, repr=False)
+
+    def reader(self) -> EventReader:
+        if self._reader is None:
+            self._reader = self.open()
+        return self._reader
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+
+
+def _open_path(path: Path, fmt: str | None) -> EventReader:
+    try:
+        from envs.readers import open_recording
+    except ImportError:  # only the project format is available
+        from envs.h5format import H5Reader
+
+        return H5Reader(path)
+    return open_recording(path, format=fmt)
+
+
+def _synthetic_sources(split: str) -> list[SequenceSource]:
+    from envs import synthetic
+
+    specs = synthetic.list_sequences(split)
+    return [
+        SequenceSource(spec.name, (lambda i=i: synthetic.load_sequence(split, i)))
+        for i, spec in enumerate(specs)
+    ]
+
+
+def _is_synthetic_name(item) -> bool:
+    return isinstance(item, str) and item.startswith("synthetic") and not os.path.exists(item)
+
+
+def resolve_data(data: str | os.PathLike | Sequence, *, format: str | None = None) -> list[SequenceSource]:
+    """Turn ``data`` into recordings. Raises FileNotFoundError naming a missing path and
+    ValueError for an unknown split or an empty directory."""
+    items = [data] if isinstance(data, (str, os.PathLike)) else list(data)
+    if not items:
+        raise ValueError("data: empty list of recordings")
+    sources: list[SequenceSource] = []
+    for item in items:
+        if _is_synthetic_name(item):
+            sources.extend(_synthetic_sources(str(item)))
+            continue
+        path = Path(item)
+        if not path.exists():
+            raise FileNotFoundError(
+                f"data: {path} does not exist (expected a recording file, a directory of "
+                f"recordings, or a synthetic split name such as 'synthetic-train')"
+            )
+        if path.is_dir():
+            files = sorted(p for p in path.iterdir() if p.suffix.lower() in RECORDING_SUFFIXES)
+            if not files:
+                raise ValueError(f"data: directory {path} holds no recordings ({', '.join(RECORDING_SUFFIXES)})")
+        else:
+            files = [path]
+        for f in files:
+            sources.append(SequenceSource(f.stem, (lambda f=f: _open_path(f, format))))
+    return sources

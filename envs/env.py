@@ -1,0 +1,391 @@
+"""``EventFlow-v0``: event windows in, optical-flow actions out, scored by -L_HMC."""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from envs.dataset import resolve_data
+from envs.events import Events
+from envs.representations import count_image, voxel_grid
+from envs.visualize import count_image_to_rgb, flow_to_rgb
+from envs.windows import WINDOW_MODES, window_bounds
+from losses import EventBatch, at_loss, hmc_loss
+
+__all__ = ["EventFlowEnv", "OBSERVATION_KEYS"]
+
+OBSERVATION_KEYS = ("count_image", "voxel_grid", "events")
+# Finite upper bound of the count/voxel boxes: far above any real per-pixel count.
+_MAX_COUNT = float(2**24)
+
+
+class EventFlowEnv(gym.Env):
+    """Event-camera optical flow as an episodic environment.
+
+    An episode is one recording (a *sequence*) cut into consecutive event windows. Each
+    observation shows one window; the action is the optical flow over that window; the
+    reward scores the action on the window's own events with the unsupervised hybrid
+    motion-compensation loss, so no ground truth is needed to train.
+
+    **Observation** (``Dict`` of float32 ``Box``es, parts chosen with ``observations``):
+
+    - ``"count_image"``: (2, H, W) events per pixel, [ON, OFF] (paper eq. 2), in [0, 2^24].
+    - ``"voxel_grid"``: (voxel_bins, H, W) signed, bilinear in time, in [-2^24, 2^24].
+    - ``"events"``: (max_events, 4) rows ``(x, y, tau, p)`` of the window's events, zero
+      padded; ``"num_events"``: (1,) how many rows are real. A window with more events
+      than ``max_events`` is subsampled evenly for this part only (``info`` and the reward
+      always use every event).
+
+    **Action**: ``Box(-F, F, (2, H, W), float32)``: flow in pixels of displacement over the
+    window (channel 0 = x, right; channel 1 = y, down), with ``F = flow_limit`` (default
+    ``flow_scaling``, i.e. max(H, W): a displacement across the whole frame). Actions must be
+    float32/float64 of shape (2, H, W) and finite; finite values outside the box are clipped.
+
+    **Reward**: ``-L_HMC(action, events of the window just observed)`` (REFERENCE section 5:
+    L_AT(0) + L_AT(1) + lambda_1 (L_EC(0) + L_EC(1)) + lambda_2 L_smooth), or ``-L_AT``
+    (+ smoothing) with ``loss="at"``. A Python float; higher is better; 0 is unattainable for
+    a window with events. ``border_penalty`` is passed to the loss (0 = the paper's loss).
+
+    **Episode end**: the end of the recording *truncates* the episode (``truncated=True``):
+    the recording stopping is a limit of the data, not a terminal state of the scene, so a
+    value estimate should bootstrap through it. ``terminated`` is always False. The
+    observation returned with ``truncated=True`` is all zeros (there is no next window).
+    ``max_episode_steps`` (through ``gymnasium.make``) cuts training chunks.
+
+    **info** (numpy and Python scalars only), describing the window the returned
+    observation shows:
+
+    - ``"events"``: dict of ``x``, ``y`` (pixels), ``t`` (int64 µs), ``p`` (+-1) arrays;
+    - ``"t_start"``, ``"t_end"``: int µs, the window ``[t_start, t_end)``;
+    - ``"sequence"`` (name), ``"sequence_index"``, ``"step"`` (window index in the episode);
+    - ``"flow_gt"`` (2, H, W) float32 pixels over the window and ``"flow_gt_valid"`` (H, W)
+      bool, when the recording has ground truth for this window;
+    - after ``step`` only: ``"reward_components"``: dict of ``at``, ``ec``, ``smooth`` (floats,
+      the scored window's loss terms; ``ec`` is reported with ``loss="at"`` too).
+
+    Events and flows are in the env's pixel frame (after crop and flips), the frame of the
+    action.
+
+    **Randomness** (all through ``self.np_random``): the sequence chosen at ``reset`` (unless
+    ``options["sequence"]``), the start time when ``random_start``, and the flips.
+
+    Args:
+        data: synthetic split name (default ``"synthetic-train"``), a recording path, a
+            directory, or a list of these. All recordings must share one sensor size
+            unless ``crop`` fixes the frame.
+        data_format: force a reader (``"evflow-h5"``, ``"mvsec"``, ...); default: detected.
+        window: ``"frames"`` (ground-truth aligned), ``"time"`` or ``"count"``.
+        window_size: grid steps (``frames``, default 1), µs (``time``, default 10 000) or
+            events (``count``, default 15 000).
+        crop: None, ``(height, width)`` centred, or ``(top, left, height, width)``.
+        observations: which of ``OBSERVATION_KEYS`` to include.
+        voxel_bins, max_events: sizes of the optional parts.
+        flips: False, True (all of "h", "v", "p") or a subset of ``("h", "v", "p")``:
+            horizontal / vertical mirror and polarity swap, each drawn with probability
+            0.5 once per episode; the ground truth is flipped to match.
+        loss: ``"hmc"`` or ``"at"``; lambda_1, lambda_2, alpha: the loss weights (paper
+            defaults); border_penalty: see losses.hmc_loss.
+        flow_scaling: pixels per network unit in the smoothness term (default max(H, W)).
+        flow_limit: F, the action bound (default flow_scaling).
+        random_start: start each episode at a random window instead of the first.
+        compute_reward: False skips the loss (reward 0.0), e.g. for pure evaluation rollouts.
+        render_mode: None or ``"rgb_array"``.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+
+    def __init__(
+        self,
+        data: str | Sequence = "synthetic-train",
+        *,
+        data_format: str | None = None,
+        window: str = "frames",
+        window_size: int | None = None,
+        crop: Sequence[int] | None = None,
+        observations: Sequence[str] = ("count_image",),
+        voxel_bins: int = 5,
+        max_events: int = 30_000,
+        flips: bool | Sequence[str] = False,
+        loss: str = "hmc",
+        lambda_1: float = 1.0,
+        lambda_2: float = 1e-3,
+        alpha: float = 0.6,
+        border_penalty: float = 0.0,
+        flow_scaling: float | None = None,
+        flow_limit: float | None = None,
+        random_start: bool = False,
+        compute_reward: bool = True,
+        render_mode: str | None = None,
+    ) -> None:
+        if window not in WINDOW_MODES:
+            raise ValueError(f"window must be one of {WINDOW_MODES}, got {window!r}")
+        self.window = window
+        self.window_size = int(window_size if window_size is not None else {"frames": 1, "time": 10_000, "count": 15_000}[window])
+        unknown = [k for k in observations if k not in OBSERVATION_KEYS]
+        if unknown or not observations:
+            raise ValueError(f"observations must be a non-empty subset of {OBSERVATION_KEYS}, got {list(observations)}")
+        self.observation_keys = tuple(observations)
+        if loss not in ("hmc", "at"):
+            raise ValueError(f"loss must be 'hmc' or 'at', got {loss!r}")
+        self.loss_name = loss
+        self.loss_weights = dict(lambda_1=lambda_1, lambda_2=lambda_2, alpha=alpha, border_penalty=border_penalty)
+        flips = ("h", "v", "p") if flips is True else (() if flips is False else tuple(flips))
+        if any(f not in ("h", "v", "p") for f in flips):
+            raise ValueError(f"flips must be True/False or a subset of ('h', 'v', 'p'), got {flips}")
+        self.flip_kinds = flips
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
+        self.render_mode = render_mode
+        self.random_start = random_start
+        self.compute_reward = compute_reward
+        self.voxel_bins = int(voxel_bins)
+        self.max_events = int(max_events)
+
+        self.sources = resolve_data(data, format=data_format)
+        self.sequence_names = [s.name for s in self.sources]
+        first = self.sources[0].reader()
+        self.sensor_size = tuple(first.sensor_size)
+        self._crop = self._parse_crop(crop, self.sensor_size)
+        self.height, self.width = self._crop[2], self._crop[3]
+        self.flow_scaling = float(flow_scaling if flow_scaling is not None else max(self.height, self.width))
+        self.flow_limit = float(flow_limit if flow_limit is not None else self.flow_scaling)
+
+        h, w = self.height, self.width
+        parts: dict[str, spaces.Space] = {}
+        if "count_image" in self.observation_keys:
+            parts["count_image"] = spaces.Box(0.0, _MAX_COUNT, (2, h, w), np.float32)
+        if "voxel_grid" in self.observation_keys:
+            parts["voxel_grid"] = spaces.Box(-_MAX_COUNT, _MAX_COUNT, (self.voxel_bins, h, w), np.float32)
+        if "events" in self.observation_keys:
+            low = np.tile(np.array([0, 0, 0, -1], np.float32), (self.max_events, 1))
+            high = np.tile(np.array([w - 1, h - 1, 1, 1], np.float32), (self.max_events, 1))
+            parts["events"] = spaces.Box(low, high, dtype=np.float32)
+            parts["num_events"] = spaces.Box(0.0, float(self.max_events), (1,), np.float32)
+        self.observation_space = spaces.Dict(parts)
+        self.action_space = spaces.Box(-self.flow_limit, self.flow_limit, (2, h, w), np.float32)
+
+        self._bounds: np.ndarray | None = None
+        self._seq_index = -1
+        self._step = 0
+        self._flips: dict[str, bool] = {}
+        self._window: dict[str, Any] | None = None
+        self._last_action: np.ndarray | None = None
+        self._scored_window: dict[str, Any] | None = None
+
+    # ------------------------------------------------------------------------------------------
+    @staticmethod
+    def _parse_crop(crop, sensor_size) -> tuple[int, int, int, int]:
+        sh, sw = sensor_size
+        if crop is None:
+            return (0, 0, sh, sw)
+        crop = tuple(int(c) for c in crop)
+        if len(crop) == 2:
+            ch, cw = crop
+            crop = ((sh - ch) // 2, (sw - cw) // 2, ch, cw)
+        if len(crop) != 4:
+            raise ValueError(f"crop must be (height, width) or (top, left, height, width), got {crop}")
+        top, left, ch, cw = crop
+        if ch <= 0 or cw <= 0 or top < 0 or left < 0 or top + ch > sh or left + cw > sw:
+            raise ValueError(f"crop {crop} does not fit inside the sensor {sh}x{sw} (height x width)")
+        return crop
+
+    def _reader(self, index: int):
+        reader = self.sources[index].reader()
+        if tuple(reader.sensor_size) != self.sensor_size:
+            top, left, ch, cw = self._crop
+            if ch > reader.sensor_size[0] or cw > reader.sensor_size[1]:
+                raise ValueError(
+                    f"recording {self.sources[index].name!r} is {reader.sensor_size[0]}x{reader.sensor_size[1]} "
+                    f"but the env's frame is {ch}x{cw} (set crop= to a size every recording can hold, "
+                    "or use recordings of one sensor size)"
+                )
+        return reader
+
+    def _crop_for(self, reader) -> tuple[int, int, int, int]:
+        if tuple(reader.sensor_size) == self.sensor_size:
+            return self._crop
+        sh, sw = reader.sensor_size
+        return ((sh - self.height) // 2, (sw - self.width) // 2, self.height, self.width)
+
+    def _sequence_index(self, choice) -> int:
+        if isinstance(choice, str):
+            if choice not in self.sequence_names:
+                raise ValueError(f"options['sequence']: unknown sequence {choice!r}; known: {self.sequence_names}")
+            return self.sequence_names.index(choice)
+        index = int(choice)
+        if not 0 <= index < len(self.sources):
+            raise ValueError(f"options['sequence']: index {index} outside [0, {len(self.sources)})")
+        return index
+
+    # ------------------------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        options = dict(options or {})
+        if "sequence" in options:
+            index = self._sequence_index(options["sequence"])
+        else:
+            index = int(self.np_random.integers(len(self.sources)))
+        reader = self._reader(index)
+        bounds = window_bounds(reader, self.window, self.window_size, t_from=options.get("start"))
+        if len(bounds) == 0:
+            raise ValueError(
+                f"recording {self.sources[index].name!r} has no {self.window} window of size "
+                f"{self.window_size} after t={options.get('start', reader.t_start)} us"
+            )
+        if self.random_start and "start" not in options and len(bounds) > 1:
+            bounds = bounds[int(self.np_random.integers(len(bounds))) :]
+        self._bounds = bounds
+        self._seq_index = index
+        self._step = 0
+        self._flips = {k: bool(self.np_random.random() < 0.5) for k in self.flip_kinds}
+        self._last_action = None
+        self._scored_window = None
+        self._window = self._load_window(0)
+        return self._observation(self._window), self._info(self._window)
+
+    def step(self, action):
+        if self._window is None:
+            raise RuntimeError("EventFlowEnv.step() called before reset(); call env.reset() first")
+        flow = self._check_action(action)
+        self._last_action = flow
+        self._scored_window = self._window
+        reward, components = 0.0, {}
+        if self.compute_reward:
+            reward, components = self._score(flow, self._window)
+        self._step += 1
+        truncated = self._step >= len(self._bounds)
+        if truncated:
+            window = self._empty_window()
+            self._window = None
+            observation = {k: np.zeros(s.shape, np.float32) for k, s in self.observation_space.spaces.items()}
+        else:
+            window = self._window = self._load_window(self._step)
+            observation = self._observation(window)
+        info = self._info(window)
+        info["reward_components"] = components
+        return observation, reward, False, truncated, info
+
+    # ------------------------------------------------------------------------------------------
+    def _check_action(self, action) -> np.ndarray:
+        shape = self.action_space.shape
+        if isinstance(action, torch.Tensor):
+            action = action.detach().cpu().numpy()
+        action = np.asarray(action)
+        if action.shape != shape:
+            raise ValueError(f"action must be a flow of shape {shape} (2, H, W) in pixels per window, got shape {action.shape}")
+        if action.dtype not in (np.float32, np.float64):
+            raise ValueError(f"action must be float32 (or float64) flow in pixels, got dtype {action.dtype}")
+        if not np.isfinite(action).all():
+            bad = np.argwhere(~np.isfinite(action))[0]
+            raise ValueError(f"action holds a non-finite value at index {tuple(int(i) for i in bad)}: flow must be finite")
+        return np.clip(action, -self.flow_limit, self.flow_limit).astype(np.float32)
+
+    def _score(self, flow: np.ndarray, window: dict) -> tuple[float, dict]:
+        batch = EventBatch.from_windows([{**window["events"], "t_start": window["t_start"], "t_end": window["t_end"]}])
+        fn = hmc_loss if self.loss_name == "hmc" else at_loss
+        kwargs = dict(flow_scaling=self.flow_scaling, lambda_2=self.loss_weights["lambda_2"], border_penalty=self.loss_weights["border_penalty"])
+        if self.loss_name == "hmc":
+            kwargs.update(lambda_1=self.loss_weights["lambda_1"], alpha=self.loss_weights["alpha"])
+        with torch.no_grad():
+            out = fn(torch.from_numpy(flow).unsqueeze(0), batch, **kwargs)
+        components = {k: float(v.reshape(-1)[0]) for k, v in out.components.items()}
+        return -float(out.loss), components
+
+    def _load_window(self, k: int) -> dict[str, Any]:
+        t_start, t_end, i_start, i_end = (int(v) for v in self._bounds[k])
+        reader = self._reader(self._seq_index)
+        events = reader.events_range(i_start, i_end)
+        top, left, ch, cw = self._crop_for(reader)
+        x, y, t, p = events.x, events.y, events.t, events.p
+        if (top, left, ch, cw) != (0, 0) + tuple(reader.sensor_size):
+            keep = (x >= left) & (x < left + cw) & (y >= top) & (y < top + ch)
+            x, y, t, p = x[keep] - left, y[keep] - top, t[keep], p[keep]
+            x, y = x.astype(events.x.dtype), y.astype(events.y.dtype)
+        if self._flips.get("h"):
+            x = (cw - 1 - x).astype(x.dtype)
+        if self._flips.get("v"):
+            y = (ch - 1 - y).astype(y.dtype)
+        if self._flips.get("p"):
+            p = (-p).astype(p.dtype)
+        window = {"events": {"x": x, "y": y, "t": t, "p": p}, "t_start": t_start, "t_end": t_end}
+        gt = reader.flow_between(t_start, t_end)
+        if gt is not None:
+            flow, valid = gt
+            flow = np.array(flow[:, top : top + ch, left : left + cw], np.float32)
+            valid = np.array(valid[top : top + ch, left : left + cw], bool)
+            if self._flips.get("h"):
+                flow, valid = flow[:, :, ::-1].copy(), valid[:, ::-1].copy()
+                flow[0] = -flow[0]
+            if self._flips.get("v"):
+                flow, valid = flow[:, ::-1].copy(), valid[::-1].copy()
+                flow[1] = -flow[1]
+            window["flow_gt"], window["flow_gt_valid"] = flow, valid
+        return window
+
+    def _empty_window(self) -> dict[str, Any]:
+        t_end = int(self._bounds[-1][1])
+        ev = Events.empty((self.height, self.width))
+        return {"events": ev.as_dict(), "t_start": t_end, "t_end": t_end}
+
+    def _observation(self, window: dict) -> dict[str, np.ndarray]:
+        ev = window["events"]
+        size = (self.height, self.width)
+        obs: dict[str, np.ndarray] = {}
+        if "count_image" in self.observation_keys:
+            obs["count_image"] = count_image(_EventView(ev), size)
+        if "voxel_grid" in self.observation_keys:
+            obs["voxel_grid"] = voxel_grid(_EventView(ev), self.voxel_bins, window["t_start"], window["t_end"], size)
+        if "events" in self.observation_keys:
+            n = len(ev["t"])
+            rows = np.zeros((self.max_events, 4), np.float32)
+            pick = np.arange(n) if n <= self.max_events else np.linspace(0, n - 1, self.max_events).astype(np.int64)
+            tau = (ev["t"][pick] - window["t_start"]) / max(window["t_end"] - window["t_start"], 1)
+            rows[: len(pick)] = np.stack([ev["x"][pick], ev["y"][pick], np.clip(tau, 0, 1), ev["p"][pick]], axis=1)
+            obs["events"] = rows
+            obs["num_events"] = np.array([len(pick)], np.float32)
+        return obs
+
+    def _info(self, window: dict) -> dict[str, Any]:
+        info = {
+            "events": window["events"],
+            "t_start": window["t_start"],
+            "t_end": window["t_end"],
+            "sequence": self.sequence_names[self._seq_index],
+            "sequence_index": self._seq_index,
+            "step": self._step,
+        }
+        for key in ("flow_gt", "flow_gt_valid"):
+            if key in window:
+                info[key] = window[key]
+        return info
+
+    # ------------------------------------------------------------------------------------------
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        size = (self.height, self.width)
+        # the window the last action was scored on; before any step, the current one
+        shown = self._scored_window if self._scored_window is not None else self._window
+        if shown is not None:
+            counts = count_image(_EventView(shown["events"]), size)
+        else:
+            counts = np.zeros((2,) + size, np.float32)
+        left = count_image_to_rgb(counts)
+        flow = self._last_action if self._last_action is not None else np.zeros((2,) + size, np.float32)
+        right = flow_to_rgb(flow)
+        return np.concatenate([left, right], axis=1)
+
+    def close(self) -> None:
+        for source in self.sources:
+            source.close()
+
+
+class _EventView:
+    """Attribute access over an events dict (what the representation functions read)."""
+
+    def __init__(self, events: dict[str, np.ndarray]) -> None:
+        self.x, self.y, self.t, self.p = events["x"], events["y"], events["t"], events["p"]

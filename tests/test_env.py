@@ -1,0 +1,159 @@
+import gymnasium
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+import envs  # registers the ids
+from envs.env import EventFlowEnv
+from envs.h5format import H5Reader
+from losses import EventBatch, hmc_loss
+from tests.recordings import write_translating_recording
+
+
+@pytest.fixture
+def recording(tmp_path):
+    return write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(5))
+
+
+def test_check_env_on_h5_file(recording):
+    env = EventFlowEnv(recording, observations=("count_image", "voxel_grid", "events"), max_events=500)
+    check_env(env, skip_render_check=True)
+
+
+def test_episode_delivers_every_event_once_in_order(recording):
+    env = EventFlowEnv(recording, window="time", window_size=7_000)
+    obs, info = env.reset(seed=0)
+    ts, bounds, truncated = [info["events"]["t"]], [(info["t_start"], info["t_end"])], False
+    while not truncated:
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert not terminated
+        if not truncated:
+            ts.append(info["events"]["t"])
+            bounds.append((info["t_start"], info["t_end"]))
+    with H5Reader(recording) as reader:
+        np.testing.assert_array_equal(np.concatenate(ts), reader.events_range(0, reader.num_events).t)
+        assert bounds[0][0] == reader.t_start and bounds[-1][1] == reader.t_end
+    assert all(a[1] == b[0] for a, b in zip(bounds, bounds[1:]))
+
+
+def test_reward_equals_hmc_on_info_events(recording):
+    env = EventFlowEnv(recording)
+    obs, info = env.reset(seed=1)
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        action = rng.normal(0, 2, env.action_space.shape).astype(np.float32)
+        window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+        expected = hmc_loss(torch.from_numpy(action)[None], EventBatch.from_windows([window]), flow_scaling=env.flow_scaling)
+        obs, reward, _, _, info = env.step(action)
+        assert isinstance(reward, float)
+        assert reward == pytest.approx(-float(expected.loss), rel=1e-6)
+        assert info["reward_components"]["at"] == pytest.approx(float(expected.components["at"][0]), rel=1e-6)
+
+
+def test_ground_truth_beats_zero_flow(recording):
+    env = EventFlowEnv(recording)
+    _, info = env.reset(seed=0)
+    totals = {"gt": 0.0, "zero": 0.0}
+    for _ in range(6):
+        window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+        batch = EventBatch.from_windows([window])
+        for name, flow in (("gt", info["flow_gt"]), ("zero", np.zeros_like(info["flow_gt"]))):
+            totals[name] += float(hmc_loss(torch.from_numpy(flow)[None], batch, flow_scaling=env.flow_scaling).loss)
+        _, _, _, truncated, info = env.step(info["flow_gt"])
+        if truncated:
+            break
+    assert totals["gt"] < totals["zero"]
+
+
+def test_flips_transform_events_and_ground_truth(recording):
+    plain = EventFlowEnv(recording)
+    flipped = EventFlowEnv(recording, flips=("h", "v", "p"))
+    _, a = plain.reset(options={"sequence": 0})
+    for seed in range(200):  # find a seed where all three flips are drawn
+        _, b = flipped.reset(seed=seed, options={"sequence": 0})
+        if all(flipped._flips.values()):
+            break
+    assert all(flipped._flips.values())
+    w = plain.width
+    h = plain.height
+    np.testing.assert_array_equal(b["events"]["x"], w - 1 - a["events"]["x"])
+    np.testing.assert_array_equal(b["events"]["y"], h - 1 - a["events"]["y"])
+    np.testing.assert_array_equal(b["events"]["p"], -a["events"]["p"])
+    np.testing.assert_array_equal(b["flow_gt"][:, ::-1, ::-1], -a["flow_gt"])
+
+
+def test_crop_shifts_events_and_ground_truth(recording):
+    full = EventFlowEnv(recording)
+    cropped = EventFlowEnv(recording, crop=(5, 7, 20, 30))
+    _, a = full.reset(options={"sequence": 0})
+    _, b = cropped.reset(options={"sequence": 0})
+    keep = (a["events"]["x"] >= 7) & (a["events"]["x"] < 37) & (a["events"]["y"] >= 5) & (a["events"]["y"] < 25)
+    np.testing.assert_array_equal(b["events"]["x"], a["events"]["x"][keep] - 7)
+    np.testing.assert_array_equal(b["flow_gt"], a["flow_gt"][:, 5:25, 7:37])
+    assert cropped.action_space.shape == (2, 20, 30)
+
+
+def test_same_seed_same_episode(recording, tmp_path):
+    other = write_translating_recording(tmp_path / "other.h5", np.random.default_rng(9), velocity=(10.0, 5.0))
+    env = EventFlowEnv([recording, other], window="time", window_size=10_000, random_start=True)
+    first = [env.reset(seed=s)[1] for s in (3, 3)]
+    assert first[0]["sequence"] == first[1]["sequence"] and first[0]["t_start"] == first[1]["t_start"]
+    starts = {(info["sequence"], info["t_start"]) for info in (env.reset(seed=s)[1] for s in range(12))}
+    assert len(starts) > 3
+
+
+def test_options_choose_sequence_and_start(recording):
+    env = EventFlowEnv(recording, window="time", window_size=10_000)
+    _, info = env.reset(options={"sequence": "dots", "start": 55_000})
+    assert info["t_start"] == 55_000 and info["sequence"] == "dots"
+    with pytest.raises(ValueError, match="unknown sequence 'nope'"):
+        env.reset(options={"sequence": "nope"})
+
+
+def test_bad_actions_are_named(recording):
+    env = EventFlowEnv(recording)
+    with pytest.raises(RuntimeError, match="before reset"):
+        env.step(np.zeros(env.action_space.shape, np.float32))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(2, 48, 64\)"):
+        env.step(np.zeros((2, 64, 48), np.float32))
+    with pytest.raises(ValueError, match="dtype int64"):
+        env.step(np.zeros(env.action_space.shape, np.int64))
+    bad = np.zeros(env.action_space.shape, np.float32)
+    bad[1, 3, 4] = np.nan
+    with pytest.raises(ValueError, match=r"non-finite value at index \(1, 3, 4\)"):
+        env.step(bad)
+
+
+def test_missing_and_malformed_files_are_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing.h5 does not exist"):
+        EventFlowEnv(tmp_path / "missing.h5")
+    junk = tmp_path / "junk.h5"
+    junk.write_bytes(b"not an hdf5 file at all" * 10)
+    with pytest.raises(Exception, match="junk.h5"):
+        EventFlowEnv(junk)
+
+
+def test_render_is_side_by_side(recording):
+    env = EventFlowEnv(recording, render_mode="rgb_array")
+    env.reset(seed=0)
+    env.step(np.ones(env.action_space.shape, np.float32))
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.shape == (48, 128, 3)
+    assert (frame[:, 64:] != 255).any()  # a non-zero flow is coloured
+
+
+def test_make_and_make_vec(recording):
+    env = gymnasium.make("EventFlow-v0", data=str(recording), max_episode_steps=3)
+    env.reset(seed=0)
+    for _ in range(3):
+        *_, truncated, _ = env.step(env.action_space.sample())
+    assert truncated
+    for mode in ("sync", "async"):
+        vec = gymnasium.make_vec("EventFlow-v0", num_envs=2, vectorization_mode=mode, data=str(recording))
+        obs, _ = vec.reset(seed=0)
+        assert obs["count_image"].shape == (2, 2, 48, 64)
+        obs, reward, term, trunc, info = vec.step(np.zeros((2, 2, 48, 64), np.float32))
+        assert reward.shape == (2,) and np.all(reward < 0)
+        vec.close()
