@@ -1,0 +1,534 @@
+"""Tests for losses/: a slow, obvious float64 reference (explicit loops over events) is the
+oracle for the fast batched code; plus gradients, behaviour on an analytic translating pattern,
+and bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from losses import (
+    EventBatch,
+    accumulated_hmc_loss,
+    at_loss,
+    bilinear_splat,
+    event_pixel_mask,
+    forward_warp_flow,
+    hmc_loss,
+    sample_flow,
+)
+
+RTOL = 1e-6
+
+# --------------------------------------------------------------------------------------------
+# Slow reference: one event at a time, float64, kernel written as in REFERENCE section 5.
+# --------------------------------------------------------------------------------------------
+
+
+def ref_kernel_image(xw, yw, H, W):
+    """k(q - xw, r - yw) over all pixels (H, W): max(0, 1-|dx|) * max(0, 1-|dy|)."""
+    kx = np.maximum(0.0, 1.0 - np.abs(np.arange(W) - xw))
+    ky = np.maximum(0.0, 1.0 - np.abs(np.arange(H) - yw))
+    return np.outer(ky, kx)
+
+
+def ref_sample(flow, x, y):
+    """flow (2, H, W); coordinates clamped to the image, then bilinear."""
+    _, H, W = flow.shape
+    k = ref_kernel_image(min(max(x, 0.0), W - 1), min(max(y, 0.0), H - 1), H, W)
+    return np.array([(k * flow[0]).sum(), (k * flow[1]).sum()])
+
+
+def ref_images(flow, x, y, tau, p, s, H, W, span=1.0, t_override=None, flows_per_event=None):
+    C = np.zeros((2, H, W))
+    A = np.zeros((2, H, W))
+    for i in range(len(x)):
+        u = ref_sample(flow if flows_per_event is None else flows_per_event[i], x[i], y[i])
+        t = tau[i] if t_override is None else t_override[i]
+        xw, yw = x[i] + (s - t) * u[0], y[i] + (s - t) * u[1]
+        k = ref_kernel_image(xw, yw, H, W)
+        P = 0 if p[i] > 0 else 1
+        C[P] += k
+        A[P] += k * (1.0 - abs(s - t) / span)
+    return C, A
+
+
+def ref_at(C, A):
+    T = A / (C + 1e-9)
+    nnz = np.count_nonzero(C[0] + C[1] > 0)
+    return (T**2).sum() / (nnz + 1e-9)
+
+
+def ref_ec(C, alpha=0.6):
+    N = C.shape[1] * C.shape[2]
+    return N / np.exp(-alpha * C[0]).sum() + N / np.exp(-alpha * C[1]).sum() - 2
+
+
+def ref_smooth(flow, x, y, scaling, eps=1e-3):
+    _, H, W = flow.shape
+    has = np.zeros((H, W), bool)
+    for xi, yi in zip(x, y):
+        c, r = int(np.round(xi)), int(np.round(yi))
+        if 0 <= c < W and 0 <= r < H:
+            has[r, c] = True
+    f = flow / scaling
+    total = 0.0
+    for dr, dc, r0 in ((0, 1, 0), (1, 0, 0), (1, 1, 0), (-1, 1, 1)):  # right, down, d-right, up-right
+        for r in range(H):
+            for c in range(W):
+                r2, c2 = r + dr, c + dc
+                if 0 <= r2 < H and 0 <= c2 < W and has[r, c] and has[r2, c2]:
+                    for comp in range(2):
+                        d = f[comp, r2, c2] - f[comp, r, c]
+                        total += math.sqrt(d * d + eps * eps)
+    return total / 4
+
+
+def ref_hmc(flow, x, y, tau, p, lambda_1=1.0, lambda_2=1e-3, alpha=0.6, scaling=None, use_ec=True):
+    _, H, W = flow.shape
+    scaling = max(H, W) if scaling is None else scaling
+    at = ec = 0.0
+    for s in (0.0, 1.0):
+        C, A = ref_images(flow, x, y, tau, p, s, H, W)
+        at += ref_at(C, A)
+        ec += ref_ec(C, alpha)
+    sm = ref_smooth(flow, x, y, scaling)
+    total = at + lambda_2 * sm + (lambda_1 * ec if use_ec else 0.0)
+    return total, at, ec, sm
+
+
+# --------------------------------------------------------------------------------------------
+# Random windows
+# --------------------------------------------------------------------------------------------
+
+
+def random_window(rng, n, H, W, *, integer=True, border=False, polarity="both", t0=1000, dur=5000):
+    if border:  # hug the border: first/last rows and columns
+        x = rng.choice([0, 1, W - 2, W - 1], n).astype(float)
+        y = rng.integers(0, H, n).astype(float)
+        if not integer:
+            x = np.clip(x + rng.uniform(-0.4, 0.4, n), 0, W - 1)
+    else:
+        x = rng.integers(0, W, n).astype(float) if integer else rng.uniform(0, W - 1, n)
+        y = rng.integers(0, H, n).astype(float) if integer else rng.uniform(0, H - 1, n)
+    t = np.sort(rng.integers(t0, t0 + dur + 1, n))  # t == t_end allowed (tau = 1)
+    if polarity == "both":
+        p = rng.choice([-1, 1], n)
+    else:
+        p = np.full(n, 1 if polarity == "on" else -1)
+    return dict(x=x, y=y, t=t, p=p, t_start=t0, t_end=t0 + dur)
+
+
+def taus(w):
+    return (w["t"] - w["t_start"]) / (w["t_end"] - w["t_start"])
+
+
+CASES = [
+    # (n events, H, W, integer coords, near border, polarity, flow magnitude)
+    (0, 9, 11, True, False, "both", 2.0),
+    (1, 9, 11, True, False, "both", 2.0),
+    (40, 9, 11, True, False, "both", 2.0),
+    (60, 12, 8, False, False, "both", 3.0),
+    (50, 10, 13, True, True, "both", 4.0),
+    (50, 10, 13, False, True, "on", 4.0),
+    (30, 7, 7, True, False, "off", 0.7),
+    (120, 16, 20, False, False, "both", 6.0),
+]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[f"case{i}" for i in range(len(CASES))])
+def test_hmc_matches_slow_reference(case):
+    n, H, W, integer, border, pol, mag = case
+    rng = np.random.default_rng(n * 7 + H)
+    w = random_window(rng, n, H, W, integer=integer, border=border, polarity=pol)
+    flow = rng.normal(0, mag, (2, H, W))
+    ev = EventBatch.from_windows([w], dtype=torch.float64)
+    out = hmc_loss(torch.from_numpy(flow)[None], ev)
+    total, at, ec, sm = ref_hmc(flow, w["x"], w["y"], taus(w), w["p"])
+    np.testing.assert_allclose(out.loss.item(), total, rtol=RTOL, atol=1e-12)
+    np.testing.assert_allclose(out.components["at"].item(), at, rtol=RTOL, atol=1e-12)
+    np.testing.assert_allclose(out.components["ec"].item(), ec, rtol=RTOL, atol=1e-12)
+    np.testing.assert_allclose(out.components["smooth"].item(), sm, rtol=RTOL, atol=1e-12)
+    # baseline loss: same terms without L_EC
+    out_at = at_loss(torch.from_numpy(flow)[None], ev)
+    np.testing.assert_allclose(out_at.loss.item(), at + 1e-3 * sm, rtol=RTOL, atol=1e-12)
+
+
+def test_padded_batch_equals_per_sample_results():
+    rng = np.random.default_rng(1)
+    H, W = 10, 12
+    wins = [
+        random_window(rng, 35, H, W),
+        random_window(rng, 0, H, W),
+        random_window(rng, 80, H, W, integer=False),
+        random_window(rng, 5, H, W, border=True, polarity="on"),
+    ]
+    flow = torch.from_numpy(rng.normal(0, 2.5, (4, 2, H, W)))
+    batch = hmc_loss(flow, EventBatch.from_windows(wins, dtype=torch.float64))
+    singles = [hmc_loss(flow[b : b + 1], EventBatch.from_windows([w], dtype=torch.float64))
+               for b, w in enumerate(wins)]
+    for b, (w, single) in enumerate(zip(wins, singles)):
+        total = ref_hmc(flow[b].numpy(), w["x"], w["y"], taus(w), w["p"])[0]
+        np.testing.assert_allclose(batch.per_sample[b].item(), total, rtol=RTOL, atol=1e-12)
+        np.testing.assert_allclose(batch.per_sample[b].item(), single.loss.item(), rtol=1e-12)
+        for k in ("at", "ec", "smooth"):
+            np.testing.assert_allclose(batch.components[k][b].item(),
+                                       single.components[k][0].item(), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(batch.loss.item(), np.mean([s.loss.item() for s in singles]), rtol=1e-12)
+
+
+def test_non_default_weights_and_scaling_match_reference():
+    rng = np.random.default_rng(5)
+    H, W = 8, 9
+    w = random_window(rng, 40, H, W, integer=False)
+    flow = rng.normal(0, 2, (2, H, W))
+    ev = EventBatch.from_windows([w], dtype=torch.float64)
+    out = hmc_loss(torch.from_numpy(flow)[None], ev, lambda_1=0.3, lambda_2=0.5, alpha=1.1,
+                   flow_scaling=3.0)
+    total = ref_hmc(flow, w["x"], w["y"], taus(w), w["p"], 0.3, 0.5, 1.1, 3.0)[0]
+    np.testing.assert_allclose(out.loss.item(), total, rtol=RTOL)
+
+
+def test_multiscale_is_mean_of_upsampled_scales():
+    rng = np.random.default_rng(2)
+    H, W = 16, 12
+    w = random_window(rng, 70, H, W, integer=False)
+    ev = EventBatch.from_windows([w], dtype=torch.float64)
+    scales = [torch.from_numpy(rng.normal(0, 2, (1, 2, H // f, W // f))) for f in (4, 2, 1)]
+    out = hmc_loss(scales, ev)
+    expected = []
+    for f in scales:
+        up = torch.nn.functional.interpolate(f, size=(H, W), mode="bilinear", align_corners=False)
+        expected.append(ref_hmc(up[0].numpy(), w["x"], w["y"], taus(w), w["p"])[0])
+    np.testing.assert_allclose(out.loss.item(), np.mean(expected), rtol=RTOL)
+    # a constant coarse flow upsamples to the same constant: values are not rescaled
+    const = torch.full((1, 2, H // 4, W // 4), 1.5, dtype=torch.float64)
+    full = torch.full((1, 2, H, W), 1.5, dtype=torch.float64)
+    np.testing.assert_allclose(hmc_loss([const, full], ev).loss.item(),
+                               hmc_loss(full, ev).loss.item(), rtol=1e-12)
+
+
+def test_accumulated_matches_reference_and_reduces_to_per_window():
+    rng = np.random.default_rng(3)
+    H, W, K = 9, 10, 3
+    wins = [random_window(rng, n, H, W, integer=False) for n in (20, 0, 30)]
+    flows = [rng.normal(0, 1.5, (2, H, W)) for _ in range(K)]
+    evs = [EventBatch.from_windows([w], dtype=torch.float64) for w in wins]
+    out = accumulated_hmc_loss([torch.from_numpy(f)[None] for f in flows], evs)
+    x = np.concatenate([w["x"] for w in wins])
+    y = np.concatenate([w["y"] for w in wins])
+    p = np.concatenate([w["p"] for w in wins])
+    T = np.concatenate([k + taus(w) for k, w in enumerate(wins)])
+    per_event_flow = [flows[k] for k, w in enumerate(wins) for _ in range(len(w["x"]))]
+    at = ec = 0.0
+    for s in (0.0, float(K)):
+        C, A = ref_images(None, x, y, None, p, s, H, W, span=K, t_override=T,
+                          flows_per_event=per_event_flow)
+        at += ref_at(C, A)
+        ec += ref_ec(C)
+    sm = np.mean([ref_smooth(f, w["x"], w["y"], max(H, W)) for f, w in zip(flows, wins)])
+    np.testing.assert_allclose(out.loss.item(), at + ec + 1e-3 * sm, rtol=RTOL)
+    single = accumulated_hmc_loss([torch.from_numpy(flows[0])[None]], evs[:1])
+    np.testing.assert_allclose(single.loss.item(),
+                               hmc_loss(torch.from_numpy(flows[0])[None], evs[0]).loss.item(),
+                               rtol=1e-12)
+
+
+# --------------------------------------------------------------------------------------------
+# Building blocks
+# --------------------------------------------------------------------------------------------
+
+
+def test_sample_flow_exact_at_integers_and_matches_reference():
+    rng = np.random.default_rng(4)
+    H, W = 7, 9
+    flow = rng.normal(0, 3, (2, H, W)).astype(np.float32)
+    xi = rng.integers(0, W, 50)
+    yi = rng.integers(0, H, 50)
+    got = sample_flow(torch.from_numpy(flow)[None], torch.tensor(xi, dtype=torch.float32)[None],
+                      torch.tensor(yi, dtype=torch.float32)[None])[0].numpy()
+    np.testing.assert_array_equal(got, flow[:, yi, xi].T)  # bit-exact in float32
+    xs = rng.uniform(-2, W + 1, 60)  # includes off-image points: border clamp
+    ys = rng.uniform(-2, H + 1, 60)
+    got = sample_flow(torch.from_numpy(flow.astype(np.float64))[None], torch.from_numpy(xs)[None],
+                      torch.from_numpy(ys)[None])[0].numpy()
+    want = np.stack([ref_sample(flow.astype(np.float64), a, b) for a, b in zip(xs, ys)])
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_bilinear_splat_matches_reference_and_drops_outside_corners():
+    rng = np.random.default_rng(6)
+    H, W, N = 6, 8, 40
+    x = rng.uniform(-1.5, W + 0.5, (2, N))
+    y = rng.uniform(-1.5, H + 0.5, (2, N))
+    vals = rng.normal(size=(2, N, 3))
+    mask = rng.random((2, N)) > 0.2
+    got = bilinear_splat(*(torch.from_numpy(a) for a in (x, y, vals)), H, W,
+                         mask=torch.from_numpy(mask)).numpy()
+    want = np.zeros((2, 3, H, W))
+    for b in range(2):
+        for i in range(N):
+            if mask[b, i]:
+                want[b] += ref_kernel_image(x[b, i], y[b, i], H, W)[None] * vals[b, i][:, None, None]
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    # an event half outside keeps only its in-image weight
+    one = bilinear_splat(torch.tensor([[-0.25]]), torch.tensor([[2.0]]), torch.ones(1, 1, 1), H, W)
+    assert one.sum().item() == pytest.approx(0.75)
+
+
+def test_forward_warp_flow_integer_shift_and_reference():
+    H, W = 5, 6
+    flow = torch.zeros(1, 2, H, W, dtype=torch.float64)
+    flow[:, 0], flow[:, 1] = 2.0, 1.0
+    out = forward_warp_flow(flow)
+    assert torch.all(out[:, 0, 1:, 2:] == 2.0) and torch.all(out[:, 1, 1:, 2:] == 1.0)
+    assert torch.all(out[:, :, 0, :] == 0) and torch.all(out[:, :, :, :2] == 0)  # holes
+    rng = np.random.default_rng(7)
+    f = rng.normal(0, 1.5, (2, H, W))
+    num = np.zeros((2, H, W))
+    den = np.zeros((H, W))
+    for r in range(H):
+        for c in range(W):
+            k = ref_kernel_image(c + f[0, r, c], r + f[1, r, c], H, W)
+            den += k
+            num += k[None] * f[:, r, c][:, None, None]
+    want = np.where(den > 0, num / np.where(den > 0, den, 1), 0)
+    got = forward_warp_flow(torch.from_numpy(f)[None])[0].numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+    g = torch.from_numpy(rng.normal(0, 1.3, (1, 2, 4, 4))).requires_grad_()
+    assert torch.autograd.gradcheck(forward_warp_flow, (g,))
+
+
+def test_event_pixel_mask_rounds_and_ignores_padding():
+    x = torch.tensor([[0.0, 2.4, 2.6, -0.7, 3.0]])
+    y = torch.tensor([[0.0, 1.0, 1.0, 0.0, 9.0]])
+    m = torch.tensor([[True, True, True, True, False]])
+    got = event_pixel_mask(x, y, m, 3, 4)
+    want = torch.zeros(1, 3, 4, dtype=torch.bool)
+    want[0, 0, 0] = want[0, 1, 2] = want[0, 1, 3] = True
+    assert torch.equal(got, want)
+
+
+# --------------------------------------------------------------------------------------------
+# Gradients
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("integer", [True, False])
+def test_gradcheck_hmc(integer):
+    rng = np.random.default_rng(11 + integer)
+    H, W = 6, 7
+    wins = [random_window(rng, 25, H, W, integer=integer), random_window(rng, 12, H, W)]
+    ev = EventBatch.from_windows(wins, dtype=torch.float64)
+    flow = torch.from_numpy(rng.normal(0, 1.2, (2, 2, H, W))).requires_grad_()
+    assert torch.autograd.gradcheck(lambda f: hmc_loss(f, ev).loss, (flow,), eps=1e-6, atol=1e-5)
+    coarse = torch.from_numpy(rng.normal(0, 1.2, (2, 2, 3, 4))).requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b: hmc_loss([a, b], ev).loss, (coarse, flow),
+                                    eps=1e-6, atol=1e-5)
+
+
+def test_gradcheck_accumulated():
+    rng = np.random.default_rng(13)
+    H, W = 5, 6
+    evs = [EventBatch.from_windows([random_window(rng, 15, H, W, integer=False)], dtype=torch.float64)
+           for _ in range(2)]
+    flows = [torch.from_numpy(rng.normal(0, 1, (1, 2, H, W))).requires_grad_() for _ in range(2)]
+    assert torch.autograd.gradcheck(lambda a, b: accumulated_hmc_loss([a, b], evs).loss,
+                                    tuple(flows), eps=1e-6, atol=1e-5)
+
+
+# --------------------------------------------------------------------------------------------
+# Behaviour on an analytic translating pattern
+# --------------------------------------------------------------------------------------------
+
+
+def translating_dots(v=(12.0, 6.0), H=64, W=64, n_dots=14, per_dot=60, seed=0, dur=10_000):
+    """Dots moving at constant velocity v (pixels per window); each emits events at its
+    rounded position at evenly spaced times. Ground-truth flow: v everywhere."""
+    rng = np.random.default_rng(seed)
+    xs, ys, ts, ps = [], [], [], []
+    for d in range(n_dots):
+        x0, y0 = rng.uniform(14, 36), rng.uniform(8, 40)
+        pol = 1 if d % 2 == 0 else -1
+        t = np.sort(rng.integers(0, dur, per_dot))
+        tau = t / dur
+        xs.append(np.round(x0 + tau * v[0]))
+        ys.append(np.round(y0 + tau * v[1]))
+        ts.append(t)
+        ps.append(np.full(per_dot, pol))
+    order = np.argsort(np.concatenate(ts), kind="stable")
+    cat = lambda a: np.concatenate(a)[order]  # noqa: E731
+    return dict(x=cat(xs), y=cat(ys), t=cat(ts), p=cat(ps), t_start=0, t_end=dur), (H, W)
+
+
+def test_ground_truth_flow_beats_wrong_flows_on_translating_pattern():
+    v = (12.0, 6.0)
+    w, (H, W) = translating_dots(v)
+    ev = EventBatch.from_windows([w], dtype=torch.float64)
+
+    def flow_of(scale):
+        f = torch.zeros(1, 2, H, W, dtype=torch.float64)
+        f[:, 0], f[:, 1] = v[0] * scale, v[1] * scale
+        return f
+
+    res = {s: hmc_loss(flow_of(s), ev) for s in (1.0, 0.0, 0.5, 2.0)}
+    res_at = {s: at_loss(flow_of(s), ev) for s in (1.0, 0.0, 0.5, 2.0)}
+    for wrong in (0.0, 0.5, 2.0):
+        assert res[1.0].components["at"] < res[wrong].components["at"], wrong
+        assert res[1.0].components["ec"] < res[wrong].components["ec"], wrong
+        assert res[1.0].loss < res[wrong].loss, wrong
+        assert res_at[1.0].loss < res_at[wrong].loss, wrong
+
+
+def test_event_count_loss_zero_for_empty_window():
+    H, W = 8, 8
+    empty = dict(x=np.zeros(0), y=np.zeros(0), t=np.zeros(0, np.int64), p=np.zeros(0),
+                 t_start=0, t_end=100)
+    ev = EventBatch.from_windows([empty, empty])
+    out = hmc_loss(torch.randn(2, 2, H, W), ev)
+    assert torch.all(out.components["ec"] == 0)
+    assert torch.all(out.components["at"] == 0)
+    assert torch.all(out.components["smooth"] == 0)
+    assert torch.all(out.components["kept"] == 1)
+    assert out.loss.item() == 0.0
+
+
+def test_kept_share_and_border_penalty_expose_the_border_hole():
+    w, (H, W) = translating_dots()
+    ev = EventBatch.from_windows([w], dtype=torch.float64)
+    away = torch.full((1, 2, H, W), 1e6, dtype=torch.float64)  # pushes (almost) all off-sensor
+    zero = torch.zeros_like(away)
+    out, out_zero = hmc_loss(away, ev), hmc_loss(zero, ev)
+    # the hole: the paper's loss prefers throwing the events away
+    assert out.loss.item() < out_zero.loss.item()
+    assert out.components["kept"].item() < 0.01
+    assert out_zero.components["kept"].item() == pytest.approx(1.0)
+    pen, pen_zero = hmc_loss(away, ev, border_penalty=1.0), hmc_loss(zero, ev, border_penalty=1.0)
+    assert pen.loss.item() > pen_zero.loss.item()
+    assert pen_zero.loss.item() == pytest.approx(out_zero.loss.item())
+
+
+# --------------------------------------------------------------------------------------------
+# Bad input: clear errors, never silent garbage
+# --------------------------------------------------------------------------------------------
+
+
+def _small_batch(B=2, H=6, W=7, n=10):
+    rng = np.random.default_rng(21)
+    return EventBatch.from_windows([random_window(rng, n, H, W) for _ in range(B)]), (H, W)
+
+
+@pytest.mark.parametrize("shape", [(2, 3, 6, 7), (2, 6, 7), (2, 2, 6, 7, 1)])
+def test_bad_flow_shape(shape):
+    ev, _ = _small_batch()
+    with pytest.raises(ValueError, match=r"\(B, 2, H, W\)"):
+        hmc_loss(torch.zeros(shape), ev)
+
+
+def test_batch_size_mismatch():
+    ev, (H, W) = _small_batch(B=2)
+    with pytest.raises(ValueError, match="batch size mismatch"):
+        hmc_loss(torch.zeros(3, 2, H, W), ev)
+    with pytest.raises(ValueError, match="different batch sizes"):
+        hmc_loss([torch.zeros(2, 2, H, W), torch.zeros(1, 2, 3, 3)], ev)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_flow(bad):
+    ev, (H, W) = _small_batch()
+    flow = torch.zeros(2, 2, H, W)
+    flow[1, 0, 2, 3] = bad
+    with pytest.raises(ValueError, match="NaN or inf"):
+        hmc_loss(flow, ev)
+    with pytest.raises(ValueError, match=r"flow\[1\] contains NaN or inf"):
+        at_loss([torch.zeros(2, 2, 3, 3), flow], ev)
+
+
+def test_time_outside_window():
+    w = dict(x=np.array([1, 2]), y=np.array([1, 1]), t=np.array([10, 25]), p=np.array([1, -1]),
+             t_start=10, t_end=20)
+    ok = dict(w, t=np.array([10, 20]))  # t == t_end is accepted as tau = 1
+    assert EventBatch.from_windows([ok]).tau[0, 1].item() == 1.0
+    with pytest.raises(ValueError, match="window 1: event 1 has t = 25"):
+        EventBatch.from_windows([ok, w])
+    with pytest.raises(ValueError, match="outside"):
+        EventBatch.from_windows([dict(w, t=np.array([9, 12]))])
+    # an EventBatch built by hand with tau outside [0, 1] is refused by the loss
+    ev = EventBatch.from_windows([ok])
+    ev = ev._replace(tau=torch.tensor([[0.5, 1.5]]))
+    with pytest.raises(ValueError, match=r"tau\[0, 1\] = 1.5"):
+        hmc_loss(torch.zeros(1, 2, 4, 4), ev)
+    # ... but padding slots may hold anything
+    ev = ev._replace(mask=torch.tensor([[True, False]]))
+    hmc_loss(torch.zeros(1, 2, 4, 4), ev)
+
+
+def test_empty_batch_and_other_malformed_input():
+    with pytest.raises(ValueError, match="empty batch"):
+        EventBatch.from_windows([])
+    ev, (H, W) = _small_batch()
+    with pytest.raises(ValueError, match="empty batch"):
+        hmc_loss(torch.zeros(0, 2, H, W), ev)
+    with pytest.raises(ValueError, match="empty list"):
+        hmc_loss([], ev)
+    with pytest.raises(ValueError, match="window 0: t_end"):
+        EventBatch.from_windows([dict(x=[1], y=[1], t=[5], p=[1], t_start=5, t_end=5)])
+    with pytest.raises(ValueError, match="different lengths"):
+        EventBatch.from_windows([dict(x=[1, 2], y=[1], t=[5], p=[1], t_start=0, t_end=9)])
+    with pytest.raises(ValueError, match="field 'p' has shape"):
+        hmc_loss(torch.zeros(2, 2, H, W), ev._replace(p=ev.p[:, :3]))
+    with pytest.raises(ValueError, match="K >= 1"):
+        accumulated_hmc_loss([torch.zeros(2, 2, H, W)], [ev, ev])
+
+
+def test_polarity_encodings_and_all_empty_batch():
+    base = dict(x=np.array([1, 2, 3]), y=np.array([1, 1, 2]), t=np.array([0, 5, 9]),
+                t_start=0, t_end=10)
+    a = EventBatch.from_windows([dict(base, p=np.array([1, 0, 1]))])
+    b = EventBatch.from_windows([dict(base, p=np.array([True, False, True]))])
+    c = EventBatch.from_windows([dict(base, p=np.array([1, -1, 1], np.int8))])
+    assert torch.equal(a.p, b.p) and torch.equal(a.p, c.p)
+    empty = dict(base, x=[], y=[], t=np.zeros(0, np.int64), p=[])
+    ev = EventBatch.from_windows([empty, empty])
+    assert ev.x.shape == (2, 0)
+    flow = torch.randn(2, 2, 5, 5, requires_grad=True)
+    out = hmc_loss(flow, ev)
+    out.loss.backward()
+    assert out.loss.item() == 0 and torch.all(flow.grad == 0)
+
+
+# --------------------------------------------------------------------------------------------
+# dtypes and devices
+# --------------------------------------------------------------------------------------------
+
+
+def test_float32_close_to_float64():
+    rng = np.random.default_rng(31)
+    H, W = 20, 24
+    wins = [random_window(rng, n, H, W, integer=False) for n in (200, 150)]
+    flow = rng.normal(0, 3, (2, 2, H, W))
+    l64 = hmc_loss(torch.from_numpy(flow), EventBatch.from_windows(wins, dtype=torch.float64))
+    l32 = hmc_loss(torch.from_numpy(flow).float(), EventBatch.from_windows(wins))
+    assert l32.loss.dtype == torch.float32
+    # REFERENCE numerics note: L_AT may jump by ~1e-4 relative between precisions
+    np.testing.assert_allclose(l32.per_sample.double().numpy(), l64.per_sample.numpy(), rtol=1e-3)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_matches_cpu():
+    rng = np.random.default_rng(41)
+    H, W = 32, 40
+    wins = [random_window(rng, n, H, W, integer=False) for n in (500, 0, 300)]
+    flow = torch.from_numpy(rng.normal(0, 3, (3, 2, H, W)))
+    cpu = hmc_loss(flow, EventBatch.from_windows(wins, dtype=torch.float64))
+    fc = flow.cuda().requires_grad_()
+    gpu = hmc_loss(fc, EventBatch.from_windows(wins, device="cuda", dtype=torch.float64))
+    gpu.loss.backward()
+    np.testing.assert_allclose(gpu.per_sample.cpu().detach().numpy(),
+                               cpu.per_sample.detach().numpy(), rtol=1e-9)
+    fcpu = flow.clone().requires_grad_()
+    hmc_loss(fcpu, EventBatch.from_windows(wins, dtype=torch.float64)).loss.backward()
+    np.testing.assert_allclose(fc.grad.cpu().numpy(), fcpu.grad.numpy(), rtol=1e-7, atol=1e-12)
