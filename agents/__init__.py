@@ -1,0 +1,25 @@
+"""Flow networks (pure ``forward(x, state) -> (flows, state)`` modules), the model registry and
+the stateful policy wrapper. See ``agents/protocol.py`` for the protocol and
+``agents/registry.py`` for how to bring your own model."""
+
+from .baselines import ConvGRUEVFlowNet, EVFlowNet, XLIFEVFlowNet
+from .evmgrflownet import EVMGRFlowNet
+from .flownet import WIDTHS
+from .policy import RecurrentPolicy
+from .protocol import ModelLoadError, ProtocolError, check_protocol
+from .registry import MODELS, make_model, register_model
+
+__all__ = [
+    "MODELS",
+    "WIDTHS",
+    "ConvGRUEVFlowNet",
+    "EVFlowNet",
+    "EVMGRFlowNet",
+    "ModelLoadError",
+    "ProtocolError",
+    "RecurrentPolicy",
+    "XLIFEVFlowNet",
+    "check_protocol",
+    "make_model",
+    "register_model",
+]

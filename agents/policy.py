@@ -1,0 +1,101 @@
+"""The stateful wrapper that turns a pure flow network into the environment's actor.
+
+The network is pure (``flows, state = model(x, state)``, see ``agents/protocol.py``); the
+wrapper holds the state between windows and offers what rollouts and truncated BPTT need::
+
+    policy = RecurrentPolicy(make_model("ev-mgrflownet", width="cpu"))
+    policy.reset()                       # new sequences for every batch element
+    action = policy.act(observation)     # rollout: numpy in, numpy out, no grad
+    flows = policy(count_images)         # training: differentiable, updates the state
+    policy.detach()                      # truncated BPTT: cut the graph to earlier windows
+    policy.reset(mask=done)              # vector env: new sequences where an episode ended
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+State = dict[str, Tensor]
+
+
+class RecurrentPolicy(nn.Module):
+    """Holds a flow model's recurrent state across windows.
+
+    Args:
+        model: a module honouring the protocol (``forward(x, state) -> (flows, state)``).
+        device: where to run it; None keeps the device of the model's parameters (CPU if none).
+    """
+
+    def __init__(self, model: nn.Module, device: torch.device | str | None = None):
+        super().__init__()
+        if device is None:
+            parameter = next(model.parameters(), None)
+            device = parameter.device if parameter is not None else torch.device("cpu")
+        self.device = torch.device(device)
+        self.model = model.to(self.device)
+        self._state: State | None = None
+
+    @property
+    def state(self) -> State | None:
+        """The state the next window continues from (None = fresh sequence for every element)."""
+        return self._state
+
+    @state.setter
+    def state(self, value: State | None) -> None:
+        self._state = None if value is None else dict(value)
+
+    def reset(self, mask: np.ndarray | Tensor | None = None) -> None:
+        """Start new sequences: for all batch elements (``mask=None``) or where ``mask`` is True.
+
+        mask: (B,) bool. Masked elements get an all-zeros state, which the protocol defines as a
+        fresh sequence; the others keep theirs (and their graph).
+        """
+        if mask is None or self._state is None:
+            self._state = None
+            return
+        mask = torch.as_tensor(np.asarray(mask) if not isinstance(mask, Tensor) else mask)
+        mask = mask.to(device=self.device, dtype=torch.bool).reshape(-1)
+        new_state = {}
+        for key, value in self._state.items():
+            if value.shape[0] != mask.shape[0]:
+                raise ValueError(
+                    f"reset mask has {mask.shape[0]} elements but the state batch is {value.shape[0]}"
+                )
+            where = mask.view(-1, *([1] * (value.dim() - 1)))
+            new_state[key] = torch.where(where, torch.zeros((), dtype=value.dtype, device=value.device), value)
+        self._state = new_state
+
+    def detach(self) -> None:
+        """Cut the graph between the windows seen so far and the next ones (truncated BPTT)."""
+        if self._state is not None:
+            self._state = {key: value.detach() for key, value in self._state.items()}
+
+    def forward(self, x: Tensor | np.ndarray) -> list[Tensor]:
+        """Differentiable step: x (B, C_in, H, W) -> flows (finest last, pixels), state updated."""
+        x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
+        if self._state:
+            batch = next(iter(self._state.values())).shape[0]
+            if x.shape[0] != batch:
+                raise ValueError(
+                    f"batch size changed from {batch} to {x.shape[0]} mid-sequence; call reset() first"
+                )
+        flows, self._state = self.model(x, self._state)
+        return flows
+
+    @torch.no_grad()
+    def act(self, obs: dict | np.ndarray | Tensor) -> np.ndarray:
+        """Rollout step without gradients.
+
+        obs: an env observation dict with "count_image" (2, H, W) (single env) or (B, 2, H, W)
+            (vector env), or that array itself.
+        Returns: the finest flow, float32 numpy, (2, H, W) or (B, 2, H, W), pixels over the window.
+        """
+        count_image = obs["count_image"] if isinstance(obs, dict) else obs
+        x = torch.as_tensor(np.asarray(count_image) if not isinstance(count_image, Tensor) else count_image)
+        single = x.dim() == 3
+        if single:
+            x = x.unsqueeze(0)
+        flow = self.forward(x)[-1].float().cpu().numpy()
+        return flow[0] if single else flow
