@@ -1,0 +1,385 @@
+"""Networks, their state semantics and the policy wrapper (agents/).
+
+Most tests run at the CPU width (base width 8); the paper width only where no forward pass is
+needed (parameter counts) or a single small one is.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from agents import (
+    MODELS,
+    WIDTHS,
+    EVMGRFlowNet,
+    ModelLoadError,
+    RecurrentPolicy,
+    check_protocol,
+    make_model,
+)
+from agents.evmgrflownet import DeepMemoryUp
+from agents.layers import ConvGRU
+from agents.spiking import arctan_spike
+from agents.summary import MODEL_VARIANTS, count_parameters, parameter_table
+
+BUILT_IN = ["ev-mgrflownet", "ev-flownet", "convgru-ev-flownet", "xlif-ev-flownet"]
+RECURRENT = ["ev-mgrflownet", "convgru-ev-flownet", "xlif-ev-flownet"]
+SCALING = 128.0
+
+
+def count_images(batch: int, height: int, width: int, seed: int = 0) -> torch.Tensor:
+    """(B, 2, H, W) float32 sparse event counts."""
+    generator = torch.Generator().manual_seed(seed)
+    counts = torch.randint(0, 4, (batch, 2, height, width), generator=generator).float()
+    keep = torch.rand(batch, 1, height, width, generator=generator) < 0.3
+    return counts * keep
+
+
+def build(name: str, seed: int = 0, **kwargs) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    return make_model(name, width="cpu", **kwargs)
+
+
+@pytest.fixture(scope="module")
+def cpu_models() -> dict[str, torch.nn.Module]:
+    return {name: build(name) for name in BUILT_IN}
+
+
+# ---------------------------------------------------------------- shapes and ranges
+
+
+@pytest.mark.parametrize("size", [(128, 128), (256, 256), (260, 346)])
+@pytest.mark.parametrize("batch", [1, 4])
+@pytest.mark.parametrize("name", BUILT_IN)
+def test_shapes_finite_and_bounded(cpu_models, name, batch, size):
+    model = cpu_models[name]
+    height, width = size
+    state = None
+    with torch.no_grad():
+        for window in range(2):  # the second window runs the recurrent paths
+            flows, state = model(count_images(batch, height, width, seed=window), state)
+            assert len(flows) == 4
+            for flow, stride in zip(flows, [8, 4, 2, 1]):
+                assert flow.shape == (batch, 2, math.ceil(height / stride), math.ceil(width / stride))
+                assert flow.dtype == torch.float32
+                assert torch.isfinite(flow).all()
+                assert flow.abs().max() <= SCALING * (1 + 1e-6)
+            assert flows[-1].shape[-2:] == size
+            assert all(v.shape[0] == batch for v in state.values())
+
+
+@pytest.mark.parametrize("kwargs", [{"use_st_convgru": False}, {"use_prior_flow": False}])
+def test_ablations_run_and_keep_the_interface(kwargs):
+    model = build("ev-mgrflownet", **kwargs)
+    with torch.no_grad():
+        flows, state = model(count_images(2, 36, 52), None)
+        flows, state = model(count_images(2, 36, 52, seed=1), state)
+    assert flows[-1].shape == (2, 2, 36, 52)
+    assert ("prior_flow" in state) == kwargs.get("use_prior_flow", True)
+
+
+def test_paper_width_single_small_forward():
+    model = make_model("ev-mgrflownet")  # paper width, c = 32
+    assert model.base_width == 32
+    with torch.no_grad():
+        flows, state = model(count_images(1, 32, 48), None)
+    assert flows[-1].shape == (1, 2, 32, 48)
+    assert state["encoder4"].shape == (1, 16 * 32, 2, 3)
+
+
+def test_flow_scaling_bounds_outputs():
+    model = build("ev-flownet", flow_scaling=4.0)
+    with torch.no_grad():
+        flows, _ = model(count_images(1, 32, 32) * 50, None)
+    assert all(flow.abs().max() <= 4.0 for flow in flows)
+    assert model.config["flow_scaling"] == 4.0
+
+
+def test_stateless_model_returns_empty_state(cpu_models):
+    _, state = cpu_models["ev-flownet"](count_images(1, 32, 32), None)
+    assert state == {}
+
+
+# ---------------------------------------------------------------- the zero-state rule
+
+
+@pytest.mark.parametrize("name", BUILT_IN)
+def test_all_zeros_state_is_a_fresh_sequence(cpu_models, name):
+    model = cpu_models[name]
+    x = count_images(2, 40, 56, seed=3)
+    with torch.no_grad():
+        _, state = model(count_images(2, 40, 56, seed=1), None)
+        _, state = model(count_images(2, 40, 56, seed=2), state)
+        fresh_flows, fresh_state = model(x, None)
+        zero_flows, zero_state = model(x, {k: torch.zeros_like(v) for k, v in state.items()})
+    for fresh, zeroed in zip(fresh_flows, zero_flows):
+        assert torch.equal(fresh, zeroed)
+    assert fresh_state.keys() == zero_state.keys()
+    for key in fresh_state:
+        assert torch.equal(fresh_state[key], zero_state[key]), key
+
+
+@pytest.mark.parametrize("name", BUILT_IN)
+def test_built_in_models_pass_the_protocol_check(cpu_models, name):
+    check_protocol(cpu_models[name])
+
+
+# ---------------------------------------------------------------- policy wrapper
+
+
+def _clone(model: torch.nn.Module, name: str) -> torch.nn.Module:
+    """A freshly built model (from its config) with the same weights."""
+    fresh = make_model(name, **model.config)
+    fresh.load_state_dict(model.state_dict())
+    return fresh
+
+
+@pytest.mark.parametrize("name", RECURRENT)
+def test_reset_gives_a_fresh_model_output(cpu_models, name):
+    policy = RecurrentPolicy(cpu_models[name])
+    with torch.no_grad():
+        for seed in range(3):
+            policy(count_images(2, 32, 48, seed=seed))
+        x = count_images(2, 32, 48, seed=9)
+        continued = policy.model(x, policy.state)[0][-1]
+        policy.reset()
+        after_reset = policy(x)[-1]
+        fresh = _clone(cpu_models[name], name)(x, None)[0][-1]
+    assert torch.equal(after_reset, fresh)
+    assert not torch.allclose(continued, fresh)  # the state mattered before the reset
+
+
+@pytest.mark.parametrize("name", RECURRENT)
+def test_reset_mask_resets_only_masked_elements(cpu_models, name):
+    model = cpu_models[name]
+    policy = RecurrentPolicy(model)
+    with torch.no_grad():
+        for seed in range(2):
+            policy(count_images(3, 32, 48, seed=seed))
+        kept_state = {k: v.clone() for k, v in policy.state.items()}
+        x = count_images(3, 32, 48, seed=7)
+        policy.reset(mask=np.array([True, False, True]))
+        flows = policy(x)[-1]
+        fresh = model(x, None)[0][-1]
+        continued = model(x, kept_state)[0][-1]
+    torch.testing.assert_close(flows[[0, 2]], fresh[[0, 2]], rtol=0, atol=1e-6)
+    torch.testing.assert_close(flows[1], continued[1], rtol=0, atol=1e-6)
+    assert not torch.allclose(flows[1], fresh[1])
+
+
+def test_reset_mask_accepts_tensors_and_checks_length(cpu_models):
+    policy = RecurrentPolicy(cpu_models["convgru-ev-flownet"])
+    with torch.no_grad():
+        policy(count_images(2, 32, 32))
+        policy.reset(torch.tensor([False, True]))
+        assert policy.state["encoder1"][1].abs().max() == 0
+        assert policy.state["encoder1"][0].abs().max() > 0
+        with pytest.raises(ValueError, match="mask"):
+            policy.reset(np.array([True, False, True]))
+
+
+@pytest.mark.parametrize("name", RECURRENT)
+def test_detach_stops_backward_at_the_window_boundary(name):
+    model = build(name)
+    for detach in (False, True):
+        policy = RecurrentPolicy(model)
+        first = count_images(1, 32, 32, seed=1).requires_grad_(True)
+        policy(first)
+        if detach:
+            policy.detach()
+        flows = policy(count_images(1, 32, 32, seed=2))
+        sum(flow.square().sum() for flow in flows).backward()
+        if detach:
+            assert first.grad is None
+        else:
+            assert first.grad is not None and first.grad.abs().sum() > 0
+
+
+def test_act_single_and_vector_observations(cpu_models):
+    model = cpu_models["ev-mgrflownet"]
+    policy = RecurrentPolicy(model)
+    image = count_images(1, 30, 40)[0].numpy()
+    action = policy.act({"count_image": image})
+    assert action.shape == (2, 30, 40) and action.dtype == np.float32
+    with torch.no_grad():
+        expected = model(torch.from_numpy(image)[None], None)[0][-1][0].numpy()
+    np.testing.assert_array_equal(action, expected)
+    assert policy.state["prior_flow"].requires_grad is False
+
+    policy.reset()
+    images = count_images(3, 30, 40).numpy()
+    actions = policy.act({"count_image": images})
+    assert actions.shape == (3, 2, 30, 40) and actions.dtype == np.float32
+    with pytest.raises(ValueError, match="batch size changed"):
+        policy.act({"count_image": images[:2]})
+
+
+def test_policy_call_is_differentiable(cpu_models):
+    policy = RecurrentPolicy(build("ev-mgrflownet"))
+    flows = policy(count_images(2, 32, 32))
+    assert flows[-1].requires_grad
+    flows[-1].sum().backward()
+    assert any(p.grad is not None for p in policy.parameters())
+
+
+# ---------------------------------------------------------------- the recurrent paths are real
+
+
+def _recurrent_path_parameters(model: EVMGRFlowNet) -> dict[str, torch.nn.Parameter]:
+    """Parameters that only the carried state reaches: the M path's hidden side and the conv
+    that builds M (ST-ConvGRU), and the hidden side of every FGD refinement ConvGRU."""
+    named = {
+        "deep_memory_up": model.deep_memory_up.conv.weight,
+        "gru_deep.h_convs": model.grus[0].gru_deep.h_convs.weight,
+    }
+    for level, refiner in enumerate(model.decoder.refiners):
+        named[f"refiner{level}.h_convs"] = refiner.h_convs.weight
+    return named
+
+
+def _gradients(model, windows: int) -> dict[str, torch.Tensor | None]:
+    params = _recurrent_path_parameters(model)
+    state = None
+    for window in range(windows):
+        flows, state = model(count_images(2, 32, 48, seed=window), state)
+    weights = torch.randn(flows[-1].shape, generator=torch.Generator().manual_seed(0))
+    loss = sum((flow * F.interpolate(weights, size=flow.shape[-2:])).sum() for flow in flows)
+    grads = torch.autograd.grad(loss, list(params.values()), allow_unused=True)
+    return dict(zip(params, grads))
+
+
+def test_gradients_reach_m_path_and_refinement_at_the_second_window():
+    model = build("ev-mgrflownet")
+    first = _gradients(model, windows=1)
+    second = _gradients(model, windows=2)
+    for name, grad in first.items():  # fresh sequence: zero state, these weights are unused
+        assert grad is None or grad.abs().max() == 0, name
+    for name, grad in second.items():
+        assert grad is not None and grad.abs().max() > 0, name
+    # The M path's input-side weights (ConvGRU_b over X) and the fresh-estimate side of the
+    # refiners are used at every window, so they must get gradients too.
+    grads = torch.autograd.grad(
+        model(count_images(1, 32, 32), None)[0][-1].sum(),
+        [model.grus[0].gru_deep.x_convs.weight, model.decoder.refiners[3].x_convs.weight],
+    )
+    assert all(g.abs().max() > 0 for g in grads)
+
+
+def test_ablation_switches_remove_those_parameters():
+    without_st = build("ev-mgrflownet", use_st_convgru=False)
+    without_prior = build("ev-mgrflownet", use_prior_flow=False)
+    full_names = {n for n, _ in build("ev-mgrflownet").named_parameters()}
+    st_names = {n for n in full_names if "deep" in n or "grus.0." in n}
+    refine_names = {n for n in full_names if "refiners" in n}
+    assert st_names and refine_names
+    assert without_st.deep_memory_up is None and isinstance(without_st.grus[0], ConvGRU)
+    assert not any("deep" in n for n, _ in without_st.named_parameters())
+    assert without_prior.decoder.refiners is None
+    assert not any("refiners" in n for n, _ in without_prior.named_parameters())
+    assert "prior_flow" not in without_prior(count_images(1, 32, 32), None)[1]
+
+
+# ---------------------------------------------------------------- layers against slow oracles
+
+
+@pytest.mark.parametrize("low, size", [((16, 16), (128, 128)), ((3, 5), (24, 40)), ((5, 7), (13, 30))])
+def test_deep_memory_up_equals_upsample_then_conv(low, size):
+    torch.manual_seed(0)
+    layer = DeepMemoryUp(12, 5).double()
+    deepest = torch.randn(2, 12, *low, dtype=torch.float64, requires_grad=True)
+    fast = layer(deepest, size)
+    upsampled = F.interpolate(deepest, size=size, mode="bilinear", align_corners=False)
+    slow = F.relu(F.conv2d(upsampled, layer.conv.weight, padding=1))  # conv_up by definition
+    torch.testing.assert_close(fast, slow, rtol=1e-10, atol=1e-10)
+    g_fast = torch.autograd.grad(fast.sum(), [deepest, layer.conv.weight])
+    g_slow = torch.autograd.grad(slow.sum(), [deepest, layer.conv.weight])
+    for a, b in zip(g_fast, g_slow):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+    assert layer(torch.zeros(1, 12, *low, dtype=torch.float64), size).abs().max() == 0
+
+
+def test_convgru_matches_equation_4():
+    torch.manual_seed(0)
+    gru = ConvGRU(3, 4).double()
+    x = torch.randn(2, 3, 6, 7, dtype=torch.float64)
+    h = torch.randn(2, 4, 6, 7, dtype=torch.float64)
+    wx, bx = gru.x_convs.weight.chunk(3), gru.x_convs.bias.chunk(3)
+    wh = gru.h_convs.weight.chunk(3)
+    conv = lambda inp, w, b=None: F.conv2d(inp, w, b, padding=1)  # noqa: E731
+    r = torch.sigmoid(conv(x, wx[0], bx[0]) + conv(h, wh[0]))
+    z = torch.sigmoid(conv(x, wx[1], bx[1]) + conv(h, wh[1]))
+    candidate = torch.tanh(r * conv(h, wh[2]) + conv(x, wx[2], bx[2]))
+    expected = (1 - z) * h + z * candidate
+    torch.testing.assert_close(gru(x, h), expected)
+    torch.testing.assert_close(gru(x, None), gru(x, torch.zeros_like(h)))
+
+
+def test_arctan_spike_forward_step_and_surrogate_gradient():
+    v = torch.tensor([-0.5, -0.01, 0.0, 0.01, 0.5], requires_grad=True)
+    spikes = arctan_spike(v, 10.0)
+    assert spikes.tolist() == [0.0, 0.0, 0.0, 1.0, 1.0]
+    spikes.sum().backward()
+    torch.testing.assert_close(v.grad, 1.0 / (1.0 + (10.0 * v.detach()) ** 2))
+
+
+def test_xlif_encoder_spikes_and_learns():
+    model = build("xlif-ev-flownet")
+    flows, state = model(count_images(1, 32, 32) * 5, None)
+    flows, state = model(count_images(1, 32, 32, seed=1) * 5, state)
+    assert set(torch.unique(state["encoder1_z"]).tolist()) <= {0.0, 1.0}
+    assert state["encoder1_z"].sum() > 0  # some neurons fire
+    flows[-1].sum().backward()
+    layer = model.neurons[0]
+    for p in (layer.ff.weight, layer.leak, layer.t0, layer.t1, layer.trace_leak):
+        assert p.grad is not None and torch.isfinite(p.grad).all()
+
+
+# ---------------------------------------------------------------- registry, config, sizes
+
+
+def test_registry_names_and_config_round_trip():
+    assert set(BUILT_IN) <= set(MODELS)
+    for name in BUILT_IN:
+        model = build(name)
+        assert model.base_width == WIDTHS["cpu"] == model.config["base_width"]
+        rebuilt = make_model(name, **model.config)
+        rebuilt.load_state_dict(model.state_dict())  # same architecture
+    assert make_model("ev-mgrflownet", base_width=4, use_prior_flow=False).config == {
+        "in_channels": 2,
+        "base_width": 4,
+        "flow_scaling": 128.0,
+        "use_st_convgru": True,
+        "use_prior_flow": False,
+    }
+
+
+def test_unknown_names_and_bad_widths_fail_clearly():
+    with pytest.raises(ModelLoadError, match="unknown model 'nope'"):
+        make_model("nope")
+    with pytest.raises(ValueError, match="width preset"):
+        make_model("ev-flownet", width="huge")
+
+
+def test_in_channels_is_a_parameter():
+    model = build("convgru-ev-flownet", in_channels=5)
+    flows, _ = model(torch.rand(1, 5, 32, 32), None)
+    assert flows[-1].shape == (1, 2, 32, 32)
+    with pytest.raises(ValueError, match="expected input"):
+        model(torch.rand(1, 2, 32, 32), None)
+
+
+def test_parameter_counts_at_paper_width():
+    counts = dict(parameter_table("paper"))
+    assert set(counts) == {label for label, _, _ in MODEL_VARIANTS}
+    full = counts["EV-MGRFlowNet"]
+    assert counts["ConvGRU-EV-FlowNet"] < counts["EV-MGRFlowNet w/o ST-ConvGRU"] < full
+    assert counts["EV-MGRFlowNet w/o prior flows"] < full
+    assert counts["EV-FlowNet"] < counts["ConvGRU-EV-FlowNet"]
+    # Without both switches EV-MGRFlowNet is ConvGRU-EV-FlowNet.
+    plain = make_model("ev-mgrflownet", use_st_convgru=False, use_prior_flow=False)
+    assert count_parameters(plain) == counts["ConvGRU-EV-FlowNet"]
