@@ -93,6 +93,10 @@ class EventFlowEnv(gym.Env):
         flow_limit: F, the action bound (default flow_scaling).
         random_start: start each episode at a random window instead of the first.
         compute_reward: False skips the loss (reward 0.0), e.g. for pure evaluation rollouts.
+        sequences: use only these recordings of ``data`` (indices or names), e.g. one
+            training process's shard.
+        env_index: this env's place in a vector env (used by
+            :meth:`restore_episode_state` to pick its own entry).
         render_mode: None or ``"rgb_array"``.
     """
 
@@ -119,6 +123,8 @@ class EventFlowEnv(gym.Env):
         flow_limit: float | None = None,
         random_start: bool = False,
         compute_reward: bool = True,
+        sequences: Sequence[int | str] | None = None,
+        env_index: int = 0,
         render_mode: str | None = None,
     ) -> None:
         if window not in WINDOW_MODES:
@@ -146,6 +152,21 @@ class EventFlowEnv(gym.Env):
         self.max_events = int(max_events)
 
         self.sources = resolve_data(data, format=data_format)
+        if sequences is not None:
+            names = [s.name for s in self.sources]
+            picked = []
+            for item in sequences:
+                if isinstance(item, str):
+                    if item not in names:
+                        raise ValueError(f"sequences: unknown sequence {item!r}; known: {names}")
+                    item = names.index(item)
+                if not 0 <= int(item) < len(self.sources):
+                    raise ValueError(f"sequences: index {item} outside [0, {len(self.sources)})")
+                picked.append(self.sources[int(item)])
+            if not picked:
+                raise ValueError("sequences: empty selection")
+            self.sources = picked
+        self.env_index = int(env_index)
         self.sequence_names = [s.name for s in self.sources]
         first = self.sources[0].reader()
         self.sensor_size = tuple(first.sensor_size)
@@ -362,6 +383,30 @@ class EventFlowEnv(gym.Env):
             if key in window:
                 info[key] = window[key]
         return info
+
+    # ------------------------------------------------------------------------------------------
+    def episode_state(self) -> dict[str, Any]:
+        """Everything needed to continue the current episode elsewhere (checkpoints)."""
+        return {
+            "sequence_index": self._seq_index,
+            "bounds": None if self._bounds is None else self._bounds.copy(),
+            "step": self._step,
+            "flips": dict(self._flips),
+            "rng": self.np_random.bit_generator.state,
+            "active": self._window is not None,
+        }
+
+    def restore_episode_state(self, states: dict | Sequence[dict]) -> None:
+        """Continue an episode saved by :meth:`episode_state`; given a list (one entry per
+        env of a vector env), takes entry ``env_index``."""
+        state = states if isinstance(states, dict) else states[self.env_index]
+        self.np_random.bit_generator.state = state["rng"]
+        self._seq_index = int(state["sequence_index"])
+        self._bounds = None if state["bounds"] is None else np.asarray(state["bounds"], np.int64)
+        self._step = int(state["step"])
+        self._flips = dict(state["flips"])
+        self._last_action = self._scored_window = None
+        self._window = self._load_window(self._step) if state["active"] else None
 
     # ------------------------------------------------------------------------------------------
     def render(self):

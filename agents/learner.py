@@ -1,0 +1,237 @@
+"""Truncated-BPTT training of a recurrent flow policy through EventFlow env rollouts.
+
+One update, read top to bottom (:meth:`Learner.update`):
+
+1. for L windows (``unroll``, paper: 10): the policy sees the B envs' count images and
+   predicts multi-scale flows (differentiable, state carried); the unsupervised loss of those
+   flows is computed on each env's window events; the finest flow (detached) is the action
+   that advances the envs; where an episode ended, that element's recurrent state is reset;
+2. backpropagate the mean of the L losses, clip the gradient norm, step the optimizer;
+3. detach the recurrent state (the next update continues the same sequences).
+
+The envs run with ``compute_reward=False``: the learner recomputes the same loss with
+gradients, so the env need not compute it twice.
+
+Distributed: when ``torch.distributed`` is initialised (``torchrun``), each rank rolls out its
+own shard of sequences, gradients are averaged across ranks with an all-reduce after each
+backward (the recurrent policy runs L forwards per backward, so the averaging is done
+explicitly rather than through DistributedDataParallel's per-forward hooks), and every rank
+takes the same number of optimizer steps whatever the length of its shard.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+import torch.distributed as dist
+from gymnasium.vector import AutoresetMode
+
+from envs.env import EventFlowEnv
+from losses import EventBatch, accumulated_hmc_loss, at_loss, hmc_loss
+
+from .checkpoint import rng_state, set_rng_state
+from .policy import RecurrentPolicy
+from .registry import make_model
+
+__all__ = ["TrainConfig", "Learner", "make_vector_env"]
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run depends on (saved in every checkpoint)."""
+
+    model: str = "ev-mgrflownet"  # registry name or package.module:factory
+    width: str | int = "cpu"  # "paper" (base width 32), "cpu" (8) or an int
+    model_kwargs: dict = field(default_factory=dict)  # e.g. {"use_st_convgru": False}
+    data: Any = "synthetic-train"
+    window: str = "frames"
+    window_size: int | None = None
+    crop: tuple | None = None
+    flips: bool = True  # Hagenaars: h/v/polarity flips, once per sequence
+    num_envs: int = 4  # B, sequences rolled out in parallel
+    vector: str = "sync"  # "sync" or "async"
+    unroll: int = 10  # L, windows per truncated-BPTT update (paper)
+    steps: int = 1000  # optimizer steps
+    lr: float = 1e-4  # paper
+    warmup_steps: int = 0
+    decay: str = "none"  # "none" or "cosine"
+    grad_clip: float = 100.0  # Hagenaars
+    loss: str = "hmc"  # "hmc" or "at"
+    loss_mode: str = "window"  # "window" (per-window, default) or "accumulated"
+    lambda_1: float = 1.0
+    lambda_2: float = 1e-3
+    alpha: float = 0.6
+    border_penalty: float = 0.0
+    flow_scaling: float | None = None  # default max(H, W)
+    seed: int = 0
+    device: str = "cpu"
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _width_kwargs(width) -> dict:
+    return {"width": width} if isinstance(width, str) else {"base_width": int(width)}
+
+
+def make_vector_env(cfg: TrainConfig, *, rank: int = 0, world: int = 1, data=None, flips=None):
+    """B EventFlow envs over this rank's shard of the recordings, autoresetting in the same
+    step (the observation returned with ``truncated=True`` already opens the next sequence)."""
+    data = cfg.data if data is None else data
+    probe = EventFlowEnv(data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop)
+    n_seq = len(probe.sources)
+    probe.close()
+    shard = list(range(rank, n_seq, world)) if world > 1 and n_seq >= world else None
+    kwargs = dict(
+        data=data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop,
+        flips=cfg.flips if flips is None else flips, compute_reward=False, sequences=shard,
+        flow_scaling=cfg.flow_scaling,
+    )
+    fns = [lambda i=i: EventFlowEnv(**kwargs, env_index=i) for i in range(cfg.num_envs)]
+    cls = gymnasium.vector.SyncVectorEnv if cfg.vector == "sync" else gymnasium.vector.AsyncVectorEnv
+    return cls(fns, autoreset_mode=AutoresetMode.SAME_STEP)
+
+
+def _windows_from_info(info: dict, num_envs: int) -> list[dict]:
+    """Per-env window dicts (events + bounds) out of a vector env's stacked info."""
+    events = info["events"]
+    return [
+        {
+            "x": events["x"][i], "y": events["y"][i], "t": events["t"][i], "p": events["p"][i],
+            "t_start": int(info["t_start"][i]), "t_end": int(info["t_end"][i]),
+        }
+        for i in range(num_envs)
+    ]
+
+
+class Learner:
+    """Owns the policy, optimizer and training envs of one process."""
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        self.cfg = cfg
+        self.device = torch.device(cfg.device)
+        self.rank = dist.get_rank() if dist.is_initialized() else 0
+        self.world = dist.get_world_size() if dist.is_initialized() else 1
+        torch.manual_seed(cfg.seed)  # same initial weights on every rank
+        np.random.seed(cfg.seed + self.rank)
+        self.envs = make_vector_env(cfg, rank=self.rank, world=self.world)
+        space = self.envs.single_action_space
+        self.height, self.width = space.shape[1:]
+        self.flow_scaling = float(cfg.flow_scaling or max(self.height, self.width))
+        self.model_config = {**_width_kwargs(cfg.width), "flow_scaling": self.flow_scaling, **cfg.model_kwargs}
+        model = make_model(cfg.model, **self.model_config)
+        self.model_config = dict(getattr(model, "config", self.model_config))
+        self.policy = RecurrentPolicy(model, device=self.device)
+        if self.world > 1:
+            for p in self.policy.parameters():
+                dist.broadcast(p.data, src=0)
+        self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=cfg.lr)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self._lr_factor)
+        self.step = 0
+        self.obs, self.info = self.envs.reset(seed=cfg.seed + 1000 * self.rank)
+        self.policy.reset()
+
+    def _lr_factor(self, step: int) -> float:
+        cfg = self.cfg
+        factor = 1.0
+        if cfg.warmup_steps > 0:
+            factor = min(1.0, (step + 1) / cfg.warmup_steps)
+        if cfg.decay == "cosine":
+            factor *= 0.5 * (1 + math.cos(math.pi * min(step, cfg.steps) / max(cfg.steps, 1)))
+        return factor
+
+    def _loss(self, flows, batch: EventBatch):
+        cfg = self.cfg
+        if cfg.loss == "hmc":
+            return hmc_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
+                            lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=cfg.border_penalty)
+        return at_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_2=cfg.lambda_2,
+                       border_penalty=cfg.border_penalty)
+
+    def update(self) -> dict[str, float]:
+        """One truncated-BPTT update over ``unroll`` windows; returns logged scalars."""
+        cfg = self.cfg
+        n = cfg.num_envs
+        losses, zero_losses, finest, batches, events_seen = [], [], [], [], 0
+        for _ in range(cfg.unroll):
+            x = torch.as_tensor(self.obs["count_image"], device=self.device)
+            flows = self.policy(x)  # multi-scale, finest last, pixels per window
+            batch = EventBatch.from_windows(_windows_from_info(self.info, n), device=self.device)
+            events_seen += int(batch.mask.sum())
+            if cfg.loss_mode == "window":
+                losses.append(self._loss(flows, batch).loss)
+            else:
+                finest.append(flows[-1])
+                batches.append(batch)
+            with torch.no_grad():
+                zero_losses.append(self._loss(torch.zeros_like(flows[-1]), batch).loss)
+            self.obs, _, terminated, truncated, self.info = self.envs.step(flows[-1].detach().cpu().numpy())
+            done = np.logical_or(terminated, truncated)
+            if done.any():
+                self.policy.reset(mask=done)  # new sequences start from a fresh state
+        if cfg.loss_mode == "window":
+            loss = torch.stack(losses).mean()
+        else:
+            loss = accumulated_hmc_loss(finest, batches, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
+                                        lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=cfg.border_penalty).loss
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.world > 1:
+            for p in self.policy.parameters():
+                if p.grad is None:
+                    p.grad = torch.zeros_like(p)
+                dist.all_reduce(p.grad)
+                p.grad /= self.world
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.grad_clip)
+        self.optimizer.step()
+        self.scheduler.step()
+        self.policy.detach()  # truncated BPTT: the next update continues, without the graph
+        self.step += 1
+        return {
+            "step": self.step,
+            "loss": float(loss.detach()),
+            "zero_flow_loss": float(torch.stack(zero_losses).mean()),
+            "grad_norm": float(grad_norm),
+            "lr": self.optimizer.param_groups[0]["lr"],
+            "events": events_seen,
+            "windows": cfg.unroll * n,
+        }
+
+    # -- checkpoints -------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        state = self.policy.state
+        return {
+            "model_name": self.cfg.model,
+            "model_config": self.model_config,
+            "model": self.policy.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "step": self.step,
+            "config": self.cfg.to_dict(),
+            "rng": rng_state(),
+            "policy_state": None if state is None else {k: v.detach().cpu() for k, v in state.items()},
+            "env_states": list(self.envs.call("episode_state")),
+            "obs": {k: np.array(v) for k, v in self.obs.items()},
+            "info": self.info,
+        }
+
+    def load_state_dict(self, payload: dict[str, Any]) -> None:
+        self.policy.model.load_state_dict(payload["model"])
+        self.optimizer.load_state_dict(payload["optimizer"])
+        self.scheduler.load_state_dict(payload["scheduler"])
+        self.step = int(payload["step"])
+        set_rng_state(payload["rng"])
+        state = payload.get("policy_state")
+        self.policy.state = None if state is None else {k: v.to(self.device) for k, v in state.items()}
+        if payload.get("env_states") is not None:
+            self.envs.call("restore_episode_state", payload["env_states"])
+            self.obs, self.info = payload["obs"], payload["info"]
+
+    def close(self) -> None:
+        self.envs.close()
