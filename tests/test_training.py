@@ -1,0 +1,110 @@
+"""The training machinery: a tiny model overfits, resume is exact, 2-process DDP runs, and
+the evaluation script writes its table."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from agents import RecurrentPolicy, make_model
+from agents.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from envs.env import EventFlowEnv
+from losses import EventBatch, hmc_loss
+from tests.recordings import write_translating_recording
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+import evaluate as evaluate_script  # noqa: E402
+import train as train_script  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    path = tmp_path_factory.mktemp("data") / "dots.h5"
+    return write_translating_recording(path, np.random.default_rng(3), sensor_size=(32, 32))
+
+
+def test_tiny_model_overfits_one_fixed_batch(recording):
+    env = EventFlowEnv(recording)
+    obs, info = env.reset(seed=0)
+    windows, images = [], []
+    for _ in range(3):
+        windows.append({**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]})
+        images.append(obs["count_image"])
+        obs, *_, info = env.step(info["flow_gt"])
+    torch.manual_seed(0)
+    policy = RecurrentPolicy(make_model("ev-flownet", base_width=4, flow_scaling=32.0))
+    optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
+    batches = [EventBatch.from_windows([w]) for w in windows]
+    zero = np.mean([float(hmc_loss(torch.zeros(1, 2, 32, 32), b, flow_scaling=32.0).loss) for b in batches])
+    history = []
+    for _ in range(40):
+        policy.reset()
+        loss = sum(hmc_loss(policy(torch.from_numpy(img)[None]), b, flow_scaling=32.0).loss for img, b in zip(images, batches)) / 3
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        history.append(float(loss.detach()))
+    print(f"loss first {history[0]:.4f} last {history[-1]:.4f}; zero flow {zero:.4f}")
+    assert history[-1] < history[0] - 0.1 * abs(history[0] - zero) - 1e-3
+    assert min(history[-5:]) < history[0]
+
+
+def _losses(out: Path) -> list[float]:
+    return [json.loads(line)["loss"] for line in (out / "metrics.jsonl").read_text().splitlines() if "loss" in json.loads(line)]
+
+
+def test_resume_reproduces_uninterrupted_run(recording, tmp_path):
+    common = ["--data", str(recording), "--model", "convgru-ev-flownet", "--width", "4", "--num-envs", "2",
+              "--unroll", "3", "--val-data", "", "--no-progress", "--ckpt-every", "100", "--lr", "1e-3"]
+    full, part = tmp_path / "full", tmp_path / "part"
+    train_script.main(common + ["--steps", "6", "--out", str(full)])
+    train_script.main(common + ["--steps", "3", "--out", str(part)])
+    train_script.main(["--resume", str(part / "checkpoint.pt"), "--steps", "6", "--out", str(part), "--val-data", "", "--no-progress"])
+    a, b = _losses(full), _losses(part)
+    assert len(a) == len(b) == 6
+    np.testing.assert_allclose(b, a, rtol=1e-6)  # episodes cross a sequence boundary in 6 x 3 windows
+
+
+def test_checkpoint_write_is_atomic_and_checked(tmp_path):
+    path = save_checkpoint(tmp_path / "c.pt", {"model_name": "ev-flownet", "model_config": {}, "model": {}})
+    before = path.read_bytes()
+    with pytest.raises(Exception):
+        save_checkpoint(path, {"model_name": "x", "model_config": {}, "model": {}, "bad": lambda: 0})
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["c.pt"]
+    (tmp_path / "junk.pt").write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match="junk.pt"):
+        load_checkpoint(tmp_path / "junk.pt")
+
+
+def test_evaluate_script_writes_table_and_pictures(recording, tmp_path):
+    train_script.main(["--data", str(recording), "--width", "4", "--num-envs", "1", "--unroll", "2", "--steps", "1",
+                       "--out", str(tmp_path / "run"), "--val-data", "", "--no-progress"])
+    out = tmp_path / "eval"
+    evaluate_script.main(["--checkpoint", str(tmp_path / "run" / "checkpoint.pt"), "--zero", "--data", str(recording),
+                          "--out", str(out), "--max-windows", "3", "--no-progress"])
+    table = (out / "table.md").read_text()
+    assert "| zero flow |" in table and "| run |" in table
+    results = json.loads((out / "results.json").read_text())
+    zero = results["zero flow"][0]
+    assert zero["fwl"] == pytest.approx(1.0) and zero["rsat"] == pytest.approx(1.0)
+    assert zero["aee"] == pytest.approx(np.hypot(200, 100) * 0.03, rel=1e-5)  # the known motion
+    assert any(p.name.endswith("_flow.png") for p in (out / "pictures" / "run").iterdir())
+
+
+def test_two_process_ddp_smoke(recording, tmp_path):
+    out = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--master_port=29533",
+           str(ROOT / "scripts" / "train.py"), "--data", str(recording), str(recording), "--width", "4",
+           "--num-envs", "1", "--unroll", "2", "--steps", "3", "--out", str(out), "--val-data", "", "--no-progress",
+           "--device", "cpu"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert len(_losses(out)) == 3
+    assert load_checkpoint(out / "checkpoint.pt")["step"] == 3
