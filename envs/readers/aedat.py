@@ -1,0 +1,155 @@
+"""AEDAT4 recordings (iniVation DAVIS / DVXplorer cameras, DV software) through the ``aedat``
+package (the project's optional ``aedat`` extra: ``pip install evflow-gym[aedat]``).
+
+API used (``aedat`` 2.x, documented in its README): ``aedat.Decoder(path)`` is an iterator of
+packets with ``id_to_stream() -> {stream_id: {"type": "events" | "frame" | "imus" | "triggers",
+"width", "height"}}``; each packet is a dict with ``"stream_id"`` and one of ``"events"`` (a
+structured array with fields t (u8, µs), x (u2), y (u2), on (bool)), ``"frame"`` (a dict with
+``t``, ``format`` ("L", "RGB", "RGBA", or "I;16"), ``width``, ``height``, ``offset_x``,
+``offset_y``, ``pixels`` (H, W[, C]) uint8 or uint16), ``"imus"`` or ``"triggers"``.
+
+AEDAT4 is a packet stream without a time index, so the reader decodes the file once, packet by
+packet, into a temporary project h5 file (``cache_dir``, default the system temp folder;
+removed on ``close``) and streams windows from there: memory stays one packet deep. Times are
+the camera's absolute µs. Frames (if the file has a frame stream) are converted to (H, W) uint8
+gray (16-bit samples >> 8, colour averaged over channels) and placed at their offset.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from envs.events import Events
+from envs.h5format import FormatError, H5Reader, H5Writer
+from envs.readers._common import missing_extra
+from envs.readers.base import EventReader, FlowGT
+
+__all__ = ["AedatReader", "import_aedat"]
+
+
+def import_aedat():
+    """The ``aedat`` module, or an ImportError saying to install the extra."""
+    try:
+        import aedat
+    except ImportError:
+        raise missing_extra("aedat", "aedat", "Reading AEDAT4 files") from None
+    return aedat
+
+
+def _gray(frame: dict, sensor_size: tuple[int, int]) -> np.ndarray:
+    pixels = np.asarray(frame["pixels"])
+    if pixels.dtype == np.uint16:
+        pixels = (pixels >> 8).astype(np.uint8)
+    if pixels.ndim == 3:
+        pixels = np.rint(pixels[:, :, :3].astype(np.float32).mean(axis=2)).astype(np.uint8)
+    h, w = sensor_size
+    if pixels.shape == (h, w):
+        return pixels.astype(np.uint8)
+    out = np.zeros((h, w), np.uint8)
+    oy, ox = int(frame.get("offset_y", 0)), int(frame.get("offset_x", 0))
+    ph, pw = min(pixels.shape[0], h - oy), min(pixels.shape[1], w - ox)
+    out[oy : oy + ph, ox : ox + pw] = pixels[:ph, :pw]
+    return out
+
+
+class AedatReader(EventReader):
+    """An AEDAT4 file (module docstring). stream_id: which event stream (default: the first).
+    cache_dir: where the temporary decoded copy goes."""
+
+    layout = "aedat4"
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        stream_id: int | None = None,
+        cache_dir: str | os.PathLike | None = None,
+        validate: bool = True,
+    ) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise FileNotFoundError(f"{self.path}: no such file")
+        aedat = import_aedat()
+        self.name = self.path.stem
+        self._inner: H5Reader | None = None
+        decoder = aedat.Decoder(str(self.path))
+        streams = decoder.id_to_stream()
+        event_ids = [k for k, s in streams.items() if s.get("type") == "events"]
+        if stream_id is None:
+            if not event_ids:
+                raise FormatError(f"{self.path}: no event stream (streams: {streams})")
+            stream_id = min(event_ids)
+        elif stream_id not in event_ids:
+            raise FormatError(f"{self.path}: stream {stream_id} is not an event stream (streams: {streams})")
+        info = streams[stream_id]
+        self.sensor_size = (int(info["height"]), int(info["width"]))
+        frame_ids = [k for k, s in streams.items() if s.get("type") == "frame"]
+        frame_id = min(frame_ids) if frame_ids else None
+        fd, tmp = tempfile.mkstemp(prefix=f"{self.name}-", suffix=".evflow.h5", dir=cache_dir)
+        os.close(fd)
+        self._cache_path = Path(tmp)
+        try:
+            writer = H5Writer(self._cache_path, self.sensor_size, name=self.name, provenance={"source": str(self.path), "format": "aedat4"})
+            with writer:
+                for packet in decoder:
+                    sid = packet.get("stream_id")
+                    if sid == stream_id and "events" in packet:
+                        ev = packet["events"]
+                        if len(ev) == 0:
+                            continue
+                        writer.append_events(
+                            Events.create(ev["x"], ev["y"], ev["t"].astype(np.int64), ev["on"], self.sensor_size,
+                                          source=f"{self.path} (stream {sid})", validate=validate)
+                        )
+                    elif sid == frame_id and "frame" in packet:
+                        writer.add_frame(int(packet["frame"]["t"]), _gray(packet["frame"], self.sensor_size))
+            self._inner = H5Reader(self._cache_path, validate=validate)
+        except Exception:
+            self._cache_path.unlink(missing_ok=True)
+            raise
+        finally:
+            decoder = None  # the aedat README: drop the decoder to release the file
+        self.num_events = self._inner.num_events
+
+    # everything else is the decoded copy's
+    @property
+    def t_start(self) -> int:
+        return self._inner.t_start
+
+    @property
+    def t_end(self) -> int:
+        return self._inner.t_end
+
+    def index_at(self, t_us: int) -> int:
+        return self._inner.index_at(t_us)
+
+    def events_range(self, i_start: int, i_end: int) -> Events:
+        return self._inner.events_range(i_start, i_end)
+
+    def time_of(self, index: int) -> int:
+        return self._inner.time_of(index)
+
+    def flow_between(self, t_start: int, t_end: int) -> FlowGT | None:
+        return None
+
+    def frame_timestamps(self) -> np.ndarray | None:
+        return self._inner.frame_timestamps()
+
+    def frame(self, index: int) -> np.ndarray:
+        return self._inner.frame(index)
+
+    def close(self) -> None:
+        if self._inner is not None:
+            self._inner.close()
+            self._inner = None
+            self._cache_path.unlink(missing_ok=True)
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:
+            pass

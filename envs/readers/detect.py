@@ -1,0 +1,130 @@
+"""Open any supported recording: ``open_recording(path, format=None, **options)``.
+
+Formats (``FORMATS``): "evflow-h5" (the project's own, :class:`envs.h5format.H5Reader`), "mvsec",
+"dsec", "hagenaars", "ecd-text", "aedat4". Without ``format`` it is detected from the file:
+
+- a folder: ``events.h5`` (DSEC, also under ``events/left/``), ``events.txt`` (ECD) or a single
+  ``*_data.hdf5`` (MVSEC) inside it;
+- ``.aedat4`` or a file starting with ``#!AER-DAT4``: aedat4;
+- an HDF5 file: attribute ``format == "evflow-h5"`` -> evflow-h5; group ``davis`` -> mvsec;
+  ``events/xs`` -> hagenaars; ``events/x`` with ``ms_to_idx`` or ``t_offset`` -> dsec;
+- any other text file whose first event line holds four numbers: ecd-text.
+
+``options`` go to the reader (e.g. ``crop="center256"`` for MVSEC, ``flow_dir=`` for DSEC,
+``sensor_size=`` for text).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import h5py
+
+from envs.h5format import FORMAT_NAME, FormatError, H5Reader
+from envs.readers.base import EventReader
+
+__all__ = ["open_recording", "detect_format", "FORMATS"]
+
+FORMATS = ("evflow-h5", "mvsec", "dsec", "hagenaars", "ecd-text", "aedat4")
+_HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+
+
+def _resolve_dir(path: Path) -> tuple[Path, str]:
+    for cand, fmt in (
+        (path / "events.h5", "dsec"),
+        (path / "events" / "left" / "events.h5", "dsec"),
+        (path / "events.txt", "ecd-text"),
+    ):
+        if cand.exists():
+            return cand, fmt
+    data = sorted(path.glob("*_data.hdf5"))
+    if len(data) == 1:
+        return data[0], "mvsec"
+    raise FormatError(
+        f"{path}: a folder without events.h5 (DSEC), events.txt (ECD) or one *_data.hdf5 (MVSEC); "
+        "pass the recording file itself"
+    )
+
+
+def _detect_h5(path: Path) -> str:
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") == FORMAT_NAME:
+                return "evflow-h5"
+            if "davis" in f:
+                return "mvsec"
+            if "events" in f and "xs" in f["events"]:
+                return "hagenaars"
+            if "events" in f and "x" in f["events"] and ("ms_to_idx" in f or "t_offset" in f):
+                return "dsec"
+            found = sorted(f.keys())
+    except OSError as err:
+        raise FormatError(f"{path}: not a readable HDF5 file: {err}") from err
+    raise FormatError(
+        f"{path}: HDF5 file of an unknown layout (top-level entries {found}); expected one of: "
+        "attribute format='evflow-h5'; group 'davis' (MVSEC); 'events/xs' (Hagenaars); "
+        "'events/x' + 'ms_to_idx' (DSEC)"
+    )
+
+
+def detect_format(path: str | os.PathLike) -> tuple[Path, str]:
+    """(the file to open, its format name) for a file or folder (module docstring)."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file or folder")
+    if path.is_dir():
+        return _resolve_dir(path)
+    with open(path, "rb") as fh:
+        head = fh.read(512)
+    if path.suffix.lower() == ".aedat4" or head.startswith(b"#!AER-DAT4"):
+        return path, "aedat4"
+    if head.startswith(_HDF5_MAGIC) or path.suffix.lower() in (".h5", ".hdf5"):
+        return path, _detect_h5(path)
+    if path.suffix.lower() == ".npz":
+        raise FormatError(f"{path}: an .npz holds MVSEC ground truth; open the matching *_data.hdf5 instead")
+    try:
+        lines = head.decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        lines = []
+    for line in lines[:8]:
+        tokens = line.split()
+        if len(tokens) == 4:
+            try:
+                [float(v) for v in tokens]
+                return path, "ecd-text"
+            except ValueError:
+                continue
+    raise FormatError(f"{path}: cannot tell the format; pass format= one of {FORMATS}")
+
+
+def open_recording(path: str | os.PathLike, format: str | None = None, **options) -> EventReader:
+    """Open a recording as an :class:`EventReader`; ``format`` one of FORMATS or None (detect)."""
+    if format is None:
+        path, format = detect_format(path)
+    elif Path(path).is_dir():
+        resolved, found = _resolve_dir(Path(path))
+        path = resolved
+    if format == "evflow-h5":
+        return H5Reader(path, **options)
+    if format == "mvsec":
+        from envs.readers.mvsec import MVSECReader
+
+        return MVSECReader(path, **options)
+    if format == "dsec":
+        from envs.readers.dsec import DSECReader
+
+        return DSECReader(path, **options)
+    if format == "hagenaars":
+        from envs.readers.hagenaars import HagenaarsReader
+
+        return HagenaarsReader(path, **options)
+    if format == "ecd-text":
+        from envs.readers.text import TextReader
+
+        return TextReader(path, **options)
+    if format == "aedat4":
+        from envs.readers.aedat import AedatReader
+
+        return AedatReader(path, **options)
+    raise ValueError(f"unknown format {format!r}; expected one of {FORMATS}")

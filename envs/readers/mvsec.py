@@ -1,0 +1,367 @@
+"""MVSEC (Zhu et al. 2018): reader for ``<seq>_data.hdf5`` + ``<seq>_gt_flow_dist.npz`` and the
+evaluation protocol (REFERENCE sections 7 and 8).
+
+Layout read (DAVIS 346, 260 x 346):
+
+    davis/left/events         (N, 4) float64  [x, y, t (epoch seconds), p in {-1, +1}]
+    davis/left/image_raw      (F, 260, 346) uint8      [optional]
+    davis/left/image_raw_ts   (F,) float64 epoch seconds   [optional]
+    <seq>_gt_flow_dist.npz:  timestamps (K,) epoch s; x_flow_dist, y_flow_dist (K, 260, 346):
+                             map i = displacement in pixels from timestamps[i] to timestamps[i+1]
+
+Time origin: every time this reader returns is integer µs relative to the first event,
+``t_us = rint(t_s * 1e6) - origin_us`` with ``origin_us = rint(first_event_t_s * 1e6)``
+(``reader.origin_us``; the same origin for events, ground truth and frames). So the first event
+is at t = 0 and the outdoor_day1 cut "222.4-240.4 s" means t in [222.4e6, 240.4e6) µs.
+
+Ground truth (``flow_between``): from the 20 Hz displacement maps by linear scaling inside one
+interval or by chaining the maps with nearest-neighbour lookups across intervals
+(:mod:`envs.readers.flowgt`). The frames-mode grid (``flow_timestamps``) is the grayscale image
+timestamps (the EV-FlowNet protocol: dt = 1 spans two consecutive images, dt = 4 five), or the
+ground-truth timestamps with ``grid="gt"`` or when the file has no images.
+
+Crop: ``crop=(top, left, height, width)`` or ``"center256"`` keeps the events inside the box,
+shifts them to the box origin and crops ground truth and frames (which are computed on the full
+sensor first, so motion from outside the box is propagated correctly); ``sensor_size`` becomes
+the crop size. ``num_events`` and ``events_range`` indices stay those of the file (a window may
+hold fewer events than its index range once cropped).
+
+Memory: events are read per window through a chunked binary search on the time column; the
+ground truth is read one map at a time (memory-mapped from an uncompressed npz, streamed from a
+compressed one).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import struct
+import zipfile
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from envs.events import Events
+from envs.h5format import FormatError
+from envs.readers._common import SortedColumn, crop_events, open_h5, require, resolve_crop, seconds_to_us
+from envs.readers.base import EventReader, FlowGT
+from envs.readers.flowgt import flow_from_displacements, valid_of
+
+__all__ = [
+    "MVSECReader",
+    "MVSEC_SEQUENCES",
+    "MVSEC_VALID_FRAMES",
+    "OUTDOOR_DAY1_CUT_S",
+    "MVSEC_CROP",
+    "MVSEC_SENSOR_SIZE",
+    "mvsec_eval_windows",
+    "sequence_name",
+]
+
+MVSEC_SENSOR_SIZE = (260, 346)
+#: the four sequences of the flow benchmark (Zhu et al. 2018; Hagenaars et al. 2021)
+MVSEC_SEQUENCES = ("indoor_flying1", "indoor_flying2", "indoor_flying3", "outdoor_day1")
+#: ground truth is evaluated only inside these grid-index ranges [first, last] (REFERENCE sec. 7)
+MVSEC_VALID_FRAMES = {
+    "indoor_flying1": (60, 1340),
+    "indoor_flying2": (140, 1500),
+    "indoor_flying3": (100, 1711),
+    "outdoor_day1": (4356, 4706),
+}
+#: outdoor_day1 is evaluated on this time span, seconds after the first event (= reader time 0)
+OUTDOOR_DAY1_CUT_S = (222.4, 240.4)
+#: the central 256 x 256 crop used for evaluation (as Hagenaars)
+MVSEC_CROP = "center256"
+
+
+def sequence_name(path: str | os.PathLike) -> str:
+    """'.../indoor_flying1_data.hdf5' -> 'indoor_flying1' (the file stem without the suffix)."""
+    stem = Path(path).name
+    return re.sub(r"(_data\.hdf5|_data\.h5|_gt_flow_dist\.npz|\.hdf5|\.h5)$", "", stem)
+
+
+class _NpyInZip:
+    """One (K, H, W) array of an .npz, read one slice at a time.
+
+    Uncompressed members (``np.savez``) are memory-mapped; compressed ones (``np.savez_compressed``)
+    are streamed, seeking forward from the last position (sequential access is cheap, going back
+    restarts the member).
+    """
+
+    def __init__(self, path: Path, key: str) -> None:
+        self.path, self.key = path, key
+        self._zip = zipfile.ZipFile(path)
+        member = key + ".npy"
+        try:
+            self._info = self._zip.getinfo(member)
+        except KeyError:
+            raise FormatError(f"{path}: missing array '{key}' (members: {self._zip.namelist()})") from None
+        with self._zip.open(self._info) as fh:
+            version = np.lib.format.read_magic(fh)
+            reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            self.shape, fortran, self.dtype = reader(fh)
+            self._header_len = fh.tell()
+        if fortran or len(self.shape) != 3:
+            raise FormatError(f"{path}: array '{key}' must be a C-ordered (K, H, W) stack, got shape {self.shape}")
+        self._frame_bytes = int(np.prod(self.shape[1:])) * self.dtype.itemsize
+        self._mmap = None
+        self._stream = None
+        self._pos = 0
+        if self._info.compress_type == zipfile.ZIP_STORED:
+            with open(path, "rb") as raw:
+                raw.seek(self._info.header_offset)
+                local = struct.unpack("<IHHHHHIIIHH", raw.read(30))
+            data_start = self._info.header_offset + 30 + local[9] + local[10] + self._header_len
+            self._mmap = np.memmap(path, dtype=self.dtype, mode="r", offset=data_start, shape=self.shape)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        k = int(k)
+        if not 0 <= k < self.shape[0]:
+            raise IndexError(f"{self.path}:{self.key}: index {k} out of range {self.shape[0]}")
+        if self._mmap is not None:
+            return np.array(self._mmap[k])
+        target = self._header_len + k * self._frame_bytes
+        if self._stream is None or target < self._pos:
+            if self._stream is not None:
+                self._stream.close()
+            self._stream = self._zip.open(self._info)
+            self._pos = 0
+        self._stream.seek(target)
+        buf = self._stream.read(self._frame_bytes)
+        self._pos = target + len(buf)
+        return np.frombuffer(buf, self.dtype).reshape(self.shape[1:]).copy()
+
+    def close(self) -> None:
+        if self._stream is not None:
+            self._stream.close()
+        self._mmap = None
+        self._zip.close()
+
+
+class MVSECReader(EventReader):
+    """One MVSEC sequence (see the module docstring for the layout, time origin and crop).
+
+    path: ``<seq>_data.hdf5``. gt: the ``_gt_flow_dist.npz`` path; default: the file of that name
+    beside ``path`` when it exists; False for none. camera: "left" or "right".
+    crop: None, (top, left, height, width) or "center256". grid: "images" or "gt" (frames-mode
+    grid; see module docstring). validate: check every window's events (bounds, time order).
+    """
+
+    layout = "mvsec"
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        gt: str | os.PathLike | bool | None = None,
+        camera: str = "left",
+        crop=None,
+        grid: str = "images",
+        validate: bool = True,
+    ) -> None:
+        self.path = Path(path)
+        self.name = sequence_name(self.path)
+        self.sequence = self.name
+        self.validate = validate
+        self._file = open_h5(self.path, "MVSEC")
+        f = self._file
+        base = f"davis/{camera}"
+        try:
+            require(f, self.path, "MVSEC", {f"{base}/events": ("f", 2)})
+            ev = f[f"{base}/events"]
+            if ev.shape[1] != 4:
+                raise FormatError(
+                    f"{self.path}: dataset '/{base}/events' has shape {ev.shape}, the MVSEC layout "
+                    "expects (N, 4) columns [x, y, t_seconds, p]"
+                )
+            if ev.shape[0] == 0:
+                raise FormatError(f"{self.path}: dataset '/{base}/events' is empty")
+        except Exception:
+            f.close()
+            raise
+        self._events = ev
+        self.num_events = int(ev.shape[0])
+        self.full_sensor_size = MVSEC_SENSOR_SIZE
+        if f"{base}/image_raw" in f:
+            self.full_sensor_size = tuple(int(v) for v in f[f"{base}/image_raw"].shape[1:3])
+        self.crop = resolve_crop(crop, self.full_sensor_size)
+        self.sensor_size = self.full_sensor_size if self.crop is None else (self.crop[2], self.crop[3])
+        self.origin_us = int(np.rint(float(ev[0, 2]) * 1e6))
+        self._times = SortedColumn(lambda i0, i1: seconds_to_us(self._events[i0:i1, 2], self.origin_us), self.num_events)
+        self._t_end = int(seconds_to_us(ev[self.num_events - 1, 2], self.origin_us)) + 1
+        # frames
+        self._images = None
+        self._image_t = None
+        if f"{base}/image_raw" in f:
+            if f"{base}/image_raw_ts" not in f:
+                f.close()
+                raise FormatError(f"{self.path}: '/{base}/image_raw' has no timestamps: missing dataset '/{base}/image_raw_ts'")
+            self._images = f[f"{base}/image_raw"]
+            self._image_t = seconds_to_us(f[f"{base}/image_raw_ts"][:], self.origin_us)
+        # ground truth
+        if gt is None:
+            candidate = self.path.with_name(self.name + "_gt_flow_dist.npz")
+            gt = candidate if candidate.exists() else False
+        self._gt_t = None
+        self._gt_x = self._gt_y = None
+        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
+        if gt:
+            self._open_gt(Path(gt))
+        if grid not in ("images", "gt"):
+            raise ValueError(f"grid must be 'images' or 'gt', got {grid!r}")
+        self.grid = grid
+
+    def _open_gt(self, path: Path) -> None:
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such ground-truth file")
+        try:
+            with np.load(path) as npz:
+                if "timestamps" not in npz.files:
+                    raise FormatError(f"{path}: missing array 'timestamps' (MVSEC gt_flow_dist layout)")
+                ts = np.asarray(npz["timestamps"], np.float64)
+        except (zipfile.BadZipFile, ValueError, OSError) as err:
+            if isinstance(err, FormatError):
+                raise
+            raise FormatError(f"{path}: not a readable .npz file: {err}") from err
+        self._gt_x = _NpyInZip(path, "x_flow_dist")
+        self._gt_y = _NpyInZip(path, "y_flow_dist")
+        for arr in (self._gt_x, self._gt_y):
+            if arr.shape != (len(ts),) + self.full_sensor_size:
+                raise FormatError(
+                    f"{path}: array '{arr.key}' has shape {arr.shape}, expected "
+                    f"({len(ts)}, {self.full_sensor_size[0]}, {self.full_sensor_size[1]}) (one map per timestamp)"
+                )
+        if ts.ndim != 1 or (np.diff(ts) <= 0).any():
+            raise FormatError(f"{path}: array 'timestamps' must be 1-D and increasing")
+        self._gt_t = seconds_to_us(ts, self.origin_us)
+        self.gt_path = path
+
+    # -- events -----------------------------------------------------------------------------
+    @property
+    def t_start(self) -> int:
+        return 0
+
+    @property
+    def t_end(self) -> int:
+        return self._t_end
+
+    def index_at(self, t_us: int) -> int:
+        return self._times.searchsorted(int(t_us))
+
+    def time_of(self, index: int) -> int:
+        return int(seconds_to_us(self._events[int(index), 2], self.origin_us))
+
+    def events_range(self, i_start: int, i_end: int) -> Events:
+        i_start, i_end = max(0, int(i_start)), min(self.num_events, int(i_end))
+        if i_end <= i_start:
+            return Events.empty(self.sensor_size)
+        block = self._events[i_start:i_end]
+        x, y = block[:, 0], block[:, 1]
+        t = seconds_to_us(block[:, 2], self.origin_us)
+        p = block[:, 3]
+        keep, x, y = crop_events(x, y, self.crop)
+        if keep is not None:
+            t, p = t[keep], p[keep]
+        return Events.create(
+            x.astype(np.int64), y.astype(np.int64), t, p, self.sensor_size,
+            source=f"{self.path} (events {i_start}..{i_end})", validate=self.validate,
+        )
+
+    # -- ground truth ---------------------------------------------------------------------------
+    @property
+    def has_flow(self) -> bool:
+        return self._gt_t is not None
+
+    def gt_timestamps(self) -> np.ndarray | None:
+        """(K,) int64 µs of the ground-truth maps (map i spans [T_i, T_{i+1}))."""
+        return self._gt_t
+
+    def flow_timestamps(self) -> np.ndarray | None:
+        if self._gt_t is None:
+            return None
+        if self.grid == "images" and self._image_t is not None:
+            return self._image_t
+        return self._gt_t
+
+    def _map(self, i: int) -> np.ndarray:
+        d = self._cache.get(i)
+        if d is None:
+            d = np.stack([self._gt_x[i], self._gt_y[i]]).astype(np.float64)
+            self._cache[i] = d
+            if len(self._cache) > 8:
+                self._cache.popitem(last=False)
+        else:
+            self._cache.move_to_end(i)
+        return d
+
+    def flow_between(self, t_start: int, t_end: int) -> FlowGT | None:
+        """Flow over [t_start, t_end) µs: (2, H, W) float32 px, valid (H, W) bool; cropped like the events.
+
+        None outside the ground-truth span. Scaled inside one 20 Hz interval, chained across
+        intervals (module docstring)."""
+        if self._gt_t is None:
+            return None
+        out = flow_from_displacements(self._map, self._gt_t, t_start, t_end, lambda i: valid_of(self._map(i)))
+        if out is None:
+            return None
+        flow, valid = out
+        if self.crop is not None:
+            top, left, h, w = self.crop
+            flow, valid = flow[:, top : top + h, left : left + w], valid[top : top + h, left : left + w]
+        return np.ascontiguousarray(flow), np.ascontiguousarray(valid)
+
+    # -- frames -------------------------------------------------------------------------------
+    def frame_timestamps(self) -> np.ndarray | None:
+        return self._image_t
+
+    def frame(self, index: int) -> np.ndarray:
+        if self._images is None:
+            return super().frame(index)
+        image = self._images[int(index)]
+        if self.crop is not None:
+            top, left, h, w = self.crop
+            image = image[top : top + h, left : left + w]
+        return np.ascontiguousarray(image)
+
+    def close(self) -> None:
+        for arr in (self._gt_x, self._gt_y):
+            if arr is not None:
+                arr.close()
+        if getattr(self, "_file", None) is not None and self._file.id.valid:
+            self._file.close()
+
+
+def mvsec_eval_windows(reader: MVSECReader, dt: int, sequence: str | None = None, *, outdoor_cut: str = "time") -> np.ndarray:
+    """The evaluation windows of the MVSEC protocol: (K, 2) int64 ``[t_start, t_end)`` µs.
+
+    Windows span ``dt`` steps of ``reader.flow_timestamps()`` (dt = 1 or 4), non-overlapping:
+    ``[T_k, T_{k+dt})`` for k = first, first + dt, ... with ``k + dt <= last`` where
+    (first, last) = MVSEC_VALID_FRAMES[sequence]. For outdoor_day1 the span is, by default
+    (``outdoor_cut="time"``), the time cut OUTDOOR_DAY1_CUT_S in seconds after the first event
+    (windows with T_k >= 222.4 s and T_{k+dt} <= 240.4 s); ``outdoor_cut="frames"`` uses the grid
+    indices 4356-4706 instead. Unknown sequences use the whole grid.
+    """
+    if dt not in (1, 4):
+        raise ValueError(f"MVSEC evaluates dt = 1 or 4 frames, got {dt}")
+    if outdoor_cut not in ("time", "frames"):
+        raise ValueError(f"outdoor_cut must be 'time' or 'frames', got {outdoor_cut!r}")
+    grid = reader.flow_timestamps()
+    if grid is None:
+        raise ValueError(f"{reader.name}: no ground truth (pass gt=<seq>_gt_flow_dist.npz)")
+    grid = np.asarray(grid, np.int64)
+    sequence = sequence or getattr(reader, "sequence", reader.name)
+    if sequence == "outdoor_day1" and outdoor_cut == "time":
+        lo, hi = (int(round(s * 1e6)) for s in OUTDOOR_DAY1_CUT_S)
+        inside = np.flatnonzero((grid >= lo) & (grid <= hi))
+        first, last = (int(inside[0]), int(inside[-1])) if len(inside) else (0, -1)
+    else:
+        first, last = MVSEC_VALID_FRAMES.get(sequence, (0, len(grid) - 1))
+        last = min(last, len(grid) - 1)
+    starts = np.arange(first, last - dt + 1, dt)
+    if len(starts) == 0:
+        return np.zeros((0, 2), np.int64)
+    return np.stack([grid[starts], grid[starts + dt]], axis=1).astype(np.int64)
