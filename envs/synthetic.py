@@ -1,0 +1,200 @@
+"""Named synthetic benchmark splits: fixed seeds, resolutions and motion ranges, simulated on
+demand by :mod:`envs.simulator` and cached.
+
+    from envs.synthetic import SPLITS, list_sequences, load_sequence
+    reader = load_sequence("synthetic-test", 0)          # or by name: "synthetic-test-128-00"
+    reader.flow_between(*reader.flow_timestamps()[:2])   # exact ground truth, 30 Hz grid
+
+Splits (all 30 Hz frames; ``max_flow_px`` bounds the displacement of any visible point over
+one frame interval, spread geometrically over each split, so windows range from sub-pixel to
+~10 px):
+
+- ``synthetic-train``: 32 sequences, 128x128, 2 s each, max_flow_px 0.5-14.
+- ``synthetic-test``: 8 sequences at 128x128 and 3 at 256x256, 1 s each, max_flow_px 0.5-14.
+- ``synthetic-mini``: 3 sequences, 64x64, 1 s each, max_flow_px 1, 3, 8 (tests and demos).
+
+Caching: an in-process cache (readers by split and name; :func:`clear_cache` empties it), and an
+on-disk cache of project h5 files under ``$EVFLOW_CACHE`` (default ``~/.cache/evflow``) in
+``synthetic/<split>/<name>-v<simulator version>-<config hash>.h5``, written atomically by the
+h5 writer and re-used when present. Set ``EVFLOW_CACHE=off`` (or pass ``disk_cache=False``) to
+keep everything in memory. A disk-cached reader serves the stored flow maps (consecutive frame
+times) and computes any other window's flow exactly from the scene geometry, like the
+in-memory reader.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from envs.h5format import H5Reader
+from envs.readers.base import EventReader, FlowGT
+from envs.simulator import SIMULATOR_VERSION, Scene, SceneConfig, SimulatedSequence, simulate
+
+__all__ = [
+    "SequenceSpec",
+    "SyntheticH5Reader",
+    "SPLITS",
+    "list_splits",
+    "list_sequences",
+    "get_spec",
+    "load_sequence",
+    "clear_cache",
+    "cache_root",
+]
+
+
+@dataclass(frozen=True)
+class SequenceSpec:
+    """One sequence of a split.
+
+    name: unique across splits. seed: scene seed. height, width: pixels. duration_s: seconds.
+    max_flow_px: bound on any visible point's displacement per frame interval (px), i.e. a
+    speed bound of max_flow_px * fps px/s. fps: frame rate (= ground-truth grid).
+    """
+
+    name: str
+    seed: int
+    height: int
+    width: int
+    duration_s: float
+    max_flow_px: float
+    fps: float = 30.0
+
+    def config(self) -> SceneConfig:
+        return SceneConfig.random(self.seed, self.height, self.width, speed_px_s=self.max_flow_px * self.fps)
+
+    def simulate(self) -> SimulatedSequence:
+        return simulate(self.config(), self.duration_s, fps=self.fps)
+
+    def cache_key(self) -> str:
+        """Hash of everything that determines the output (spec, config, simulator version)."""
+        blob = json.dumps([asdict(self), self.config().to_dict(), SIMULATOR_VERSION], sort_keys=True)
+        return hashlib.sha1(blob.encode()).hexdigest()[:10]
+
+
+def _spread(n: int, low: float, high: float, seed: int) -> list[float]:
+    """n motion bounds spread geometrically over [low, high], in a fixed shuffled order."""
+    values = np.geomspace(low, high, n)
+    return [round(float(v), 3) for v in values[np.random.default_rng(seed).permutation(n)]]
+
+
+def _build_splits() -> dict[str, list[SequenceSpec]]:
+    train = [
+        SequenceSpec(f"synthetic-train-{i:03d}", 1000 + i, 128, 128, 2.0, m)
+        for i, m in enumerate(_spread(32, 0.5, 14.0, seed=1))
+    ]
+    test = [
+        SequenceSpec(f"synthetic-test-128-{i:02d}", 2000 + i, 128, 128, 1.0, m)
+        for i, m in enumerate(_spread(8, 0.5, 14.0, seed=2))
+    ]
+    test += [
+        SequenceSpec(f"synthetic-test-256-{i:02d}", 2100 + i, 256, 256, 1.0, m)
+        for i, m in enumerate((1.0, 4.0, 12.0))
+    ]
+    mini = [SequenceSpec(f"synthetic-mini-{i}", 3000 + i, 64, 64, 1.0, m) for i, m in enumerate((1.0, 3.0, 8.0))]
+    return {"synthetic-train": train, "synthetic-test": test, "synthetic-mini": mini}
+
+
+SPLITS: dict[str, list[SequenceSpec]] = _build_splits()
+
+
+def list_splits() -> list[str]:
+    return list(SPLITS)
+
+
+def list_sequences(split: str) -> list[SequenceSpec]:
+    """The specs of a split, in order. Unknown split -> ValueError listing the known ones."""
+    if split not in SPLITS:
+        raise ValueError(f"unknown synthetic split {split!r}; known splits: {', '.join(SPLITS)}")
+    return list(SPLITS[split])
+
+
+def get_spec(split: str, index_or_name: int | str) -> SequenceSpec:
+    """A split's sequence by position or by name."""
+    specs = list_sequences(split)
+    if isinstance(index_or_name, (int, np.integer)):
+        if not -len(specs) <= index_or_name < len(specs):
+            raise IndexError(f"{split} has {len(specs)} sequences, no index {index_or_name}")
+        return specs[index_or_name]
+    for spec in specs:
+        if spec.name == index_or_name:
+            return spec
+    raise KeyError(f"{split} has no sequence named {index_or_name!r}; names: {specs[0].name} .. {specs[-1].name}")
+
+
+def cache_root() -> Path | None:
+    """The on-disk cache folder ($EVFLOW_CACHE or ~/.cache/evflow), None when set to 'off'."""
+    root = os.environ.get("EVFLOW_CACHE", str(Path.home() / ".cache" / "evflow"))
+    if root.strip().lower() in ("", "off", "0", "none"):
+        return None
+    return Path(root).expanduser()
+
+
+class SyntheticH5Reader(H5Reader):
+    """A disk-cached synthetic sequence: events and frames from the file; flow from the stored
+    maps where one matches the window exactly, else computed exactly from the scene geometry."""
+
+    def __init__(self, path: str | os.PathLike, config: SceneConfig) -> None:
+        super().__init__(path)
+        self.config = config
+        self._scene: Scene | None = None
+
+    def flow_between(self, t_start: int, t_end: int) -> FlowGT | None:
+        stored = super().flow_between(t_start, t_end)
+        if stored is not None:
+            return stored
+        if self._scene is None:
+            self._scene = Scene(self.config)  # geometry only: the textures stay unbuilt
+        return self._scene.flow(t_start * 1e-6, t_end * 1e-6), np.ones(self.sensor_size, bool)
+
+
+_MEMORY: dict[tuple[str, str], EventReader] = {}
+
+
+def clear_cache() -> None:
+    """Forget the in-process cache (closes cached files; the disk cache stays)."""
+    for reader in _MEMORY.values():
+        reader.close()
+    _MEMORY.clear()
+
+
+def load_sequence(split: str, index_or_name: int | str, *, disk_cache: bool = True) -> EventReader:
+    """The reader of one split sequence, simulated on first use and cached (module docstring).
+
+    Returns an :class:`~envs.readers.base.EventReader` with exact flow for any window, the frame
+    times as ground-truth grid (30 Hz) and the frames. Readers are shared between callers:
+    do not close them (use :func:`clear_cache`).
+    """
+    spec = get_spec(split, index_or_name)
+    key = (split, spec.name)
+    if key in _MEMORY:
+        return _MEMORY[key]
+    root = cache_root() if disk_cache else None
+    reader: EventReader | None = None
+    if root is not None:
+        config = spec.config()
+        path = root / "synthetic" / split / f"{spec.name}-v{SIMULATOR_VERSION}-{spec.cache_key()}.h5"
+        if path.exists():
+            try:
+                reader = SyntheticH5Reader(path, config)
+            except (OSError, ValueError) as err:  # unreadable cache file: simulate again
+                warnings.warn(f"ignoring unreadable cache file {path}: {err}")
+        if reader is None:
+            sequence = spec.simulate()
+            try:
+                sequence.to_h5(path, name=spec.name, provenance={"split": split, "spec": asdict(spec)})
+                reader = SyntheticH5Reader(path, config)
+            except OSError as err:
+                warnings.warn(f"could not write the synthetic cache {path} ({err}); keeping {spec.name} in memory")
+                reader = sequence.reader(spec.name)
+    else:
+        reader = spec.simulate().reader(spec.name)
+    _MEMORY[key] = reader
+    return reader
