@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from envs.events import Events
-from envs.simulator import EventEmulator, Scene, SceneConfig, SensorConfig, simulate
+from envs.simulator import AffineMotion, EventEmulator, Scene, SceneConfig, SensorConfig, simulate
 from envs.synthetic import SPLITS, SyntheticH5Reader, clear_cache, get_spec, list_sequences, load_sequence
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
@@ -43,6 +43,30 @@ def test_pure_translation_flow_equals_the_translation():
     # and the rendered image really moves that way: over 30 ms, 3 px right and 6 px up
     before, after = scene.render(0.0), scene.render(0.03)
     np.testing.assert_allclose(after[:-6, 3:], before[6:, :-3], atol=1e-4)
+
+
+def test_roll_and_zoom_flow_matches_closed_form_and_the_renders():
+    h, w = 48, 64
+    centre = np.array([(w - 1) / 2, (h - 1) / 2])
+    camera = AffineMotion(anchor=tuple(centre), angular_velocity=1.5, zoom_amp=0.2, zoom_freq=1.0, camera=True)
+    scene = Scene(SceneConfig(0, h, w, camera))
+    t0, t1 = 0.1, 0.15
+    flow = scene.flow(t0, t1)
+    # closed form: p1 = c + (s1 / s0) R(theta1 - theta0) (p - c)
+    ratio = np.exp(0.2 * (np.sin(2 * np.pi * t1) - np.sin(2 * np.pi * t0)))
+    angle = 1.5 * (t1 - t0)
+    ys, xs = np.mgrid[0:h, 0:w].astype(float)
+    dx, dy = xs - centre[0], ys - centre[1]
+    x1 = centre[0] + ratio * (np.cos(angle) * dx - np.sin(angle) * dy)
+    y1 = centre[1] + ratio * (np.sin(angle) * dx + np.cos(angle) * dy)
+    np.testing.assert_allclose(flow[0], x1 - xs, atol=1e-4)
+    np.testing.assert_allclose(flow[1], y1 - ys, atol=1e-4)
+    assert np.abs(flow).max() > 3  # a real motion
+    # the render at t1, sampled where the flow says, reproduces the render at t0
+    inside = (x1 >= 0) & (x1 < w - 1) & (y1 >= 0) & (y1 < h - 1)
+    before, after = scene.render(t0), scene.render(t1)
+    error = np.abs(_bilinear(after, x1[inside], y1[inside]) - before[inside]).mean()
+    assert error < 0.1 * np.abs(after - before)[inside].mean()
 
 
 def _iwe_variance(events: Events, flow: np.ndarray, t0: int, t1: int) -> float:

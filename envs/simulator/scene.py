@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from envs.simulator.motion import AffineMotion
-from envs.simulator.textures import TextureConfig, make_texture, sample_wrapped
+from envs.simulator.textures import PeriodicTexture, TextureConfig, make_texture
 
 __all__ = ["SensorConfig", "ObjectSpec", "SceneConfig", "Scene"]
 
@@ -285,8 +285,8 @@ class Scene:
 
     # -- textures ----------------------------------------------------------------------
     @property
-    def textures(self) -> list[np.ndarray]:
-        """Per layer: (S, S) float32 periodic log-intensity texture (generated on first use)."""
+    def textures(self) -> list[PeriodicTexture]:
+        """Per layer: its periodic log-intensity texture (generated on first use)."""
         if self._textures is None:
             cfg = self.config
             big = _next_pow2(3.0 * max(cfg.height, cfg.width))  # >= view / min zoom, no visible tiling
@@ -297,7 +297,7 @@ class Scene:
                 shift = rng.uniform(-0.5, 0.5)
                 tex_cfg = dataclasses.replace(cfg.texture, log_min=cfg.texture.log_min + shift, log_max=cfg.texture.log_max + shift)
                 textures.append(make_texture(rng, _next_pow2(2.6 * obj.radius), tex_cfg))
-            self._textures = textures
+            self._textures = [PeriodicTexture(tex) for tex in textures]
         return self._textures
 
     # -- geometry ------------------------------------------------------------------------
@@ -347,22 +347,23 @@ class Scene:
         """(H, W) float32 log intensity at time t (seconds)."""
         textures = self.textures
         inv = self.config.camera.inverse(t)
-        half = textures[0].shape[0] / 2.0  # the plane's origin sits at the texture's centre
-        u = (inv[0, 0] * self._x + inv[0, 1] * self._y + (inv[0, 2] + half)).astype(np.float32)
-        v = (inv[1, 0] * self._x + inv[1, 1] * self._y + (inv[1, 2] + half)).astype(np.float32)
-        image = sample_wrapped(textures[0], u, v)
+        size = textures[0].size
+        # the plane's origin sits at the texture's centre; the offset is reduced modulo the
+        # period first so float32 coordinates stay small (and precise) however far the camera pans
+        lin = inv[:2, :2].astype(np.float32)
+        off = np.mod(inv[:2, 2] + size / 2.0, size).astype(np.float32)
+        u = lin[0, 0] * self._x32 + lin[0, 1] * self._y32 + off[0]
+        v = lin[1, 0] * self._x32 + lin[1, 1] * self._y32 + off[1]
+        image = textures[0].sample(u, v)
         for k in range(len(self.config.objects)):
             region = self._object_region(k, t)
             if region is None:
                 continue
             rows, cols, u, v, alpha = region
-            inside = alpha > 0
-            if not inside.any():
-                continue
-            half = textures[k + 1].shape[0] / 2.0
-            values = sample_wrapped(textures[k + 1], u[inside] + half, v[inside] + half)
-            patch = image[rows, cols]
-            patch[inside] += alpha[inside] * (values - patch[inside])
+            half = np.float32(textures[k + 1].size / 2.0)
+            values = textures[k + 1].sample(u + half, v + half)
+            patch = image[rows, cols]  # a view: blends in place
+            patch += alpha * (values - patch)
         return image
 
     def flow(self, t0: float, t1: float) -> np.ndarray:

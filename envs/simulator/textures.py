@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["TextureConfig", "dead_leaves", "make_texture", "sample_wrapped"]
+__all__ = ["TextureConfig", "PeriodicTexture", "dead_leaves", "make_texture", "sample_wrapped"]
 
 
 @dataclass(frozen=True)
@@ -103,19 +103,41 @@ def sample_wrapped(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndar
 
     texture: (S, S) float32, S a power of two; u (column), v (row): float arrays of one shape,
     any real values (they wrap modulo S). Returns float32 of the same shape.
+    For repeated sampling use :class:`PeriodicTexture` (pads once).
     """
-    size = texture.shape[1]
-    mask = size - 1
-    u0 = np.floor(u)
-    v0 = np.floor(v)
-    fu = (u - u0).astype(np.float32)
-    fv = (v - v0).astype(np.float32)
-    iu = u0.astype(np.int64) & mask
-    iv = v0.astype(np.int64) & mask
-    iu1 = (iu + 1) & mask
-    row0 = iv * size
-    row1 = ((iv + 1) & mask) * size
-    flat = texture.ravel()
-    top = flat[row0 + iu] + fu * (flat[row0 + iu1] - flat[row0 + iu])
-    bottom = flat[row1 + iu] + fu * (flat[row1 + iu1] - flat[row1 + iu])
-    return top + fv * (bottom - top)
+    return PeriodicTexture(texture).sample(u, v)
+
+
+class PeriodicTexture:
+    """A periodic texture prepared for fast bilinear sampling: one wrapped row and column are
+    appended, so the four neighbours of any texel are at fixed flat offsets (no wrapping per
+    neighbour).
+
+    texture: (S, S) float32, S a power of two.
+    """
+
+    def __init__(self, texture: np.ndarray) -> None:
+        size = texture.shape[0]
+        if texture.shape != (size, size) or size & (size - 1):
+            raise ValueError(f"texture must be square with a power-of-two side, got {texture.shape}")
+        self.size = size
+        self.texture = texture
+        self._flat = np.pad(texture.astype(np.float32), ((0, 1), (0, 1)), mode="wrap").ravel()
+
+    def sample(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Bilinear sample at (u, v) = (column, row), wrapping modulo S: float32, u's shape."""
+        mask = self.size - 1
+        u0 = np.floor(u)
+        v0 = np.floor(v)
+        fu = (u - u0).astype(np.float32, copy=False)
+        fv = (v - v0).astype(np.float32, copy=False)
+        i00 = (v0.astype(np.int32) & mask) * (self.size + 1) + (u0.astype(np.int32) & mask)
+        flat = self._flat
+        a = flat.take(i00)
+        b = flat.take(i00 + 1)
+        i00 += self.size + 1
+        c = flat.take(i00)
+        d = flat.take(i00 + 1)
+        top = a + fu * (b - a)
+        bottom = c + fu * (d - c)
+        return top + fv * (bottom - top)
