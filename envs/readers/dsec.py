@@ -118,7 +118,9 @@ class DSECReader(EventReader):
         validate: bool = True,
     ) -> None:
         self.path = Path(path)
-        self.name = self.path.parent.parent.name if self.path.parent.name in ("left", "right") else self.path.stem
+        # DSEC's tree: <sequence>/events/left/events.h5 -> the sequence name
+        parts = self.path.parts
+        self.name = parts[-4] if len(parts) >= 4 and parts[-3:-1] in (("events", "left"), ("events", "right")) else self.path.parent.name
         self.validate = validate
         self._file = f = open_h5(self.path, "DSEC")
         try:

@@ -1,0 +1,91 @@
+"""Convert any reader to the project h5 format (``scripts/convert.py`` is the command line).
+
+Events are copied ``chunk_events`` at a time (memory stays one chunk deep); ground truth is
+stored for the windows ``[T_k, T_{k+flow_dt})`` of the reader's ``flow_timestamps()`` grid where
+the reader has it (stepping by flow_dt, like the "frames" windows); frames are copied as
+(H, W) uint8. The output is written under a temporary name and renamed at the end
+(:class:`envs.h5format.H5Writer`), so an interrupted conversion leaves no file behind.
+Rectified (float) coordinates are rounded to the nearest pixel, since the project h5 stores
+integer pixels; events that round outside the sensor are dropped.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from envs.events import Events
+from envs.h5format import H5Writer
+from envs.readers.base import EventReader
+
+__all__ = ["convert_recording"]
+
+
+def _integer_pixels(events: Events) -> Events:
+    if not np.issubdtype(events.x.dtype, np.floating):
+        return events
+    h, w = events.sensor_size
+    x = np.floor(events.x + 0.5).astype(np.int64)
+    y = np.floor(events.y + 0.5).astype(np.int64)
+    keep = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    return Events(x[keep].astype(np.int16), y[keep].astype(np.int16), events.t[keep], events.p[keep], events.sensor_size)
+
+
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.dtype == np.uint8:
+        return image
+    if image.dtype == np.uint16:
+        return (image >> 8).astype(np.uint8)
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def convert_recording(
+    reader: EventReader,
+    out_path: str | os.PathLike,
+    *,
+    chunk_events: int = 1 << 20,
+    flow_dt: int | None = 1,
+    frames: bool = True,
+    progress: bool = False,
+    source: str | None = None,
+) -> Path:
+    """Write ``reader`` to ``out_path`` as a project h5 file; returns the path.
+
+    flow_dt: grid steps per stored ground-truth map (None: no ground truth).
+    progress: show a tqdm bar over the events.
+    """
+    out_path = Path(out_path)
+    provenance = {"source": source or str(getattr(reader, "path", reader.name)), "reader": type(reader).__name__}
+    if getattr(reader, "crop", None) is not None:
+        provenance["crop"] = list(reader.crop)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=reader.num_events, unit="ev", unit_scale=True, desc=f"convert {reader.name}")
+    try:
+        with H5Writer(out_path, reader.sensor_size, name=reader.name, provenance=provenance,
+                      t_start_us=reader.t_start, t_end_us=reader.t_end) as writer:
+            for i0 in range(0, reader.num_events, chunk_events):
+                i1 = min(reader.num_events, i0 + chunk_events)
+                writer.append_events(_integer_pixels(reader.events_range(i0, i1)))
+                if bar is not None:
+                    bar.update(i1 - i0)
+            grid = reader.flow_timestamps() if flow_dt else None
+            if grid is not None:
+                ts = np.asarray(grid, np.int64)[::flow_dt]
+                for t0, t1 in zip(ts[:-1], ts[1:]):
+                    gt = reader.flow_between(int(t0), int(t1))
+                    if gt is not None:
+                        writer.add_flow(int(t0), int(t1), gt[0], gt[1])
+            frame_t = reader.frame_timestamps() if frames else None
+            if frame_t is not None:
+                for k, t in enumerate(np.asarray(frame_t, np.int64)):
+                    writer.add_frame(int(t), _to_uint8(reader.frame(k)))
+    finally:
+        if bar is not None:
+            bar.close()
+    return out_path
