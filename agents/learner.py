@@ -100,12 +100,8 @@ def make_vector_env(cfg: TrainConfig, *, rank: int = 0, world: int = 1, data=Non
 
 def _windows_from_info(info: dict, num_envs: int) -> list[dict]:
     """Per-env window dicts (events + bounds) out of a vector env's stacked info."""
-    events = info["events"]
     return [
-        {
-            "x": events["x"][i], "y": events["y"][i], "t": events["t"][i], "p": events["p"][i],
-            "t_start": int(info["t_start"][i]), "t_end": int(info["t_end"][i]),
-        }
+        {**info["events"][i], "t_start": int(info["t_start"][i]), "t_end": int(info["t_end"][i])}
         for i in range(num_envs)
     ]
 

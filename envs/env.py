@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Mapping
+from typing import Any, Iterator, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -16,7 +17,7 @@ from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import WINDOW_MODES, window_bounds
 from losses import EventBatch, at_loss, hmc_loss
 
-__all__ = ["EventFlowEnv", "OBSERVATION_KEYS"]
+__all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "WindowEvents"]
 
 OBSERVATION_KEYS = ("count_image", "voxel_grid", "events")
 # Finite upper bound of the count/voxel boxes: far above any real per-pixel count.
@@ -59,7 +60,10 @@ class EventFlowEnv(gym.Env):
     **info** (numpy and Python scalars only), describing the window the returned
     observation shows:
 
-    - ``"events"``: dict of ``x``, ``y`` (pixels), ``t`` (int64 µs), ``p`` (+-1) arrays;
+    - ``"events"``: read-only dict (a :class:`WindowEvents` mapping) of numpy ``x``, ``y``
+      (pixels), ``t`` (int64 µs), ``p`` (+-1) arrays. Being a mapping rather than a dict,
+      a vector env hands it over as one object per env (windows differ in length, which
+      Gymnasium's stacking of info arrays cannot hold): ``info["events"][i]["x"]``;
     - ``"t_start"``, ``"t_end"``: int µs, the window ``[t_start, t_end)``;
     - ``"sequence"`` (name), ``"sequence_index"``, ``"step"`` (window index in the episode);
     - ``"flow_gt"`` (2, H, W) float32 pixels over the window and ``"flow_gt_valid"`` (H, W)
@@ -372,7 +376,7 @@ class EventFlowEnv(gym.Env):
 
     def _info(self, window: dict) -> dict[str, Any]:
         info = {
-            "events": window["events"],
+            "events": WindowEvents(window["events"]),
             "t_start": window["t_start"],
             "t_end": window["t_end"],
             "sequence": self.sequence_names[self._seq_index],
@@ -427,6 +431,40 @@ class EventFlowEnv(gym.Env):
     def close(self) -> None:
         for source in self.sources:
             source.close()
+
+
+class WindowEvents(Mapping):
+    """The events of one window: a read-only mapping of ``x``, ``y``, ``t``, ``p`` numpy arrays."""
+
+    __slots__ = ("_arrays",)
+
+    def __init__(self, arrays: dict[str, np.ndarray]) -> None:
+        self._arrays = arrays
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self._arrays[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._arrays)
+
+    def __len__(self) -> int:
+        return len(self._arrays)
+
+    def __repr__(self) -> str:
+        return f"WindowEvents(n={len(self._arrays['t'])})"
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Mapping) or set(other) != set(self._arrays):
+            return False
+        return all(np.array_equal(self._arrays[k], other[k]) for k in self._arrays)
+
+    __hash__ = None
+
+    def __getstate__(self):
+        return self._arrays
+
+    def __setstate__(self, state) -> None:
+        self._arrays = state
 
 
 class _EventView:

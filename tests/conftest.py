@@ -21,3 +21,17 @@ def random_events(rng: np.random.Generator, n: int, sensor_size=(20, 30), t_span
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _synthetic_cache(tmp_path_factory):
+    """Keep the tests' simulated sequences out of the user's cache (one cache per session)."""
+    import os
+
+    old = os.environ.get("EVFLOW_CACHE")
+    os.environ["EVFLOW_CACHE"] = str(tmp_path_factory.mktemp("evflow-cache"))
+    yield
+    if old is None:
+        os.environ.pop("EVFLOW_CACHE", None)
+    else:
+        os.environ["EVFLOW_CACHE"] = old

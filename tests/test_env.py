@@ -151,9 +151,38 @@ def test_make_and_make_vec(recording):
         *_, truncated, _ = env.step(env.action_space.sample())
     assert truncated
     for mode in ("sync", "async"):
-        vec = gymnasium.make_vec("EventFlow-v0", num_envs=2, vectorization_mode=mode, data=str(recording))
+        vec = gymnasium.make_vec("EventFlow-v0", num_envs=2, vectorization_mode=mode, data=str(recording),
+                                 window="time", window_size=9_000, random_start=True)
         obs, _ = vec.reset(seed=0)
         assert obs["count_image"].shape == (2, 2, 48, 64)
         obs, reward, term, trunc, info = vec.step(np.zeros((2, 2, 48, 64), np.float32))
         assert reward.shape == (2,) and np.all(reward < 0)
+        lengths = {len(info["events"][i]["t"]) for i in range(2)}  # windows of different lengths
+        assert all(len(info["events"][i]["x"]) == n for i, n in enumerate(len(info["events"][i]["t"]) for i in range(2)))
         vec.close()
+
+
+def test_check_env_on_synthetic_default():
+    env = gymnasium.make("EventFlow-v0", data="synthetic-mini")
+    check_env(env.unwrapped, skip_render_check=True)
+    assert env.unwrapped.flow_scaling == 64.0
+
+
+def test_default_env_needs_no_files():
+    env = gymnasium.make("EventFlow-v0")
+    obs, info = env.reset(seed=0)
+    assert obs["count_image"].shape == (2, 128, 128) and "flow_gt" in info
+
+
+def test_ground_truth_action_beats_zero_on_synthetic_test_split():
+    env = EventFlowEnv("synthetic-test")
+    rewards = {"gt": [], "zero": []}
+    for sequence in (0, 3, 6, 9):  # slow to fast motion, both resolutions (256 ones centre-cropped)
+        for name in rewards:
+            _, info = env.reset(options={"sequence": sequence})
+            for _ in range(4):
+                action = info["flow_gt"] if name == "gt" else np.zeros(env.action_space.shape, np.float32)
+                _, reward, _, truncated, info = env.step(action)
+                rewards[name].append(reward)
+    print({k: float(np.mean(v)) for k, v in rewards.items()})
+    assert np.mean(rewards["gt"]) > np.mean(rewards["zero"])
