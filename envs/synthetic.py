@@ -13,7 +13,7 @@ one frame interval, spread geometrically over each split, so windows range from 
 - ``synthetic-test``: 8 sequences at 128x128 and 3 at 256x256, 1 s each, max_flow_px 0.5-14.
 - ``synthetic-mini``: 3 sequences, 64x64, 1 s each, max_flow_px 1, 3, 8 (tests and demos).
 
-Caching: an in-process cache (readers by split and name; :func:`clear_cache` empties it), and an
+Caching: an in-process cache (by split and name; :func:`clear_cache` empties it), and an
 on-disk cache of project h5 files under ``$EVFLOW_CACHE`` (default ``~/.cache/evflow``) in
 ``synthetic/<split>/<name>-v<simulator version>-<config hash>.h5``, written atomically by the
 h5 writer and re-used when present. Set ``EVFLOW_CACHE=off`` (or pass ``disk_cache=False``) to
@@ -155,13 +155,13 @@ class SyntheticH5Reader(H5Reader):
         return self._scene.flow(t_start * 1e-6, t_end * 1e-6), np.ones(self.sensor_size, bool)
 
 
-_MEMORY: dict[tuple[str, str], EventReader] = {}
+# in-process cache, by (split, name, disk cache on): a disk-cached sequence's file path and config (each call opens its own
+# handle, so a caller may close its reader), or an in-memory reader (close() is a no-op there)
+_MEMORY: dict[tuple[str, str, bool], tuple[Path, SceneConfig] | EventReader] = {}
 
 
 def clear_cache() -> None:
-    """Forget the in-process cache (closes cached files; the disk cache stays)."""
-    for reader in _MEMORY.values():
-        reader.close()
+    """Forget the in-process cache (the disk cache stays)."""
     _MEMORY.clear()
 
 
@@ -169,32 +169,38 @@ def load_sequence(split: str, index_or_name: int | str, *, disk_cache: bool = Tr
     """The reader of one split sequence, simulated on first use and cached (module docstring).
 
     Returns an :class:`~envs.readers.base.EventReader` with exact flow for any window, the frame
-    times as ground-truth grid (30 Hz) and the frames. Readers are shared between callers:
-    do not close them (use :func:`clear_cache`).
+    times as ground-truth grid (30 Hz) and the frames: a :class:`SyntheticH5Reader` on its own
+    file handle (close it when done) when the disk cache is on, else a shared in-memory
+    :class:`~envs.readers.base.ArrayReader`.
     """
     spec = get_spec(split, index_or_name)
-    key = (split, spec.name)
-    if key in _MEMORY:
-        return _MEMORY[key]
     root = cache_root() if disk_cache else None
-    reader: EventReader | None = None
-    if root is not None:
-        config = spec.config()
-        path = root / "synthetic" / split / f"{spec.name}-v{SIMULATOR_VERSION}-{spec.cache_key()}.h5"
-        if path.exists():
-            try:
-                reader = SyntheticH5Reader(path, config)
-            except (OSError, ValueError) as err:  # unreadable cache file: simulate again
-                warnings.warn(f"ignoring unreadable cache file {path}: {err}")
-        if reader is None:
-            sequence = spec.simulate()
-            try:
-                sequence.to_h5(path, name=spec.name, provenance={"split": split, "spec": asdict(spec)})
-                reader = SyntheticH5Reader(path, config)
-            except OSError as err:
-                warnings.warn(f"could not write the synthetic cache {path} ({err}); keeping {spec.name} in memory")
-                reader = sequence.reader(spec.name)
-    else:
+    key = (split, spec.name, root is not None)
+    cached = _MEMORY.get(key)
+    if isinstance(cached, EventReader):
+        return cached
+    if cached is not None and cached[0].exists():
+        return SyntheticH5Reader(*cached)
+    if root is None:
         reader = spec.simulate().reader(spec.name)
-    _MEMORY[key] = reader
-    return reader
+        _MEMORY[key] = reader
+        return reader
+    config = spec.config()
+    path = root / "synthetic" / split / f"{spec.name}-v{SIMULATOR_VERSION}-{spec.cache_key()}.h5"
+    if path.exists():
+        try:
+            reader = SyntheticH5Reader(path, config)
+            _MEMORY[key] = (path, config)
+            return reader
+        except (OSError, ValueError) as err:  # unreadable cache file: simulate again
+            warnings.warn(f"ignoring unreadable cache file {path}: {err}")
+    sequence = spec.simulate()
+    try:
+        sequence.to_h5(path, name=spec.name, provenance={"split": split, "spec": asdict(spec)})
+    except OSError as err:
+        warnings.warn(f"could not write the synthetic cache {path} ({err}); keeping {spec.name} in memory")
+        reader = sequence.reader(spec.name)
+        _MEMORY[key] = reader
+        return reader
+    _MEMORY[key] = (path, config)
+    return SyntheticH5Reader(path, config)

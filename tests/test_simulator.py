@@ -231,13 +231,16 @@ def test_load_sequence_caches_in_memory_and_on_disk(tmp_path, monkeypatch):
     monkeypatch.setenv("EVFLOW_CACHE", str(tmp_path))
     clear_cache()
     try:
-        reader = load_sequence("synthetic-mini", 1)
-        assert load_sequence("synthetic-mini", "synthetic-mini-1") is reader
-        files = list(tmp_path.glob("synthetic/synthetic-mini/synthetic-mini-1-*.h5"))
-        assert len(files) == 1
+        reader = load_sequence("synthetic-mini", 1)  # simulates and writes the cache file
+        (path,) = tmp_path.glob("synthetic/synthetic-mini/synthetic-mini-1-*.h5")
+        stamp = path.stat().st_mtime_ns
+        again = load_sequence("synthetic-mini", "synthetic-mini-1")  # in-process hit: same file
+        reader.close()  # a caller closing its reader does not break the cache
+        assert again.num_events == reader.num_events and len(again.events_range(0, 10)) == 10
+        again.close()
         clear_cache()
-        cached = load_sequence("synthetic-mini", 1)  # now from the file
-        assert isinstance(cached, SyntheticH5Reader) and cached is not reader
+        cached = load_sequence("synthetic-mini", 1)  # now from the file on disk
+        assert isinstance(cached, SyntheticH5Reader) and path.stat().st_mtime_ns == stamp
         exact = get_spec("synthetic-mini", 1).simulate()
         events = cached.events_range(0, cached.num_events)
         for field in "xytp":
@@ -247,6 +250,10 @@ def test_load_sequence_caches_in_memory_and_on_disk(tmp_path, monkeypatch):
         for a, b in ((grid[3], grid[4]), (grid[2], grid[6]), (12345, 23456)):  # stored, dt=4, any
             np.testing.assert_allclose(cached.flow_between(int(a), int(b))[0], exact.flow_between(int(a), int(b))[0], atol=1e-5)
         np.testing.assert_array_equal(cached.frame(5), exact.frames[5])
+        cached.close()
+        in_memory = load_sequence("synthetic-mini", 1, disk_cache=False)
+        assert not isinstance(in_memory, SyntheticH5Reader) and in_memory.num_events == len(exact.events)
+        assert load_sequence("synthetic-mini", 1, disk_cache=False) is in_memory
     finally:
         clear_cache()
 
