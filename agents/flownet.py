@@ -85,6 +85,10 @@ class FlowDecoder(nn.Module):
     def forward(self, residual: Tensor, skips: list[Tensor], prior: Tensor | None) -> list[Tensor]:
         flows: list[Tensor] = []
         x = residual
+        if self.refiners is not None and prior is not None:
+            priors = [prior]  # full, 1/2, 1/4, 1/8: 2x2 means of 2x2 means = block means
+            for _ in range(NUM_SCALES - 1):
+                priors.append(F.avg_pool2d(priors[-1], 2))
         for level in range(NUM_SCALES):
             parts = [x, skips[NUM_SCALES - 1 - level]]  # skip F_{5-l}
             if flows:
@@ -92,10 +96,7 @@ class FlowDecoder(nn.Module):
             x = self.upsamples[level](torch.cat(parts, dim=1))  # eq. 10, D_l
             flow = torch.tanh(self.heads[level](x))  # eq. 10, uhat_l
             if self.refiners is not None:
-                prior_here = None
-                if prior is not None:
-                    factor = prior.shape[-1] // x.shape[-1]
-                    prior_here = F.avg_pool2d(prior, factor) if factor > 1 else prior  # ubar_l
+                prior_here = None if prior is None else priors[NUM_SCALES - 1 - level]  # ubar_l
                 flow = self.refiners[level](flow, prior_here)  # eq. 11, u_l
             flows.append(flow)
         return flows

@@ -79,16 +79,23 @@ class ConvGRU(nn.Module):
         self.h_convs = nn.Conv2d(hidden_size, 3 * hidden_size, kernel_size, padding=padding, bias=False)
 
     def forward(self, x: Tensor, hidden: Tensor | None) -> Tensor:
-        xr, xz, xh = self.x_convs(x).chunk(3, dim=1)
+        return self.step(self.x_convs(x), hidden)
+
+    def step(self, x_proj: Tensor, hidden: Tensor | None) -> Tensor:
+        """The update given the input side already convolved: ``x_proj = x_convs(x)``,
+        (B, 3 * C_hidden, h, w) = [Wxr*X, Wxz*X, Wxh*X]."""
+        n = self.hidden_size
         if hidden is None:
-            # Zero state: every hidden-side convolution is 0, H' = z . Hhat.
-            z = torch.sigmoid(xz)
-            return z * torch.tanh(xh)
-        hr, hz, hh = self.h_convs(hidden).chunk(3, dim=1)
-        r = torch.sigmoid(xr + hr)  # eq. 4, reset gate
-        z = torch.sigmoid(xz + hz)  # eq. 4, update gate
-        candidate = torch.tanh(r * hh + xh)  # eq. 4, Hhat
-        return hidden + z * (candidate - hidden)  # eq. 4, (1 - z) . H + z . Hhat
+            # Zero state: Whh*0 = 0 (no hidden-side bias), so skip the conv but run the same
+            # arithmetic as for a zeroed state: results are bitwise identical.
+            hidden = x_proj.new_zeros(x_proj.shape[0], n, *x_proj.shape[2:])
+            h_proj = torch.zeros_like(x_proj)
+        else:
+            h_proj = self.h_convs(hidden)
+        gates = torch.sigmoid(x_proj[:, : 2 * n] + h_proj[:, : 2 * n])  # eq. 4, r and z
+        r, z = gates[:, :n], gates[:, n:]
+        candidate = torch.tanh(torch.addcmul(x_proj[:, 2 * n :], r, h_proj[:, 2 * n :]))  # eq. 4, Hhat
+        return torch.addcmul(hidden, z, candidate - hidden)  # eq. 4, (1 - z) . H + z . Hhat
 
 
 class STConvGRU(nn.Module):
@@ -112,16 +119,25 @@ class STConvGRU(nn.Module):
         super().__init__()
         self.gru_own = ConvGRU(channels, channels)  # ConvGRU_a, eq. 5
         self.gru_deep = ConvGRU(channels, channels)  # ConvGRU_b, eq. 5 (the M path)
-        # Wfo, Wso, Wmo summed = one conv over the concatenation [X, S_k, Mbar_k] (eq. 6).
-        self.output_gate = conv3x3(3 * channels, channels)
+        # o_k (eq. 6): Wfo*X (with the bias) + [Wmo, Wso] * [Mbar_k, S_k].
+        self.gate_input = conv3x3(channels, channels)
+        self.gate_hidden = conv3x3(2 * channels, channels, bias=False)
         # Wmm, Wss fused as one 1x1 conv over [Mbar_k, S_k] (eq. 6).
         self.fusion = nn.Conv2d(2 * channels, channels, 1)
 
     def forward(
         self, x: Tensor, own_memory: Tensor | None, deep_memory: Tensor | None
     ) -> tuple[Tensor, Tensor]:
-        own = self.gru_own(x, own_memory)  # eq. 5, S_k
-        deep = self.gru_deep(x, deep_memory)  # eq. 5, Mbar_k
-        gate = torch.sigmoid(self.output_gate(torch.cat([x, own, deep], dim=1)))  # eq. 6, o_k
-        out = gate * torch.tanh(self.fusion(torch.cat([deep, own], dim=1)))  # eq. 6, F_k
+        # All convolutions of X (both GRUs' input sides and Wfo) in one call: same weights,
+        # one pass over X.
+        input_convs = [self.gru_own.x_convs, self.gru_deep.x_convs, self.gate_input]
+        weight = torch.cat([conv.weight for conv in input_convs])
+        bias = torch.cat([conv.bias for conv in input_convs])
+        projections = F.conv2d(x, weight, bias, padding=1)
+        n = 3 * self.gru_own.hidden_size
+        own = self.gru_own.step(projections[:, :n], own_memory)  # eq. 5, S_k
+        deep = self.gru_deep.step(projections[:, n : 2 * n], deep_memory)  # eq. 5, Mbar_k
+        memories = torch.cat([deep, own], dim=1)
+        gate = torch.sigmoid(projections[:, 2 * n :] + self.gate_hidden(memories))  # eq. 6, o_k
+        out = gate * torch.tanh(self.fusion(memories))  # eq. 6, F_k
         return out, own

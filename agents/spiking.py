@@ -82,14 +82,11 @@ class ConvXLIF(nn.Module):
         a = torch.sigmoid(self.leak)
         b = torch.sigmoid(self.trace_leak)
         trace_input = self.pool(x.abs().mean(dim=1, keepdim=True))
-        if state is None:
-            pt = (1 - b) * trace_input
-            threshold = self.t0 + self.t1 * pt
-            v = (1 - a) * ff
-        else:
-            v_prev, z_prev, pt_prev = state
-            pt = b * pt_prev + (1 - b) * trace_input
-            threshold = self.t0 + self.t1 * pt
-            v = a * v_prev + (1 - a) * ff - z_prev * threshold
+        if state is None:  # fresh sequence: zeros, with the same arithmetic as a zeroed state
+            state = (torch.zeros_like(ff), torch.zeros_like(ff), torch.zeros_like(trace_input))
+        v_prev, z_prev, pt_prev = state
+        pt = b * pt_prev + (1 - b) * trace_input
+        threshold = self.t0 + self.t1 * pt
+        v = a * v_prev + (1 - a) * ff - z_prev * threshold
         z = arctan_spike(v - threshold, self.surrogate_width)
         return z, (v, z, pt)

@@ -23,7 +23,7 @@ from agents import (
     make_model,
 )
 from agents.evmgrflownet import DeepMemoryUp
-from agents.layers import ConvGRU
+from agents.layers import ConvGRU, STConvGRU
 from agents.spiking import arctan_spike
 from agents.summary import MODEL_VARIANTS, count_parameters, parameter_table
 
@@ -308,15 +308,39 @@ def test_convgru_matches_equation_4():
     gru = ConvGRU(3, 4).double()
     x = torch.randn(2, 3, 6, 7, dtype=torch.float64)
     h = torch.randn(2, 4, 6, 7, dtype=torch.float64)
+    torch.testing.assert_close(gru(x, h), _gru_reference(gru, x, h))
+    assert torch.equal(gru(x, None), gru(x, torch.zeros_like(h)))
+
+
+def _gru_reference(gru: ConvGRU, x, h):
+    """Eq. 4 written out with one convolution per weight matrix."""
     wx, bx = gru.x_convs.weight.chunk(3), gru.x_convs.bias.chunk(3)
     wh = gru.h_convs.weight.chunk(3)
     conv = lambda inp, w, b=None: F.conv2d(inp, w, b, padding=1)  # noqa: E731
     r = torch.sigmoid(conv(x, wx[0], bx[0]) + conv(h, wh[0]))
     z = torch.sigmoid(conv(x, wx[1], bx[1]) + conv(h, wh[1]))
     candidate = torch.tanh(r * conv(h, wh[2]) + conv(x, wx[2], bx[2]))
-    expected = (1 - z) * h + z * candidate
-    torch.testing.assert_close(gru(x, h), expected)
-    torch.testing.assert_close(gru(x, None), gru(x, torch.zeros_like(h)))
+    return (1 - z) * h + z * candidate
+
+
+def test_st_convgru_matches_equations_5_and_6():
+    torch.manual_seed(0)
+    layer = STConvGRU(4).double()
+    x, own, deep = (torch.randn(2, 4, 6, 7, dtype=torch.float64) for _ in range(3))
+    new_own = _gru_reference(layer.gru_own, x, own)  # eq. 5, S_k
+    new_deep = _gru_reference(layer.gru_deep, x, deep)  # eq. 5, Mbar_k
+    gate = torch.sigmoid(  # eq. 6, o_k = sig(Wfo*X + Wmo*Mbar_k + Wso*S_k)
+        F.conv2d(x, layer.gate_input.weight, layer.gate_input.bias, padding=1)
+        + F.conv2d(new_deep, layer.gate_hidden.weight[:, :4], padding=1)
+        + F.conv2d(new_own, layer.gate_hidden.weight[:, 4:], padding=1)
+    )
+    fused = F.conv2d(torch.cat([new_deep, new_own], 1), layer.fusion.weight, layer.fusion.bias)
+    out, carried = layer(x, own, deep)
+    torch.testing.assert_close(carried, new_own)
+    torch.testing.assert_close(out, gate * torch.tanh(fused))  # eq. 6, F_k
+    zeros = torch.zeros_like(own)
+    for a, b in zip(layer(x, None, None), layer(x, zeros, zeros)):
+        assert torch.equal(a, b)
 
 
 def test_arctan_spike_forward_step_and_surrogate_gradient():
