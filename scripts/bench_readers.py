@@ -9,7 +9,7 @@ windows (``iter_windows(reader, "time", 10_000)``; at most ``max_windows``, spre
 the whole file), and reports:
 
 - windows/s (events decoded, converted and validated into ``Events``);
-- peak RSS of the child (ru_maxrss) and, for comparison, the decompressed size of the event
+- peak RSS of the child (VmHWM) and, for comparison, the decompressed size of the event
   columns in the file: streaming keeps the first far below the second.
 
 ECD text is measured the same way on min(num_events, 10^6) events (text is slow to write).
@@ -37,7 +37,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 SECTION = "readers"
-DEFAULT_EVENTS = 4_000_000
+DEFAULT_EVENTS = 10_000_000  # ~1-2 minutes on 2 cores; 10^8 is the full memory check
 DEFAULT_RATE = 2_000_000  # events per second, a busy DAVIS / Prophesee scene
 WINDOW_US = 10_000
 CHUNK = 1 << 20
@@ -123,14 +123,25 @@ def write_synthetic(fmt: str, path: Path, num_events: int, sensor_size, rate: fl
     return path
 
 
-def _child(fmt: str, path: str, max_windows: int) -> dict:
-    """Runs in a fresh process: open, read windows, report speed and peak RSS."""
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process in MB: VmHWM (Linux; reset by exec, unlike
+    ru_maxrss, which keeps the parent's peak from before the fork), else ru_maxrss."""
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
     import resource
 
-    from envs.readers import open_recording
-    from envs.windows import window_bounds
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
-    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+def _child(fmt: str, path: str, max_windows: int) -> dict:
+    """Runs in a fresh process: open, read windows, report speed and peak RSS."""
+    from envs.readers import open_recording
+
+    rss_before = _peak_rss_mb()
     options = {"sensor_size": (260, 346)} if fmt == "ecd-text" else {}
     t_open = time.perf_counter()
     with open_recording(path, fmt, **options) as reader:
@@ -146,11 +157,10 @@ def _child(fmt: str, path: str, max_windows: int) -> dict:
             events += len(reader.events_between(int(s), int(s) + WINDOW_US))
         elapsed = time.perf_counter() - t0
         num_events = reader.num_events
-    del window_bounds
     return {
         "windows": len(starts), "events_read": events, "seconds": elapsed, "open_s": open_s,
-        "num_events": num_events, "rss_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "rss_import_mb": rss_before / 1024,
+        "num_events": num_events, "rss_peak_mb": _peak_rss_mb(),
+        "rss_import_mb": rss_before,
     }
 
 
@@ -181,6 +191,7 @@ def run(report, num_events: int = DEFAULT_EVENTS, rate: float = DEFAULT_RATE, ma
             report(SECTION, f"{label}: events", res["events_read"] / res["seconds"] / 1e6, "Mev/s")
             report(SECTION, f"{label}: open", res["open_s"] * 1e3, "ms")
             report(SECTION, f"{label}: peak RSS (after import {res['rss_import_mb']:.0f} MB)", res["rss_peak_mb"], "MB")
+            report(SECTION, f"{label}: peak RSS growth while reading", res["rss_peak_mb"] - res["rss_import_mb"], "MB")
             if bytes_per_event:
                 res["decompressed_mb"] = n * bytes_per_event / 2**20
                 report(SECTION, f"{label}: decompressed event columns", res["decompressed_mb"], "MB")

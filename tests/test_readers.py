@@ -533,3 +533,45 @@ def test_convert_to_project_h5(tmp_path, mvsec_file):
                 np.testing.assert_array_equal(dst.flow_between(t0, t1)[0], src.flow_between(t0, t1)[0])
             np.testing.assert_array_equal(dst.frame(2), src.frame(2))
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["flying1.h5"]
+
+
+def test_convert_script_detects_the_format_and_writes_atomically(tmp_path, rng, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("convert_script", Path(__file__).parents[1] / "scripts" / "convert.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    x, y, t, p = _stream(rng, 3_000, (20, 30), 200_000)
+    grid = np.arange(0, 200_001, 50_000)
+    flows = [("flow_dt1", int(g), np.ones((2, 20, 30))) for g in grid]
+    src = write_hagenaars(tmp_path / "hq.h5", x, y, t, p, flows=flows)
+    out = tmp_path / "out.h5"
+    assert script.main([str(src), str(out), "--chunk-events", "1000"]) == 0
+    with H5Reader(out) as r:
+        _assert_events(r.events_range(0, r.num_events), x, y, t, p)
+        np.testing.assert_array_equal(r.flow_timestamps(), grid)  # map k spans [grid[k-1], grid[k])
+        assert np.allclose(r.flow_between(50_000, 100_000)[0], 1.0)
+        assert r.provenance["reader"] == "HagenaarsReader"
+    (tmp_path / "broken.h5").write_bytes(b"\x89HDF\r\n\x1a\nbroken")
+    with pytest.raises(FormatError):
+        script.main([str(tmp_path / "broken.h5"), str(tmp_path / "never.h5")])
+    assert not (tmp_path / "never.h5").exists() and not list(tmp_path.glob("never.h5.tmp-*"))
+
+
+def test_convert_interrupted_leaves_no_output(tmp_path, rng):
+    from envs.readers.base import ArrayReader
+    from envs.readers.convert import convert_recording
+
+    x, y, t, p = _stream(rng, 5_000, (20, 30), 100_000)
+
+    class Failing(ArrayReader):
+        def events_range(self, i_start, i_end):
+            if i_start >= 2_000:
+                raise OSError("disk went away")
+            return super().events_range(i_start, i_end)
+
+    reader = Failing(Events.create(x, y, t, p, (20, 30)))
+    with pytest.raises(OSError, match="disk went away"):
+        convert_recording(reader, tmp_path / "out.h5", chunk_events=1_000)
+    assert list(tmp_path.iterdir()) == []
