@@ -122,8 +122,9 @@ class SceneConfig:
 
         speed_px_s: bound on the image speed of any visible scene point (px/s), shared at
             random between camera pan (constant + sinusoidal), roll and zoom; objects get
-            30-100 % of it. The peak speed over a sequence comes close to this bound; slow
-            phases of the sinusoids give smaller motions. Default: uniform 15-300 px/s
+            30-100 % of it. Approximate: zoomed-in phases (scale up to 1.28) can exceed it a
+            little; in practice the peak over a sequence is 60-90 % of it, and slow phases of
+            the sinusoids give smaller motions. Default: uniform 15-300 px/s
             (0.5-10 px per 30 Hz frame).
         num_objects: default uniform in 1..4.
         rotation, zoom: allow roll / zoom components (camera and objects).

@@ -23,13 +23,19 @@ from envs.simulator.scene import Scene, SceneConfig
 __all__ = ["simulate", "SimulatedSequence", "SIMULATOR_VERSION", "log_to_uint8"]
 
 # Bump whenever a change alters the output for a given config (invalidates on-disk caches).
-SIMULATOR_VERSION = 1
+SIMULATOR_VERSION = 2
+
+
+# Log intensity shown as white in frames: textures span about [-3.5, 0.8] (leaves, object
+# brightness offsets and shading), so nothing saturates.
+LOG_WHITE = 0.8
+FRAME_GAMMA = 2.2
 
 
 def log_to_uint8(log_intensity: np.ndarray) -> np.ndarray:
-    """Log intensity -> 8-bit frame, linear in intensity: round(255 * exp(L)), clipped.
-    (Texture log intensities lie in about [-3.5, 0.5], i.e. intensities up to ~1.)"""
-    return np.clip(np.rint(255.0 * np.exp(log_intensity)), 0, 255).astype(np.uint8)
+    """Log intensity -> 8-bit frame, gamma-encoded like an ordinary 8-bit image:
+    round(255 * (exp(L - LOG_WHITE)) ** (1 / 2.2)), clipped to [0, 255]."""
+    return np.clip(np.rint(255.0 * np.exp((log_intensity - LOG_WHITE) / FRAME_GAMMA)), 0, 255).astype(np.uint8)
 
 
 @dataclass
