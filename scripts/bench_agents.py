@@ -8,7 +8,7 @@ ConvGRU-EV-FlowNet's at the same width (target <= 1.3).
 
 ``run(report)`` is called by scripts/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_agents.py [--reps N] [--widths paper cpu]
-[--device cpu|cuda]``.
+[--device cpu|cuda] [--threads N]``.
 """
 
 from __future__ import annotations
@@ -45,48 +45,55 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def time_model(name: str, width: str, batch: int, height: int, size_w: int, reps: int, device) -> tuple[float, float]:
-    """(forward ms, forward+backward ms) per window, best of ``reps`` after a warm-up window."""
+def time_models(names: list[str], width: str, batch: int, height: int, size_w: int, reps: int, device) -> dict:
+    """{name: (forward ms, forward+backward ms)} per window, best of ``reps`` after a warm-up
+    window. The models take turns within each repetition, so load from other processes hits
+    them alike and the ratios stay meaningful on a shared machine."""
     device = torch.device(device)
-    torch.manual_seed(0)
-    model = make_model(name, width=width).to(device)
+    models, states = {}, {}
+    for name in names:
+        torch.manual_seed(0)
+        models[name] = make_model(name, width=width).to(device)
     inputs = [_count_images(batch, height, size_w, seed).to(device) for seed in range(reps + 1)]
+    forward = {name: [] for name in names}
+    backward = {name: [] for name in names}
 
-    forward_times = []
     with torch.no_grad():
-        state = None
+        states = {name: None for name in names}
         for i, x in enumerate(inputs):
+            for name, model in models.items():
+                _sync(device)
+                start = time.perf_counter()
+                _, states[name] = model(x, states[name])
+                _sync(device)
+                if i > 0:  # the first window is the warm-up (and a fresh state)
+                    forward[name].append(time.perf_counter() - start)
+
+    states = {name: None for name in names}
+    for i, x in enumerate(inputs):
+        for name, model in models.items():
+            model.zero_grad(set_to_none=True)
             _sync(device)
             start = time.perf_counter()
-            _, state = model(x, state)
+            flows, state = model(x, states[name])
+            sum(flow.mean() for flow in flows).backward()
             _sync(device)
-            if i > 0:  # the first window is the warm-up (and a fresh state)
-                forward_times.append(time.perf_counter() - start)
-
-    backward_times = []
-    state = None
-    for i, x in enumerate(inputs):
-        model.zero_grad(set_to_none=True)
-        _sync(device)
-        start = time.perf_counter()
-        flows, state = model(x, state)
-        loss = sum(flow.mean() for flow in flows)
-        loss.backward()
-        _sync(device)
-        if i > 0:
-            backward_times.append(time.perf_counter() - start)
-        state = {key: value.detach() for key, value in state.items()}
-    return 1e3 * min(forward_times), 1e3 * min(backward_times)
+            if i > 0:
+                backward[name].append(time.perf_counter() - start)
+            states[name] = {key: value.detach() for key, value in state.items()}
+    return {name: (1e3 * min(forward[name]), 1e3 * min(backward[name])) for name in names}
 
 
 def run(report, reps: int = 2, widths=("paper", "cpu"), device: str = "cpu") -> dict:
     """Report every row; return {(width, input, model label): (forward ms, fwd+bwd ms)}."""
     results = {}
     where = f"{device}, {torch.get_num_threads()} threads" if device == "cpu" else device
+    names = dict((name, label) for label, name in MODELS)
     for width in widths:
         for input_label, batch, height, size_w in INPUTS:
-            for label, name in MODELS:
-                fwd, fwd_bwd = time_model(name, width, batch, height, size_w, reps, device)
+            timings = time_models(list(names), width, batch, height, size_w, reps, device)
+            for name, (fwd, fwd_bwd) in timings.items():
+                label = names[name]
                 results[(width, input_label, label)] = (fwd, fwd_bwd)
                 row = f"{label} {width} {input_label} ({where})"
                 report(SECTION, f"{row} forward", fwd, "ms/window")
@@ -108,5 +115,8 @@ if __name__ == "__main__":
     parser.add_argument("--reps", type=int, default=2, help="timed windows per row (best is reported)")
     parser.add_argument("--widths", nargs="+", default=["paper", "cpu"], choices=["paper", "cpu"])
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     run(_print_row, reps=args.reps, widths=args.widths, device=args.device)
