@@ -9,11 +9,12 @@ from .average_timestamp import average_timestamp_loss
 from .event_count import event_count_loss
 from .events import EventBatch
 from .hmc import LossOutput, accumulated_hmc_loss, at_loss, hmc_loss, to_full_resolution
-from .iwe import average_timestamp_images, warped_event_images
+from .iwe import average_timestamp_images, warped_corners, warped_event_images
 from .metrics import flow_error, flow_error_torch, fwl, fwl_torch, rsat, rsat_torch
 from .sampling import sample_flow
 from .smoothness import charbonnier_smoothness, event_pixel_mask
-from .splat import bilinear_corners, bilinear_splat
+from .image_terms import event_image_terms
+from .splat import bilinear_splat, crop_padding, padded_corners, splat_rows
 from .warp import forward_warp_flow, warp_events
 
 __all__ = [
@@ -27,8 +28,12 @@ __all__ = [
     "warp_events",
     "forward_warp_flow",
     "bilinear_splat",
-    "bilinear_corners",
+    "padded_corners",
+    "splat_rows",
+    "crop_padding",
+    "event_image_terms",
     "warped_event_images",
+    "warped_corners",
     "average_timestamp_images",
     "average_timestamp_loss",
     "event_count_loss",

@@ -22,10 +22,8 @@ import torch
 import torch.nn.functional as F
 
 from ._validation import check_events, check_flow
-from .average_timestamp import average_timestamp_loss
-from .event_count import event_count_loss
 from .events import EventBatch
-from .iwe import warped_event_images
+from .image_terms import event_image_terms
 from .sampling import sample_flow
 from .smoothness import charbonnier_smoothness, event_pixel_mask
 
@@ -78,15 +76,11 @@ def _terms(
     height, width, references, span, alpha, flow_scaling, need_ec,
 ) -> dict:
     """(B,) tensors at, ec, smooth, dropped for one set of (possibly accumulated) events."""
-    count, stamp = warped_event_images(x, y, t, p, mask, u, height, width, references, span)
-    at = average_timestamp_loss(count, stamp).sum(dim=1)  # L_AT(s0) + L_AT(s1)
-    if need_ec:
-        ec = event_count_loss(count, alpha).sum(dim=1)
-    else:
-        with torch.no_grad():
-            ec = event_count_loss(count.detach(), alpha).sum(dim=1)
+    at, ec, kept = event_image_terms(x, y, t, p, mask, u, height, width, references, span, alpha)
+    at = at.sum(dim=1)  # L_AT(s0) + L_AT(s1)
+    ec = ec.sum(dim=1) if need_ec else ec.sum(dim=1).detach()
     n_valid = mask.sum(dim=1).to(u.dtype)  # (B,)
-    kept = count.sum(dim=(2, 3, 4)) / n_valid.clamp_min(1).unsqueeze(1)  # (B, R)
+    kept = kept / n_valid.clamp_min(1).unsqueeze(1)  # (B, R) share of splat weight kept
     dropped = torch.where(n_valid.unsqueeze(1) > 0, 1 - kept, torch.zeros_like(kept))
     smooth = sum(
         charbonnier_smoothness(f, m, flow_scaling) for f, m in zip(flow_for_smooth, masks_for_smooth)

@@ -1,7 +1,7 @@
 """Images of warped events: per-polarity count and average-timestamp images (REFERENCE sec. 5).
 
-All images of a batch (every batch element, every reference time, both polarities, both the
-count and the timestamp-weighted sum) are built by a single call of the splatting routine.
+All images of a batch (every batch element, every reference time, both polarities, counts C_P
+and timestamp sums A_P) are built by one call of the splatting routine (one scatter_add).
 """
 
 from __future__ import annotations
@@ -10,10 +10,48 @@ from typing import Sequence
 
 import torch
 
-from .splat import splat_into
+from .splat import crop_padding, padded_corners, splat_rows
 from .warp import warp_events
 
-__all__ = ["warped_event_images", "average_timestamp_images"]
+__all__ = ["warped_corners", "warped_event_images", "average_timestamp_images"]
+
+
+def warped_corners(
+    x: torch.Tensor,
+    y: torch.Tensor,
+    t: torch.Tensor,
+    p: torch.Tensor,
+    mask: torch.Tensor,
+    u: torch.Tensor,
+    height: int,
+    width: int,
+    references: Sequence[float],
+    span: float,
+):
+    """Warp every event to every reference time (eq. 12) and find its splat corners.
+
+    Shapes as in ``warped_event_images``. Returns (index, wx, wy, inside, closeness, dt):
+    index (B, R, 4, N), wx, wy (B, R, 2, N), inside (B, R, N) as in ``padded_corners``, rows
+    (batch, reference), 2 images per row (polarity ON, OFF); closeness (B, R, N) =
+    1 - |s_r - t_i| / span, the timestamp weight; dt (B, R, N) = s_r - t_i (= d x' / d u).
+    """
+    R = len(references)
+    dtype = u.dtype
+    ref = torch.tensor(list(references), dtype=dtype, device=u.device).view(1, R, 1)
+    t = t.to(dtype).unsqueeze(1)
+    xw, yw = warp_events(x.to(dtype).unsqueeze(1), y.to(dtype).unsqueeze(1), t,
+                         u.unsqueeze(1), ref)  # eq. 12, (B, R, N)
+    dt = ref - t
+    closeness = 1 - dt.abs() / span
+    off = (p <= 0).unsqueeze(1)  # (B, 1, N): image 0 = ON, 1 = OFF
+    index, wx, wy, inside = padded_corners(xw, yw, height, width, off, mask.unsqueeze(1), 2)
+    return index, wx, wy, inside, closeness, dt
+
+
+def splat_counts_and_stamps(index, wx, wy, closeness, height, width) -> torch.Tensor:
+    """(B, R, 2 [count, stamp], 2 [ON, OFF], H + 2, W + 2) padded images, one scatter_add."""
+    values = torch.stack([torch.ones_like(closeness), closeness], dim=-2)  # (B, R, 2, N)
+    return splat_rows(index, wx, wy, values, 2, height, width)
 
 
 def warped_event_images(
@@ -37,25 +75,15 @@ def warped_event_images(
     normalised by (1 per window; K for K accumulated windows).
     Returns ``count`` and ``stamp``, each (B, R, 2, H, W) in u's dtype, polarity index 0 = ON,
     1 = OFF:
-      ``count[b, r, P] = sum_{i in P} k(. - x'_i)``                   (C_P)
-      ``stamp[b, r, P] = sum_{i in P} k(. - x'_i) (1 - |s_r - t_i| / span)``   (A_P)
-    with x'_i warped to s_r by eq. 12.
+      ``count[b, r, P] = sum_{i in P} k(. - x'_i)``                          (C_P)
+      ``stamp[b, r, P] = sum_{i in P} k(. - x'_i) (1 - |s_r - t_i| / span)``  (A_P)
+    with x'_i warped to s_r by eq. 12. Differentiable (plain autograd) in u; the losses use
+    the fused backward of ``image_terms.py``.
     """
-    B, N = x.shape
-    R = len(references)
-    dtype = u.dtype
-    x, y, t = x.to(dtype), y.to(dtype), t.to(dtype)
-    ref = torch.tensor(list(references), dtype=dtype, device=u.device).view(1, R, 1)
-    tt = t.unsqueeze(1)  # (B, 1, N)
-    xw, yw = warp_events(x.unsqueeze(1), y.unsqueeze(1), tt, u.unsqueeze(1), ref)  # (B, R, N)
-    closeness = 1 - (ref - tt).abs() / span  # (B, R, N)
-    values = torch.stack([torch.ones_like(closeness), closeness], dim=-1)  # (B, R, N, 2)
-    off = (p <= 0).long().unsqueeze(1)  # (B, 1, N)
-    image = (torch.arange(B, device=u.device).view(B, 1, 1) * R
-             + torch.arange(R, device=u.device).view(1, R, 1)) * 2 + off
-    out = splat_into(xw, yw, values, image, B * R * 2, height, width, mask.unsqueeze(1))
-    out = out.view(B, R, 2, height, width, 2)
-    return out[..., 0], out[..., 1]
+    index, wx, wy, _, closeness, _ = warped_corners(x, y, t, p, mask, u, height, width,
+                                                    references, span)
+    images = crop_padding(splat_counts_and_stamps(index, wx, wy, closeness, height, width))
+    return images[:, :, 0], images[:, :, 1]
 
 
 def average_timestamp_images(count: torch.Tensor, stamp: torch.Tensor) -> torch.Tensor:
