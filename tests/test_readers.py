@@ -575,3 +575,17 @@ def test_convert_interrupted_leaves_no_output(tmp_path, rng):
     with pytest.raises(OSError, match="disk went away"):
         convert_recording(reader, tmp_path / "out.h5", chunk_events=1_000)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_sorted_column_search_matches_numpy(rng):
+    from envs.readers._common import SortedColumn
+
+    t = np.sort(rng.integers(0, 5_000, 20_000))
+    col = SortedColumn(lambda i0, i1: t[i0:i1].copy(), len(t), block=256)
+    for _ in range(2_000):
+        q = int(rng.integers(-10, 5_010))
+        lo = int(rng.integers(0, len(t)))
+        hi = int(rng.integers(lo, len(t) + 1))
+        if rng.random() < 0.5:
+            lo, hi = 0, len(t)
+        assert col.searchsorted(q, lo, hi) == lo + np.searchsorted(t[lo:hi], q), (q, lo, hi)
