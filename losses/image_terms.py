@@ -1,10 +1,12 @@
 """L_AT(s) and L_EC(s) straight from the events, with a fused analytic backward.
 
 Same values as ``average_timestamp_loss(*warped_event_images(...))`` and
-``event_count_loss(count)`` (the forward calls exactly those on the same images), but the
-backward does not go through autograd's temporaries: per pixel it forms dL/dC_P and dL/dA_P
-(eqs. 13-16), gathers them at each event's 4 corners (one gather, the adjoint of the one
-scatter_add of the forward), and uses the separable kernel's derivative
+``event_count_loss(count)`` (the tests check both against a slow loop), computed with as few
+passes over the big tensors as possible: the corner weights are written straight into the
+scatter source (count and timestamp channels of every batch element, reference time and
+polarity go out in one scatter_add), and the backward does not go through autograd's
+temporaries: per pixel it forms dL/dC_P and dL/dA_P (eqs. 13-16), gathers them at each event's
+4 corners (one gather, the adjoint of the scatter), and uses the separable kernel's derivative
 
     dL/dx' = sum_c G_c dk_c/dx',   G_c = dL/dC(q_c) + w_i dL/dA(q_c),
 
@@ -20,27 +22,56 @@ from typing import Sequence
 
 import torch
 
-from .average_timestamp import average_timestamp_loss
-from .event_count import event_count_loss
-from .iwe import splat_counts_and_stamps, warped_corners
-from .splat import crop_padding
+from .splat import crop_padding, padded_corners
+from .warp import warp_events
 
 __all__ = ["event_image_terms"]
+
+
+def _zero_ring_(padded: torch.Tensor) -> torch.Tensor:
+    padded[..., 0, :] = 0
+    padded[..., -1, :] = 0
+    padded[..., :, 0] = 0
+    padded[..., :, -1] = 0
+    return padded
 
 
 class _EventImageTerms(torch.autograd.Function):
     @staticmethod
     def forward(ctx, u, x, y, t, p, mask, height, width, references, span, alpha):
-        index, wx, wy, inside, closeness, dt = warped_corners(
-            x, y, t, p, mask, u, height, width, references, span
-        )
-        padded = splat_counts_and_stamps(index, wx, wy, closeness, height, width)
-        images = crop_padding(padded)  # (B, R, 2 [count, stamp], 2 [ON, OFF], H, W)
-        count, stamp = images[:, :, 0], images[:, :, 1]
-        at = average_timestamp_loss(count, stamp)  # (B, R), eqs. 13-14
-        ec = event_count_loss(count, alpha)  # (B, R), eqs. 15-16
+        B, N = x.shape
+        R = len(references)
+        dtype = u.dtype
+        ref = torch.tensor(list(references), dtype=dtype, device=u.device).view(1, R, 1)
+        t = t.to(dtype).unsqueeze(1)
+        xw, yw = warp_events(x.to(dtype).unsqueeze(1), y.to(dtype).unsqueeze(1), t,
+                             u.unsqueeze(1), ref)  # eq. 12, (B, R, N)
+        dt = ref - t
+        off = (p <= 0).unsqueeze(1)  # image 0 = ON, 1 = OFF
+        # the same corners as splat.padded_corners, written straight into the scatter source
+        index, wx, wy, inside = padded_corners(xw, yw, height, width, off, mask.unsqueeze(1), 2)
+        src = torch.empty(B, R, 2, 4, N, dtype=dtype, device=u.device)  # [count, stamp] x corner
+        k = src[:, :, 0]
+        torch.mul(wy.unsqueeze(3), wx.unsqueeze(2), out=k.view(B, R, 2, 2, N))  # k = wy[a] wx[b]
+        closeness = 1 - dt.abs() / span  # w_i = 1 - |s - t_i| / span
+        torch.mul(k, closeness.unsqueeze(2), out=src[:, :, 1])
+        rows, hp, wp = B * R, height + 2, width + 2
+        idx = index.view(rows, 1, 4 * N).expand(rows, 2, 4 * N)
+        padded = torch.zeros(rows, 2, 2 * hp * wp, dtype=dtype, device=u.device)
+        padded.scatter_add_(2, idx, src.view(rows, 2, 4 * N))
+        padded = padded.view(B, R, 2, 2, hp, wp)  # (B, R, [count, stamp], [ON, OFF], H+2, W+2)
+        images = crop_padding(padded)
+        count, stamp = images[:, :, 0], images[:, :, 1]  # (B, R, 2, H, W)
+        inv = torch.reciprocal(count + 1e-9)
+        T = stamp * inv  # eq. 13
+        n_nz = (count.sum(dim=2) > 0).sum(dim=(-2, -1)).to(dtype)  # pixels with C_+ + C_- > 0
+        Z = n_nz + 1e-9
+        at = torch.linalg.vector_norm(T, dim=(2, 3, 4)) ** 2 / Z  # eq. 14, normalised
+        E = torch.exp(count * -alpha)
+        S = E.sum(dim=(-2, -1))  # (B, R, 2), eq. 15
+        ec = (height * width / S).sum(dim=-1) - 2  # eq. 16
         kept = count.sum(dim=(2, 3, 4))  # (B, R) splat weight inside the image
-        ctx.save_for_backward(index, wx, wy, inside, closeness, dt, padded)
+        ctx.save_for_backward(index, wx, wy, inside, closeness, dt, inv, T, E, S, Z)
         ctx.geometry = (height, width, alpha)
         ctx.mark_non_differentiable(kept)
         ctx.set_materialize_grads(False)  # None for an unused output (e.g. ec in at_loss)
@@ -48,27 +79,22 @@ class _EventImageTerms(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_at, grad_ec, _grad_kept):
-        index, wx, wy, inside, closeness, dt, padded = ctx.saved_tensors
+        index, wx, wy, inside, closeness, dt, inv, T, E, S, Z = ctx.saved_tensors
         height, width, alpha = ctx.geometry
         B, R, N = closeness.shape
-        images = crop_padding(padded)
-        count, stamp = images[:, :, 0], images[:, :, 1]  # (B, R, 2, H, W)
-        grads = torch.zeros_like(padded)  # ring stays 0: dropped corners get no gradient
+        hp, wp = height + 2, width + 2
+        grads = _zero_ring_(inv.new_empty(B, R, 2, 2, hp, wp))  # ring 0: dropped corners
         g_count, g_stamp = crop_padding(grads[:, :, 0]), crop_padding(grads[:, :, 1])
-        if grad_at is not None:  # L_AT = sum T^2 / Z, T = A / (C + 1e-9)
-            inv = 1.0 / (count + 1e-9)
-            T = stamp * inv
-            n_nz = (count.sum(dim=2) > 0).sum(dim=(-2, -1)).to(count.dtype)  # (B, R)
-            coef = (2 * grad_at / (n_nz + 1e-9)).view(B, R, 1, 1, 1)
-            g_stamp.copy_(T * inv * coef)  # dL_AT/dA = 2 T / (C + 1e-9) / Z
-            g_count.copy_(-g_stamp * T)  # dL_AT/dC = -2 T^2 / (C + 1e-9) / Z
-        if grad_ec is not None:  # L_EC = sum_P HW / S_P - 2, S_P = sum exp(-alpha C_P)
-            E = torch.exp(-alpha * count)
-            S = E.sum(dim=(-2, -1), keepdim=True)  # (B, R, 2, 1, 1)
-            scale = (alpha * height * width) * grad_ec.view(B, R, 1, 1, 1) / (S * S)
-            g_count.add_(E * scale)
+        if grad_at is None:
+            grad_at = inv.new_zeros(B, R)
+        # L_AT = sum T^2 / Z: dL/dA = 2 T / (C + 1e-9) / Z, dL/dC = -T dL/dA
+        torch.mul(T * inv, (2 * grad_at / Z).view(B, R, 1, 1, 1), out=g_stamp)
+        torch.mul(g_stamp, T, out=g_count).neg_()
+        if grad_ec is not None:  # L_EC = sum_P HW / S_P - 2: dL/dC = alpha HW E / S^2
+            scale = (alpha * height * width) * grad_ec.view(B, R, 1) / (S * S)
+            g_count.addcmul_(E, scale.view(B, R, 2, 1, 1))
         rows = B * R
-        idx = index.reshape(rows, 1, 4 * N).expand(rows, 2, 4 * N)
+        idx = index.view(rows, 1, 4 * N).expand(rows, 2, 4 * N)
         gathered = grads.view(rows, 2, -1).gather(2, idx).view(B, R, 2, 2, 2, N)
         # G_c = dL/dC + w dL/dA at each corner, as (B, R, 2 [row a], 2 [col b], N)
         G = torch.addcmul(gathered[:, :, 0], gathered[:, :, 1], closeness.view(B, R, 1, 1, N))

@@ -71,7 +71,8 @@ class _Charbonnier(torch.autograd.Function):
         pix = first % hw
         ia = torch.stack([batch * (2 * hw) + pix, batch * (2 * hw) + pix + hw])  # (2, P)
         ib = ia + (second - first)
-        d = flat[ib] - flat[ia]  # (2, P)
+        d = flat.index_select(0, ib.view(-1)) - flat.index_select(0, ia.view(-1))
+        d = d.view(2, -1)  # (2, P)
         rho = torch.hypot(d, d.new_tensor(eps))
         total = f.new_zeros(B).index_add_(0, batch, rho.sum(dim=0))
         ctx.save_for_backward(ia, ib, d / rho)

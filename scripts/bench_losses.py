@@ -121,21 +121,24 @@ def naive_hmc_loss(flow, ev, lambda_1=1.0, lambda_2=1e-3, alpha=0.6):
 # ---------------------------------------------------------------------------------------------
 
 
-def _time(fn, repeats):
-    fn()  # warm-up
-    times = []
+def _time_interleaved(fns: dict, repeats: int) -> dict:
+    """Min wall time of each function; the functions take turns within each repetition, so a
+    busy shared machine slows them alike and the ratios stay fair."""
+    for fn in fns.values():
+        fn()  # warm-up
+    best = {name: float("inf") for name in fns}
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    times.sort()
-    return times[len(times) // 2]
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            best[name] = min(best[name], time.perf_counter() - t0)
+    return best
 
 
-def run(report, quick: bool = False, device: str = "cpu") -> dict:
+def run(report, quick: bool = False, device: str = "cpu", repeats: int | None = None) -> dict:
     """Measure every config; report rows in events/s and the fast/naive ratio. Returns the rows."""
     results = {}
-    repeats = 2 if quick else 5
+    repeats = repeats or (2 if quick else 5)
     for name, B, N, H, W in CONFIGS:
         if quick:
             N = N // 10
@@ -160,16 +163,13 @@ def run(report, quick: bool = False, device: str = "cpu") -> dict:
             return buf.index_select(0, idx)
 
         with torch.no_grad():  # the two implementations agree on the value
-            f = flow0
-            diff = abs(hmc_loss(f, ev).loss.item() - naive_hmc_loss(f, ev).item())
-        t_fast = _time(fast, repeats)
-        t_naive = _time(naive, max(1, repeats // 2))
-        t_floor = _time(floor, repeats)
+            diff = abs(hmc_loss(flow0, ev).loss.item() - naive_hmc_loss(flow0, ev).item())
+        t = _time_interleaved({"fast": fast, "naive": naive, "floor": floor}, repeats)
         rows = {
-            f"{name}: hmc_loss fwd+bwd": (n_events / t_fast, "events/s"),
-            f"{name}: straightforward fwd+bwd": (n_events / t_naive, "events/s"),
-            f"{name}: speed-up": (t_naive / t_fast, "x"),
-            f"{name}: floor (1 scatter + 1 gather of 4N)": (n_events / t_floor, "events/s"),
+            f"{name}: hmc_loss fwd+bwd": (n_events / t["fast"], "events/s"),
+            f"{name}: straightforward fwd+bwd": (n_events / t["naive"], "events/s"),
+            f"{name}: speed-up": (t["naive"] / t["fast"], "x"),
+            f"{name}: floor (1 scatter + 1 gather of 4N)": (n_events / t["floor"], "events/s"),
             f"{name}: |fast - straightforward| loss": (diff, "abs"),
         }
         for row, (value, unit) in rows.items():
@@ -192,6 +192,10 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="10x fewer events, fewer repeats")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
+    ap.add_argument("--repeats", type=int, default=None)
     args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {args.device}")
-    run(_print_row, quick=args.quick, device=args.device)
+    run(_print_row, quick=args.quick, device=args.device, repeats=args.repeats)

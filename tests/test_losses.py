@@ -19,6 +19,7 @@ from losses import (
     forward_warp_flow,
     hmc_loss,
     sample_flow,
+    warped_event_images,
 )
 
 RTOL = 1e-6
@@ -277,6 +278,21 @@ def test_bilinear_splat_matches_reference_and_drops_outside_corners():
     # an event half outside keeps only its in-image weight
     one = bilinear_splat(torch.tensor([[-0.25]]), torch.tensor([[2.0]]), torch.ones(1, 1, 1), H, W)
     assert one.sum().item() == pytest.approx(0.75)
+
+
+def test_warped_event_images_match_reference():
+    rng = np.random.default_rng(8)
+    H, W = 9, 11
+    wins = [random_window(rng, 40, H, W, integer=False), random_window(rng, 25, H, W, border=True)]
+    ev = EventBatch.from_windows(wins, dtype=torch.float64)
+    flow = rng.normal(0, 2, (2, 2, H, W))
+    u = sample_flow(torch.from_numpy(flow), ev.x, ev.y)
+    count, stamp = warped_event_images(ev.x, ev.y, ev.tau, ev.p, ev.mask, u, H, W)
+    for b, w in enumerate(wins):
+        for r, s in enumerate((0.0, 1.0)):
+            C, A = ref_images(flow[b], w["x"], w["y"], taus(w), w["p"], s, H, W)
+            np.testing.assert_allclose(count[b, r].numpy(), C, rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(stamp[b, r].numpy(), A, rtol=1e-12, atol=1e-12)
 
 
 def test_forward_warp_flow_integer_shift_and_reference():
