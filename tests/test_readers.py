@@ -167,6 +167,14 @@ def test_mvsec_wrong_layout_names_the_dataset(tmp_path):
         f.create_dataset("davis/left/events", data=np.zeros((5, 3)))
     with pytest.raises(FormatError, match=r"/davis/left/events.*\(N, 4\)"):
         MVSECReader(path)
+    with h5py.File(path, "w") as f:
+        f.create_dataset("davis/left/events", data=np.zeros((5, 4)))
+    np.savez(tmp_path / "gt.npz", timestamps=np.arange(3.0), y_flow_dist=np.zeros((3, 260, 346)))
+    with pytest.raises(FormatError, match="missing array 'x_flow_dist'"):
+        MVSECReader(path, gt=tmp_path / "gt.npz")
+    np.savez(tmp_path / "gt.npz", timestamps=np.arange(3.0), x_flow_dist=np.zeros((3, 26, 34)), y_flow_dist=np.zeros((3, 26, 34)))
+    with pytest.raises(FormatError, match=r"'x_flow_dist' has shape \(3, 26, 34\)"):
+        MVSECReader(path, gt=tmp_path / "gt.npz")
 
 
 # ------------------------------------------------------------------------------------ Hagenaars

@@ -92,13 +92,17 @@ class HagenaarsReader(EventReader):
         self._t_start = min(0, first)
         self._t_end = (int(self._to_us(ts[self.num_events - 1 : self.num_events])[0]) + 1) if self.num_events else 1
         # frames and ground truth: names and timestamps only (the maps stay on disk)
-        self._image_names, self._image_t = self._group_times("images")
-        self._maps: dict[str, tuple[list[str], np.ndarray]] = {}
-        for g in FLOW_GROUPS:
-            names, times = self._group_times(g)
-            if names:
-                self._maps[g] = (names, times)
-        self._intervals = self._build_intervals(flow_timestamp)
+        try:
+            self._image_names, self._image_t = self._group_times("images")
+            self._maps: dict[str, tuple[list[str], np.ndarray]] = {}
+            for g in FLOW_GROUPS:
+                names, times = self._group_times(g)
+                if names:
+                    self._maps[g] = (names, times)
+            self._intervals = self._build_intervals(flow_timestamp)
+        except Exception:
+            f.close()
+            raise
 
     def _to_us(self, ts: np.ndarray) -> np.ndarray:
         if self._seconds:

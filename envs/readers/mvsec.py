@@ -96,7 +96,9 @@ class _NpyInZip:
         try:
             self._info = self._zip.getinfo(member)
         except KeyError:
-            raise FormatError(f"{path}: missing array '{key}' (members: {self._zip.namelist()})") from None
+            members = self._zip.namelist()
+            self._zip.close()
+            raise FormatError(f"{path}: missing array '{key}' (members: {members})") from None
         with self._zip.open(self._info) as fh:
             version = np.lib.format.read_magic(fh)
             reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
@@ -208,11 +210,17 @@ class MVSECReader(EventReader):
             gt = candidate if candidate.exists() else False
         self._gt_t = None
         self._gt_x = self._gt_y = None
+        self.gt_path = None
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
-        if gt:
-            self._open_gt(Path(gt))
         if grid not in ("images", "gt"):
+            f.close()
             raise ValueError(f"grid must be 'images' or 'gt', got {grid!r}")
+        if gt:
+            try:
+                self._open_gt(Path(gt))
+            except Exception:
+                self.close()
+                raise
         self.grid = grid
 
     def _open_gt(self, path: Path) -> None:
@@ -228,7 +236,7 @@ class MVSECReader(EventReader):
                 raise
             raise FormatError(f"{path}: not a readable .npz file: {err}") from err
         self._gt_x = _NpyInZip(path, "x_flow_dist")
-        self._gt_y = _NpyInZip(path, "y_flow_dist")
+        self._gt_y = _NpyInZip(path, "y_flow_dist")  # (if this raises, close() closes the first)
         for arr in (self._gt_x, self._gt_y):
             if arr.shape != (len(ts),) + self.full_sensor_size:
                 raise FormatError(
