@@ -80,6 +80,8 @@ def evaluate(
     progress: bool = True,
     flow_scaling: float | None = None,
     data_format: str | None = None,
+    data_options: dict | None = None,
+    windows_fn: Callable | None = None,
 ) -> list[SequenceResult]:
     """Roll ``policy`` (None: zero flow) through every sequence of ``data``.
 
@@ -87,14 +89,20 @@ def evaluate(
     it before the comparison with ground truth (linear motion). max_windows: per sequence.
     pictures_dir: where to write PNGs (count image, predicted flow, ground truth, images of
     warped events with zero and predicted flow) for the first windows of each sequence.
+    data_format, data_options: reader choice and options (see EventFlowEnv).
+    windows_fn: reader -> (K, 2) µs ``[t_start, t_end)`` rows, the windows to evaluate (an
+    evaluation protocol's valid range); default: all windows of the chosen mode.
     """
     env = EventFlowEnv(data, window=window, window_size=window_size, crop=crop, compute_reward=False,
-                       flow_scaling=flow_scaling, data_format=data_format)
+                       flow_scaling=flow_scaling, data_format=data_format, data_options=data_options)
     size = (env.height, env.width)
     results = []
     total = len(env.sources)
     for index in range(total):
-        obs, info = env.reset(options={"sequence": index})
+        options = {"sequence": index}
+        if windows_fn is not None:
+            options["windows"] = windows_fn(env.sources[index].reader())
+        obs, info = env.reset(options=options)
         if policy is not None:
             policy.reset()
         result = SequenceResult(info["sequence"])

@@ -39,14 +39,10 @@ class SequenceSource:
             self._reader = None
 
 
-def _open_path(path: Path, fmt: str | None) -> EventReader:
-    try:
-        from envs.readers import open_recording
-    except ImportError:  # only the project format is available
-        from envs.h5format import H5Reader
+def _open_path(path: Path, fmt: str | None, options: dict) -> EventReader:
+    from envs.readers import open_recording
 
-        return H5Reader(path)
-    return open_recording(path, format=fmt)
+    return open_recording(path, format=fmt, **options)
 
 
 def _synthetic_sources(split: str) -> list[SequenceSource]:
@@ -63,9 +59,14 @@ def _is_synthetic_name(item) -> bool:
     return isinstance(item, str) and item.startswith("synthetic") and not os.path.exists(item)
 
 
-def resolve_data(data: str | os.PathLike | Sequence, *, format: str | None = None) -> list[SequenceSource]:
-    """Turn ``data`` into recordings. Raises FileNotFoundError naming a missing path and
-    ValueError for an unknown split or an empty directory."""
+def resolve_data(
+    data: str | os.PathLike | Sequence, *, format: str | None = None, options: dict | None = None
+) -> list[SequenceSource]:
+    """Turn ``data`` into recordings. ``format`` and ``options`` (reader keyword arguments,
+    e.g. ``{"crop": "center256"}`` for MVSEC) go to ``envs.readers.open_recording``.
+    Raises FileNotFoundError naming a missing path and ValueError for an unknown split or an
+    empty directory."""
+    options = dict(options or {})
     items = [data] if isinstance(data, (str, os.PathLike)) else list(data)
     if not items:
         raise ValueError("data: empty list of recordings")
@@ -87,5 +88,5 @@ def resolve_data(data: str | os.PathLike | Sequence, *, format: str | None = Non
         else:
             files = [path]
         for f in files:
-            sources.append(SequenceSource(f.stem, (lambda f=f: _open_path(f, format))))
+            sources.append(SequenceSource(f.stem, (lambda f=f: _open_path(f, format, options))))
     return sources

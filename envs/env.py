@@ -74,6 +74,10 @@ class EventFlowEnv(gym.Env):
     Events and flows are in the env's pixel frame (after crop and flips), the frame of the
     action.
 
+    **reset options**: ``"sequence"`` (index or name), ``"start"`` (µs: window from there),
+    ``"windows"`` ((K, 2) int µs ``[t_start, t_end)`` rows: exactly these windows, e.g. an
+    evaluation protocol's valid range).
+
     **Randomness** (all through ``self.np_random``): the sequence chosen at ``reset`` (unless
     ``options["sequence"]``), the start time when ``random_start``, and the flips.
 
@@ -82,6 +86,7 @@ class EventFlowEnv(gym.Env):
             directory, or a list of these. All recordings must share one sensor size
             unless ``crop`` fixes the frame.
         data_format: force a reader (``"evflow-h5"``, ``"mvsec"``, ...); default: detected.
+        data_options: keyword arguments for the reader, e.g. ``{"crop": "center256"}`` (MVSEC).
         window: ``"frames"`` (ground-truth aligned), ``"time"`` or ``"count"``.
         window_size: grid steps (``frames``, default 1), µs (``time``, default 10 000) or
             events (``count``, default 15 000).
@@ -111,6 +116,7 @@ class EventFlowEnv(gym.Env):
         data: str | Sequence = "synthetic-train",
         *,
         data_format: str | None = None,
+        data_options: dict | None = None,
         window: str = "frames",
         window_size: int | None = None,
         crop: Sequence[int] | None = None,
@@ -155,7 +161,7 @@ class EventFlowEnv(gym.Env):
         self.voxel_bins = int(voxel_bins)
         self.max_events = int(max_events)
 
-        self.sources = resolve_data(data, format=data_format)
+        self.sources = resolve_data(data, format=data_format, options=data_options)
         if sequences is not None:
             names = [s.name for s in self.sources]
             picked = []
@@ -255,7 +261,12 @@ class EventFlowEnv(gym.Env):
         else:
             index = int(self.np_random.integers(len(self.sources)))
         reader = self._reader(index)
-        bounds = window_bounds(reader, self.window, self.window_size, t_from=options.get("start"))
+        if "windows" in options:  # an explicit list of windows, e.g. an evaluation protocol's
+            spans = np.asarray(options["windows"], np.int64).reshape(-1, 2)
+            idx = np.array([[reader.index_at(int(a)), reader.index_at(int(b))] for a, b in spans], np.int64).reshape(-1, 2)
+            bounds = np.concatenate([spans, idx], axis=1)
+        else:
+            bounds = window_bounds(reader, self.window, self.window_size, t_from=options.get("start"))
         if len(bounds) == 0:
             raise ValueError(
                 f"recording {self.sources[index].name!r} has no {self.window} window of size "

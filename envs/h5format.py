@@ -337,15 +337,28 @@ class H5Reader(EventReader):
         return np.append(self._flow_from, self._flow_to[-1])
 
     def flow_between(self, t_start: int, t_end: int) -> FlowGT | None:
-        """The stored map whose interval is exactly [t_start, t_end), else None."""
+        """Ground truth over [t_start, t_end).
+
+        The stored map of exactly that interval when there is one; otherwise, when the stored
+        maps tile time without gaps (t_to[k] == t_from[k+1]), the flow chained through them
+        (nearest-neighbour propagation, linear scaling inside one interval: see
+        ``envs.readers.flowgt``), e.g. dt = 4 windows from dt = 1 maps; else None.
+        """
         if self._flow_from is None:
             return None
-        hits = np.flatnonzero((self._flow_from == t_start) & (self._flow_to == t_end))
-        if len(hits) == 0:
-            return None
-        k = int(hits[0])
         g = self._file["flow"]
-        return g["flow"][k].astype(np.float32), g["valid"][k].astype(bool)
+        hits = np.flatnonzero((self._flow_from == t_start) & (self._flow_to == t_end))
+        if len(hits):
+            k = int(hits[0])
+            return g["flow"][k].astype(np.float32), g["valid"][k].astype(bool)
+        if len(self._flow_from) and np.array_equal(self._flow_to[:-1], self._flow_from[1:]):
+            from envs.readers.flowgt import flow_from_displacements
+
+            return flow_from_displacements(
+                lambda k: g["flow"][k], self.flow_timestamps(), t_start, t_end,
+                get_valid=lambda k: g["valid"][k].astype(bool),
+            )
+        return None
 
     def frame_timestamps(self) -> np.ndarray | None:
         return self._frame_t

@@ -52,6 +52,23 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def mvsec_runs(folder: Path, dt: int) -> list:
+    """The MVSEC protocol (REFERENCE section 7): indoor_flying1-3 and outdoor_day1, central
+    256x256 crop, windows of dt frames inside each sequence's valid range."""
+    from envs.readers.mvsec import MVSEC_SEQUENCES, mvsec_eval_windows
+
+    runs = []
+    for sequence in MVSEC_SEQUENCES:
+        path = folder / f"{sequence}_data.hdf5"
+        if not path.exists():
+            print(f"[mvsec] {path} not found; skipping {sequence}", file=sys.stderr)
+            continue
+        runs.append((str(path), "mvsec", {"crop": "center256"}, lambda reader, s=sequence: mvsec_eval_windows(reader, dt, s)))
+    if not runs:
+        raise SystemExit(f"--mvsec {folder}: none of {', '.join(s + '_data.hdf5' for s in MVSEC_SEQUENCES)} found")
+    return runs
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     policies: dict[str, RecurrentPolicy | None] = {}
@@ -68,20 +85,19 @@ def main(argv=None) -> int:
         policies["zero flow"] = None
 
     if args.mvsec:
-        from envs.readers.mvsec import mvsec_protocol_runs  # noqa: PLC0415
-
-        runs = mvsec_protocol_runs(args.mvsec, dt=args.dt)
+        runs = mvsec_runs(Path(args.mvsec), args.dt)
     else:
         data = args.data[0] if len(args.data) == 1 else args.data
-        runs = [(None, data, args.format, args.crop)]
+        runs = [(data, args.format, {}, None)]
 
     window_size = args.dt if args.window == "frames" else args.window_size
     out = Path(args.out)
     named = {name: [] for name in policies}
-    for _, data, fmt, crop in runs:
+    for data, fmt, options, windows_fn in runs:
         for name, policy in policies.items():
             named[name] += evaluate(
-                policy, data, window=args.window, window_size=window_size, crop=crop, dt_ratio=args.dt_ratio,
+                policy, data, window=args.window, window_size=window_size, crop=args.crop, dt_ratio=args.dt_ratio,
+                data_options=options, windows_fn=windows_fn,
                 max_windows=args.max_windows, pictures_dir=(out / "pictures" / name.replace(" ", "_")) if args.pictures else None,
                 pictures_per_sequence=args.pictures, progress=not args.no_progress, data_format=fmt,
             )

@@ -186,3 +186,15 @@ def test_ground_truth_action_beats_zero_on_synthetic_test_split():
                 rewards[name].append(reward)
     print({k: float(np.mean(v)) for k, v in rewards.items()})
     assert np.mean(rewards["gt"]) > np.mean(rewards["zero"])
+
+
+def test_explicit_window_list(recording):
+    env = EventFlowEnv(recording)
+    _, info = env.reset(options={"sequence": 0, "windows": [[30_000, 60_000], [60_000, 120_000]]})
+    assert (info["t_start"], info["t_end"]) == (30_000, 60_000)
+    np.testing.assert_allclose(info["flow_gt"][0], 200 * 0.03, rtol=1e-5)
+    _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
+    assert (info["t_start"], info["t_end"]) == (60_000, 120_000) and not truncated
+    np.testing.assert_allclose(info["flow_gt"][0], 200 * 0.06, rtol=1e-5)  # chained from two stored maps
+    *_, truncated, _ = env.step(np.zeros(env.action_space.shape, np.float32))
+    assert truncated
