@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing
 from collections.abc import Mapping
 from typing import Any, Iterator, Sequence
 
@@ -177,6 +178,11 @@ class EventFlowEnv(gym.Env):
                 raise ValueError("sequences: empty selection")
             self.sources = picked
         self.env_index = int(env_index)
+        if multiprocessing.parent_process() is not None:
+            # A worker of an async vector env (forked by default on Linux): torch's OpenMP
+            # pool inherited from a parent that already ran torch ops deadlocks on first use
+            # in the child, so the reward runs single-threaded there (one window is small).
+            torch.set_num_threads(1)
         self.sequence_names = [s.name for s in self.sources]
         first = self.sources[0].reader()
         self.sensor_size = tuple(first.sensor_size)

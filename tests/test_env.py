@@ -200,3 +200,24 @@ def test_explicit_window_list(recording):
     np.testing.assert_allclose(info["flow_gt"][0][valid], 200 * 0.06, rtol=1e-5)
     *_, truncated, _ = env.step(np.zeros(env.action_space.shape, np.float32))
     assert truncated
+
+
+def test_async_vector_env_after_torch_use_in_parent(recording):
+    """Forked workers must not deadlock in torch after the parent ran torch ops (reward on)."""
+    import subprocess
+    import sys
+
+    script = f"""
+import numpy as np, gymnasium, torch, envs
+from envs.env import EventFlowEnv
+env = EventFlowEnv({str(recording)!r}); env.reset(seed=0)
+env.step(np.zeros(env.action_space.shape, np.float32))
+vec = gymnasium.make_vec("EventFlow-v0", num_envs=2, vectorization_mode="async", data={str(recording)!r})
+vec.reset(seed=0)
+_, reward, *_ = vec.step(np.zeros((2,) + env.action_space.shape, np.float32))
+assert np.all(reward < 0)
+vec.close()
+print("ok")
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "ok" in done.stdout, done.stderr[-2000:]
