@@ -80,11 +80,26 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     return payload
 
 
-def load_model(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> tuple[torch.nn.Module, dict]:
-    """Rebuild the model stored in a checkpoint; returns (model in eval mode, checkpoint)."""
+def load_model(
+    path: str | os.PathLike, map_location: str | torch.device = "cpu", *, expect_model: str | None = None
+) -> tuple[torch.nn.Module, dict]:
+    """Rebuild the model stored in a checkpoint; returns (model in eval mode, checkpoint).
+
+    expect_model: raise CheckpointError unless the checkpoint holds this model (registry name
+    or dotted path). Weights that do not fit the rebuilt model raise CheckpointError too.
+    """
     payload = load_checkpoint(path, map_location)
-    model = make_model(payload["model_name"], **payload["model_config"])
-    model.load_state_dict(payload["model"])
+    name = payload["model_name"]
+    if expect_model is not None and expect_model != name:
+        raise CheckpointError(f"{path}: checkpoint holds model {name!r}, not {expect_model!r}")
+    model = make_model(name, **payload["model_config"])
+    try:
+        model.load_state_dict(payload["model"])
+    except RuntimeError as err:
+        first = str(err).splitlines()[0:3]
+        raise CheckpointError(
+            f"{path}: weights do not fit model {name!r} with config {payload['model_config']}: {' '.join(first)}"
+        ) from err
     model.to(map_location)
     model.eval()
     return model, payload

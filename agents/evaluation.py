@@ -24,6 +24,7 @@ from tqdm import tqdm
 from envs.env import EventFlowEnv
 from envs.representations import event_mask
 from envs.visualize import count_image_to_rgb, flow_to_rgb, save_png
+from envs.windows import window_bounds
 from losses import EventBatch, flow_error, fwl, hmc_loss, rsat, sample_flow, warped_event_images
 
 from .policy import RecurrentPolicy
@@ -82,6 +83,7 @@ def evaluate(
     data_format: str | None = None,
     data_options: dict | None = None,
     windows_fn: Callable | None = None,
+    no_gt_window_us: int = 33_333,
 ) -> list[SequenceResult]:
     """Roll ``policy`` (None: zero flow) through every sequence of ``data``.
 
@@ -92,6 +94,8 @@ def evaluate(
     data_format, data_options: reader choice and options (see EventFlowEnv).
     windows_fn: reader -> (K, 2) µs ``[t_start, t_end)`` rows, the windows to evaluate (an
     evaluation protocol's valid range); default: all windows of the chosen mode.
+    no_gt_window_us: in ``frames`` mode, a recording without a ground-truth grid is cut into
+    time windows of this length instead (FWL, RSAT and L_HMC only; AEE is reported as NaN).
     """
     env = EventFlowEnv(data, window=window, window_size=window_size, crop=crop, compute_reward=False,
                        flow_scaling=flow_scaling, data_format=data_format, data_options=data_options)
@@ -100,8 +104,11 @@ def evaluate(
     total = len(env.sources)
     for index in range(total):
         options = {"sequence": index}
+        reader = env.sources[index].reader()
         if windows_fn is not None:
-            options["windows"] = windows_fn(env.sources[index].reader())
+            options["windows"] = windows_fn(reader)
+        elif window == "frames" and reader.flow_timestamps() is None:
+            options["windows"] = window_bounds(reader, "time", no_gt_window_us)[:, :2]
         obs, info = env.reset(options=options)
         if policy is not None:
             policy.reset()
@@ -169,11 +176,47 @@ def _pooled(rows: list[SequenceResult], key: str) -> float:
     return sum(r.sums[key] for r in rows) / total if total else float("nan")
 
 
-def results_json(named_results: dict[str, list[SequenceResult]]) -> str:
-    def clean(v):
-        return None if isinstance(v, float) and not math.isfinite(v) else v
+def _clean(value):
+    return None if isinstance(value, float) and not math.isfinite(value) else value
 
-    return json.dumps(
-        {m: [{k: clean(v) for k, v in r.as_dict().items()} for r in rows] for m, rows in named_results.items()},
-        indent=2,
-    )
+
+def _metrics(rows: list[SequenceResult]) -> dict:
+    """Metrics pooled over the windows of ``rows`` (one row: that sequence's means)."""
+    out = {key: _clean(_pooled(rows, key)) for key in METRICS}
+    out["windows"] = sum(r.windows for r in rows)
+    return out
+
+
+def results_json(per_dt: dict[str, dict[str, list[SequenceResult]]]) -> str:
+    """JSON of evaluations at several window settings.
+
+    per_dt: {"dt1": {method: rows}, "dt4": {...}} (keys are free). The first method is the
+    primary one: its results sit at the top level, the others under "baselines":
+
+        {"method": name,
+         "sequences": {seq: {"dt1": {aee, outlier_pct, hmc, hmc_zero, fwl, rsat, windows}, "dt4": {...},
+                             "fwl": .., "rsat": ..}},      # fwl / rsat of the first key
+         "overall": {"dt1": {...}, "dt4": {...}, "fwl": .., "rsat": ..},
+         "baselines": {name: {"sequences": ..., "overall": ...}}}
+
+    Metrics without data (AEE where there is no ground truth) are null.
+    """
+    keys = list(per_dt)
+    methods = list(per_dt[keys[0]])
+
+    def block(method: str) -> dict:
+        sequences: dict = {}
+        overall: dict = {}
+        for key in keys:
+            rows = per_dt[key][method]
+            for r in rows:
+                sequences.setdefault(r.name, {})[key] = _metrics([r])
+            overall[key] = _metrics(rows)
+        for entry in list(sequences.values()) + [overall]:
+            first = entry.get(keys[0], {})
+            entry["fwl"], entry["rsat"] = first.get("fwl"), first.get("rsat")
+        return {"sequences": sequences, "overall": overall}
+
+    out = {"method": methods[0], **block(methods[0])}
+    out["baselines"] = {m: block(m) for m in methods[1:]}
+    return json.dumps(out, indent=2)

@@ -40,12 +40,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", default=None, help="force a reader (evflow-h5, mvsec, dsec, hagenaars, ecd-text, aedat4)")
     p.add_argument("--mvsec", default=None, metavar="DIR", help="run the MVSEC protocol on the four sequences in DIR")
     p.add_argument("--window", default="frames", choices=["frames", "time", "count"])
-    p.add_argument("--dt", type=int, default=1, help="ground-truth grid steps per window (frames mode): 1 or 4")
+    p.add_argument("--dt", type=int, nargs="+", default=[1, 4], help="ground-truth grid steps per window (frames mode); default: 1 and 4")
     p.add_argument("--window-size", type=int, default=None, help="time: us; count: events")
     p.add_argument("--dt-ratio", type=float, default=1.0, help="scale predictions by (ground-truth interval / input window)")
     p.add_argument("--crop", type=int, nargs="+", default=None, help="H W (centred) or TOP LEFT H W")
     p.add_argument("--max-windows", type=int, default=None, help="per sequence")
     p.add_argument("--out", default="runs/eval", help="directory for table.md, results.json and pictures/")
+    p.add_argument("--json", default=None, help="also write the JSON results here (default OUT/results.json)")
     p.add_argument("--pictures", type=int, default=2, help="windows per sequence drawn as PNG (0: none)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--no-progress", action="store_true")
@@ -74,40 +75,41 @@ def main(argv=None) -> int:
     policies: dict[str, RecurrentPolicy | None] = {}
     names = args.name or []
     for i, path in enumerate(args.checkpoint):
-        model, payload = load_model(path, map_location=args.device)
+        model, payload = load_model(path, map_location=args.device, expect_model=args.model)
         name = names[i] if i < len(names) else Path(path).parent.name or Path(path).stem
         policies[name] = RecurrentPolicy(model, device=args.device)
-    if args.model:
+    if args.model and not args.checkpoint:
         width = int(args.width) if str(args.width).isdigit() else args.width
         kwargs = {"width": width} if isinstance(width, str) else {"base_width": width}
         policies[args.model] = RecurrentPolicy(make_model(args.model, **kwargs).eval(), device=args.device)
     if args.zero or not policies:
         policies["zero flow"] = None
 
-    if args.mvsec:
-        runs = mvsec_runs(Path(args.mvsec), args.dt)
-    else:
-        data = args.data[0] if len(args.data) == 1 else args.data
-        runs = [(data, args.format, {}, None)]
-
-    window_size = args.dt if args.window == "frames" else args.window_size
+    settings = [(f"dt{dt}", dt) for dt in args.dt] if args.window == "frames" else [(args.window, args.window_size)]
     out = Path(args.out)
-    named = {name: [] for name in policies}
-    for data, fmt, options, windows_fn in runs:
-        for name, policy in policies.items():
-            named[name] += evaluate(
-                policy, data, window=args.window, window_size=window_size, crop=args.crop, dt_ratio=args.dt_ratio,
-                data_options=options, windows_fn=windows_fn,
-                max_windows=args.max_windows, pictures_dir=(out / "pictures" / name.replace(" ", "_")) if args.pictures else None,
-                pictures_per_sequence=args.pictures, progress=not args.no_progress, data_format=fmt,
-            )
-    title = f"dt = {args.dt}" if args.window == "frames" else f"{args.window} windows"
-    table = results_table(named, title=title)
+    per_setting: dict[str, dict] = {}
+    tables = []
+    for key, size in settings:
+        runs = mvsec_runs(Path(args.mvsec), size) if args.mvsec else [(args.data[0] if len(args.data) == 1 else args.data, args.format, {}, None)]
+        named = {name: [] for name in policies}
+        for data, fmt, options, windows_fn in runs:
+            for name, policy in policies.items():
+                pictures = out / "pictures" / key / name.replace(" ", "_") if args.pictures else None
+                named[name] += evaluate(
+                    policy, data, window=args.window, window_size=size, crop=args.crop, dt_ratio=args.dt_ratio,
+                    data_options=options, windows_fn=windows_fn, max_windows=args.max_windows, pictures_dir=pictures,
+                    pictures_per_sequence=args.pictures, progress=not args.no_progress, data_format=fmt,
+                )
+        per_setting[key] = named
+        tables.append(results_table(named, title=f"dt = {size} frames" if args.window == "frames" else f"{args.window} windows"))
+    table = "\n\n".join(tables)
     out.mkdir(parents=True, exist_ok=True)
     (out / "table.md").write_text(table + "\n")
-    (out / "results.json").write_text(results_json(named) + "\n")
+    json_path = Path(args.json) if args.json else out / "results.json"
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(results_json(per_setting) + "\n")
     print(table)
-    print(f"\nwrote {out / 'table.md'}, {out / 'results.json'}" + (f" and pictures in {out / 'pictures'}" if args.pictures else ""))
+    print(f"\nwrote {out / 'table.md'}, {json_path}" + (f" and pictures in {out / 'pictures'}" if args.pictures else ""))
     return 0
 
 

@@ -87,14 +87,48 @@ def test_evaluate_script_writes_table_and_pictures(recording, tmp_path):
                        "--out", str(tmp_path / "run"), "--val-data", "", "--no-progress"])
     out = tmp_path / "eval"
     evaluate_script.main(["--checkpoint", str(tmp_path / "run" / "checkpoint.pt"), "--zero", "--data", str(recording),
-                          "--out", str(out), "--max-windows", "3", "--no-progress"])
+                          "--out", str(out), "--max-windows", "3", "--no-progress", "--json", str(tmp_path / "r.json")])
     table = (out / "table.md").read_text()
-    assert "| zero flow |" in table and "| run |" in table
-    results = json.loads((out / "results.json").read_text())
-    zero = results["zero flow"][0]
+    assert "| zero flow |" in table and "| run |" in table and "dt = 4 frames" in table
+    results = json.loads((tmp_path / "r.json").read_text())
+    assert results["method"] == "run" and set(results["overall"]) >= {"dt1", "dt4", "fwl", "rsat"}
+    zero = results["baselines"]["zero flow"]["sequences"]["dots"]
     assert zero["fwl"] == pytest.approx(1.0) and zero["rsat"] == pytest.approx(1.0)
-    assert zero["aee"] == pytest.approx(np.hypot(200, 100) * 0.03, rel=1e-5)  # the known motion
-    assert any(p.name.endswith("_flow.png") for p in (out / "pictures" / "run").iterdir())
+    speed = np.hypot(200, 100)  # px/s of the recording's known motion
+    assert zero["dt1"]["aee"] == pytest.approx(speed * 0.03, rel=1e-5)
+    assert zero["dt4"]["aee"] == pytest.approx(speed * 0.12, rel=1e-5)  # 4 frames: chained ground truth
+    assert any(p.name.endswith("_flow.png") for p in (out / "pictures" / "dt1" / "run").iterdir())
+
+
+def test_evaluate_without_ground_truth_reports_fwl_only(tmp_path):
+    from envs.h5format import write_h5
+    from tests.recordings import translating_dots
+
+    events, span = translating_dots(np.random.default_rng(0), sensor_size=(32, 32))
+    path = write_h5(tmp_path / "nogt.h5", events, t_start_us=span[0], t_end_us=span[1])
+    evaluate_script.main(["--zero", "--data", str(path), "--out", str(tmp_path / "e"), "--no-progress", "--pictures", "0"])
+    results = json.loads((tmp_path / "e" / "results.json").read_text())
+    seq = results["sequences"]["nogt"]
+    assert seq["dt1"]["aee"] is None and seq["fwl"] == pytest.approx(1.0) and seq["dt1"]["windows"] == 10  # 33.333 ms time windows over 300 ms
+    assert "| - / - |" in (tmp_path / "e" / "table.md").read_text()
+
+
+def test_bad_checkpoints_and_models_are_named(recording, tmp_path):
+    from agents.checkpoint import load_model
+    from agents.protocol import ModelLoadError
+
+    run = tmp_path / "run"
+    train_script.main(["--data", str(recording), "--width", "4", "--num-envs", "1", "--unroll", "1", "--steps", "1",
+                       "--out", str(run), "--val-data", "", "--no-progress"])
+    with pytest.raises(CheckpointError, match="holds model 'ev-mgrflownet', not 'ev-flownet'"):
+        evaluate_script.main(["--checkpoint", str(run / "checkpoint.pt"), "--model", "ev-flownet", "--data", str(recording)])
+    payload = load_checkpoint(run / "checkpoint.pt")
+    payload["model_config"]["base_width"] = 8  # weights of a width-4 net, config of a width-8 one
+    save_checkpoint(tmp_path / "mismatch.pt", payload)
+    with pytest.raises(CheckpointError, match="weights do not fit model 'ev-mgrflownet'"):
+        load_model(tmp_path / "mismatch.pt")
+    with pytest.raises(ModelLoadError, match="unknown model 'no-such-net'"):
+        train_script.main(["--model", "no-such-net", "--data", str(recording), "--steps", "1", "--out", str(tmp_path / "x")])
 
 
 def test_two_process_ddp_smoke(recording, tmp_path):
