@@ -10,7 +10,8 @@ One update, read top to bottom (:meth:`Learner.update`):
 3. detach the recurrent state (the next update continues the same sequences).
 
 The envs run with ``compute_reward=False``: the learner recomputes the same loss with
-gradients, so the env need not compute it twice.
+gradients (including the env's border rule: ``border_penalty`` x the window's zero-flow loss x
+the share of events pushed out of the image), so the env need not compute it twice.
 
 Distributed: when ``torch.distributed`` is initialised (``torchrun``), each rank rolls out its
 own shard of sequences, gradients are averaged across ranks with an all-reduce after each
@@ -67,7 +68,7 @@ class TrainConfig:
     lambda_1: float = 1.0
     lambda_2: float = 1e-3
     alpha: float = 0.6
-    border_penalty: float = 0.0
+    border_penalty: float = 1.0  # border rule: weight x zero-flow loss x share of events pushed out (0 = paper)
     flow_scaling: float | None = None  # default max(H, W)
     seed: int = 0
     device: str = "cpu"
@@ -142,13 +143,18 @@ class Learner:
             factor *= 0.5 * (1 + math.cos(math.pi * min(step, cfg.steps) / max(cfg.steps, 1)))
         return factor
 
-    def _loss(self, flows, batch: EventBatch):
+    def _loss(self, flows, batch: EventBatch, border_penalty=0.0):
         cfg = self.cfg
         if cfg.loss == "hmc":
             return hmc_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
-                            lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=cfg.border_penalty)
+                            lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty)
         return at_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_2=cfg.lambda_2,
-                       border_penalty=cfg.border_penalty)
+                       border_penalty=border_penalty)
+
+    def _accumulated(self, flows, batches, border_penalty=0.0):
+        cfg = self.cfg
+        return accumulated_hmc_loss(flows, batches, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
+                                    lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty)
 
     def update(self) -> dict[str, float]:
         """One truncated-BPTT update over ``unroll`` windows; returns logged scalars."""
@@ -160,13 +166,14 @@ class Learner:
             flows = self.policy(x)  # multi-scale, finest last, pixels per window
             batch = EventBatch.from_windows(_windows_from_info(self.info, n), device=self.device)
             events_seen += int(batch.mask.sum())
+            with torch.no_grad():  # the reference the border rule scales with, and a logged baseline
+                zero = self._loss(torch.zeros_like(flows[-1]), batch)
+            zero_losses.append(zero.loss)
             if cfg.loss_mode == "window":
-                losses.append(self._loss(flows, batch).loss)
+                losses.append(self._loss(flows, batch, cfg.border_penalty * zero.per_sample).loss)
             else:
                 finest.append(flows[-1])
                 batches.append(batch)
-            with torch.no_grad():
-                zero_losses.append(self._loss(torch.zeros_like(flows[-1]), batch).loss)
             self.obs, _, terminated, truncated, self.info = self.envs.step(flows[-1].detach().cpu().numpy())
             done = np.logical_or(terminated, truncated)
             if done.any():
@@ -174,8 +181,9 @@ class Learner:
         if cfg.loss_mode == "window":
             loss = torch.stack(losses).mean()
         else:
-            loss = accumulated_hmc_loss(finest, batches, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
-                                        lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=cfg.border_penalty).loss
+            with torch.no_grad():
+                zero = self._accumulated([torch.zeros_like(f) for f in finest], batches)
+            loss = self._accumulated(finest, batches, cfg.border_penalty * zero.per_sample).loss
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if self.world > 1:

@@ -18,11 +18,40 @@ from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import WINDOW_MODES, window_bounds
 from losses import EventBatch, at_loss, hmc_loss
 
-__all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "WindowEvents"]
+__all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "WindowEvents", "score_flow"]
+
 
 OBSERVATION_KEYS = ("count_image", "voxel_grid", "events")
 # Finite upper bound of the count/voxel boxes: far above any real per-pixel count.
 _MAX_COUNT = float(2**24)
+
+
+@torch.no_grad()
+def score_flow(
+    flow: torch.Tensor,
+    events: EventBatch,
+    *,
+    loss: str = "hmc",
+    flow_scaling: float | None = None,
+    lambda_1: float = 1.0,
+    lambda_2: float = 1e-3,
+    alpha: float = 0.6,
+    border_penalty: float = 1.0,
+):
+    """The env's (negated) reward for a batch: L_HMC (or L_AT) plus the border rule.
+
+    flow: (B, 2, H, W) pixels per window; events: the B windows. Returns the loss's
+    LossOutput (``loss`` is the batch mean; for one window, -reward).
+    """
+    fn = hmc_loss if loss == "hmc" else at_loss
+    kwargs = dict(flow_scaling=flow_scaling, lambda_2=lambda_2)
+    if loss == "hmc":
+        kwargs.update(lambda_1=lambda_1, alpha=alpha)
+    penalty = 0.0
+    if border_penalty:
+        zero = fn(torch.zeros_like(flow), events, **kwargs).per_sample
+        penalty = border_penalty * zero
+    return fn(flow, events, border_penalty=penalty, **kwargs)
 
 
 class EventFlowEnv(gym.Env):
@@ -50,7 +79,16 @@ class EventFlowEnv(gym.Env):
     **Reward**: ``-L_HMC(action, events of the window just observed)`` (REFERENCE section 5:
     L_AT(0) + L_AT(1) + lambda_1 (L_EC(0) + L_EC(1)) + lambda_2 L_smooth), or ``-L_AT``
     (+ smoothing) with ``loss="at"``. A Python float; higher is better; 0 is unattainable for
-    a window with events. ``border_penalty`` is passed to the loss (0 = the paper's loss).
+    a window with events.
+
+    *Border rule* (a deviation from the paper's loss, on by default): corners of warped events
+    that leave the image are dropped by L_AT and L_EC, so a huge constant action that pushes
+    every event out of the frame would score a perfect 0. The reward therefore adds
+    ``border_penalty * L_HMC(zero flow) * sum_s (1 - kept_s)``, kept_s = the share of the
+    events' splat weight that stays inside the image at reference s. Pushing everything out
+    then costs ``2 * border_penalty * L_HMC(zero flow)``, worse than doing nothing for any
+    ``border_penalty > 0.5`` however dense the window; flows that keep events inside are
+    unaffected. ``border_penalty=0`` gives the paper's loss exactly.
 
     **Episode end**: the end of the recording *truncates* the episode (``truncated=True``):
     the recording stopping is a limit of the data, not a terminal state of the scene, so a
@@ -98,7 +136,7 @@ class EventFlowEnv(gym.Env):
             horizontal / vertical mirror and polarity swap, each drawn with probability
             0.5 once per episode; the ground truth is flipped to match.
         loss: ``"hmc"`` or ``"at"``; lambda_1, lambda_2, alpha: the loss weights (paper
-            defaults); border_penalty: see losses.hmc_loss.
+            defaults); border_penalty: the border rule's weight (default 1; 0 = paper).
         flow_scaling: pixels per network unit in the smoothness term (default max(H, W)).
         flow_limit: F, the action bound (default flow_scaling).
         random_start: start each episode at a random window instead of the first.
@@ -129,7 +167,7 @@ class EventFlowEnv(gym.Env):
         lambda_1: float = 1.0,
         lambda_2: float = 1e-3,
         alpha: float = 0.6,
-        border_penalty: float = 0.0,
+        border_penalty: float = 1.0,
         flow_scaling: float | None = None,
         flow_limit: float | None = None,
         random_start: bool = False,
@@ -328,12 +366,8 @@ class EventFlowEnv(gym.Env):
 
     def _score(self, flow: np.ndarray, window: dict) -> tuple[float, dict]:
         batch = EventBatch.from_windows([{**window["events"], "t_start": window["t_start"], "t_end": window["t_end"]}])
-        fn = hmc_loss if self.loss_name == "hmc" else at_loss
-        kwargs = dict(flow_scaling=self.flow_scaling, lambda_2=self.loss_weights["lambda_2"], border_penalty=self.loss_weights["border_penalty"])
-        if self.loss_name == "hmc":
-            kwargs.update(lambda_1=self.loss_weights["lambda_1"], alpha=self.loss_weights["alpha"])
-        with torch.no_grad():
-            out = fn(torch.from_numpy(flow).unsqueeze(0), batch, **kwargs)
+        out = score_flow(torch.from_numpy(flow).unsqueeze(0), batch, loss=self.loss_name, flow_scaling=self.flow_scaling,
+                         **self.loss_weights)
         components = {k: float(v.reshape(-1)[0]) for k, v in out.components.items()}
         return -float(out.loss), components
 

@@ -344,13 +344,10 @@ class H5Reader(EventReader):
         (nearest-neighbour propagation, linear scaling inside one interval: see
         ``envs.readers.flowgt``), e.g. dt = 4 windows from dt = 1 maps; else None.
         """
-        if self._flow_from is None:
-            return None
+        stored = self.stored_flow(t_start, t_end)
+        if stored is not None or self._flow_from is None:
+            return stored
         g = self._file["flow"]
-        hits = np.flatnonzero((self._flow_from == t_start) & (self._flow_to == t_end))
-        if len(hits):
-            k = int(hits[0])
-            return g["flow"][k].astype(np.float32), g["valid"][k].astype(bool)
         if len(self._flow_from) and np.array_equal(self._flow_to[:-1], self._flow_from[1:]):
             from envs.readers.flowgt import flow_from_displacements
 
@@ -359,6 +356,17 @@ class H5Reader(EventReader):
                 get_valid=lambda k: g["valid"][k].astype(bool),
             )
         return None
+
+    def stored_flow(self, t_start: int, t_end: int) -> FlowGT | None:
+        """The stored map whose interval is exactly [t_start, t_end), else None."""
+        if self._flow_from is None:
+            return None
+        hits = np.flatnonzero((self._flow_from == t_start) & (self._flow_to == t_end))
+        if len(hits) == 0:
+            return None
+        g = self._file["flow"]
+        k = int(hits[0])
+        return g["flow"][k].astype(np.float32), g["valid"][k].astype(bool)
 
     def frame_timestamps(self) -> np.ndarray | None:
         return self._frame_t

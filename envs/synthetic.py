@@ -152,7 +152,7 @@ class SyntheticH5Reader(H5Reader):
         self._scene: Scene | None = None
 
     def flow_between(self, t_start: int, t_end: int) -> FlowGT | None:
-        stored = super().flow_between(t_start, t_end)
+        stored = self.stored_flow(t_start, t_end)  # exact stored map; otherwise exact geometry
         if stored is not None:
             return stored
         if self._scene is None:

@@ -10,7 +10,9 @@ Known hole (REFERENCE sec. 5): out-of-image corners are dropped, so a flow that 
 event off the sensor scores L_AT = L_EC = 0. ``components["kept"]`` reports the share of the
 events' splat weight that stayed inside the image (mean over the reference times), and
 ``border_penalty`` (default 0, i.e. the paper's loss) adds
-``border_penalty * sum_s (1 - kept_s)`` for the project to close the hole with.
+``border_penalty * sum_s (1 - kept_s)`` for the project to close the hole with; it is a float
+or a (B,) tensor of per-window weights (the env and the learner pass a multiple of each
+window's zero-flow loss, so that pushing events out never pays, however dense the window).
 """
 
 from __future__ import annotations
@@ -94,7 +96,7 @@ def _combine(terms_per_scale, lambda_1, lambda_2, border_penalty, use_ec) -> Los
         s = tm["at"] + lambda_2 * tm["smooth"]
         if use_ec:
             s = s + lambda_1 * tm["ec"]
-        if border_penalty:
+        if isinstance(border_penalty, torch.Tensor) or border_penalty:
             s = s + border_penalty * tm["dropped"].sum(dim=1)
         per.append(s)
     n = len(terms_per_scale)
@@ -130,7 +132,7 @@ def hmc_loss(
     lambda_1: float = 1.0,
     lambda_2: float = 1e-3,
     alpha: float = 0.6,
-    border_penalty: float = 0.0,
+    border_penalty: float | torch.Tensor = 0.0,
 ) -> LossOutput:
     """Hybrid motion-compensation loss, eq. 17, per window.
 
@@ -138,7 +140,8 @@ def hmc_loss(
         or a list of such tensors at several resolutions (see ``to_full_resolution``).
     events: EventBatch of B windows (x, y pixels; tau in [0, 1]; padded with mask).
     flow_scaling: pixels per network unit for the smoothness term; default max(H, W).
-    lambda_1 = 1, lambda_2 = 1e-3, alpha = 0.6: paper values. border_penalty: 0 (paper).
+    lambda_1 = 1, lambda_2 = 1e-3, alpha = 0.6: paper values. border_penalty: 0 (paper), or the
+    weight (float, or (B,) tensor per window) of ``sum_s (1 - kept_s)`` (see the module doc).
     Returns LossOutput (loss = mean over batch of per_sample). Events and flow may be on CPU or
     CUDA; computations run in flow's dtype.
     Raises ValueError for a bad flow shape, NaN/inf flow, batch-size mismatch, empty batch or
@@ -153,7 +156,7 @@ def at_loss(
     *,
     flow_scaling: float | None = None,
     lambda_2: float = 1e-3,
-    border_penalty: float = 0.0,
+    border_penalty: float | torch.Tensor = 0.0,
 ) -> LossOutput:
     """Baseline loss "L_AT": ``L_AT(0) + L_AT(1) + lambda_2 L_smooth`` (same args as hmc_loss).
     ``components["ec"]`` is still reported (detached, alpha = 0.6) for logging."""
@@ -168,7 +171,7 @@ def accumulated_hmc_loss(
     lambda_1: float = 1.0,
     lambda_2: float = 1e-3,
     alpha: float = 0.6,
-    border_penalty: float = 0.0,
+    border_penalty: float | torch.Tensor = 0.0,
 ) -> LossOutput:
     """Accumulated-window variant (REFERENCE sec. 5, Hagenaars "sequential learning").
 

@@ -76,7 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--lambda-1", type=float, default=d.lambda_1)
     g.add_argument("--lambda-2", type=float, default=d.lambda_2)
     g.add_argument("--alpha", type=float, default=d.alpha)
-    g.add_argument("--border-penalty", type=float, default=d.border_penalty)
+    g.add_argument("--border-penalty", type=float, default=d.border_penalty,
+                   help="border rule weight: x zero-flow loss x share of events pushed out of the image (0: the paper's loss)")
     g.add_argument("--flow-scaling", type=float, default=None, help="pixels per network unit (default max(H, W))")
     g = p.add_argument_group("run")
     g.add_argument("--out", default="runs/train", help="output directory")

@@ -44,11 +44,50 @@ def test_reward_equals_hmc_on_info_events(recording):
     for _ in range(4):
         action = rng.normal(0, 2, env.action_space.shape).astype(np.float32)
         window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
-        expected = hmc_loss(torch.from_numpy(action)[None], EventBatch.from_windows([window]), flow_scaling=env.flow_scaling)
+        batch = EventBatch.from_windows([window])
+        zero = hmc_loss(torch.zeros(1, *env.action_space.shape), batch, flow_scaling=env.flow_scaling)
+        # the env's border rule: + 1.0 x zero-flow loss x share of splat weight pushed out
+        expected = hmc_loss(torch.from_numpy(action)[None], batch, flow_scaling=env.flow_scaling,
+                            border_penalty=1.0 * zero.per_sample)
         obs, reward, _, _, info = env.step(action)
         assert isinstance(reward, float)
         assert reward == pytest.approx(-float(expected.loss), rel=1e-6)
         assert info["reward_components"]["at"] == pytest.approx(float(expected.components["at"][0]), rel=1e-6)
+
+
+def test_reward_parity_without_border_rule_is_the_paper_loss(recording):
+    env = EventFlowEnv(recording, border_penalty=0.0)
+    _, info = env.reset(seed=1)
+    action = np.random.default_rng(1).normal(0, 3, env.action_space.shape).astype(np.float32)
+    window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+    expected = hmc_loss(torch.from_numpy(action)[None], EventBatch.from_windows([window]), flow_scaling=env.flow_scaling)
+    _, reward, *_ = env.step(action)
+    assert reward == pytest.approx(-float(expected.loss), rel=1e-6)
+
+
+@pytest.mark.parametrize("data", ["file", "synthetic-mini"])
+def test_pushing_events_out_of_the_frame_does_not_pay(recording, data):
+    # an action bound far beyond the frame, so that a constant action can push every event out
+    env = EventFlowEnv(str(recording) if data == "file" else data, flow_limit=1e4)
+    paper = EventFlowEnv(str(recording) if data == "file" else data, flow_limit=1e4, border_penalty=0.0)
+    huge = np.full(env.action_space.shape, env.flow_limit, np.float32)  # every event leaves the frame
+    zero = np.zeros(env.action_space.shape, np.float32)
+    half = np.full(env.action_space.shape, env.height / 2, np.float32)  # about half the events leave
+    for sequence in range(len(env.sources)):
+        rewards, kept = {}, {}
+        for name, e in (("env", env), ("paper", paper)):
+            for action_name, action in (("huge", huge), ("half", half), ("zero", zero)):
+                e.reset(options={"sequence": sequence})
+                _, rewards[name, action_name], *_, info = e.step(action)
+                kept[action_name] = info["reward_components"]["kept"]
+        assert rewards["env", "zero"] == rewards["paper", "zero"]  # nothing leaves with zero flow
+        zero_loss = -rewards["paper", "zero"]
+        for action_name in ("huge", "half"):
+            assert rewards["env", action_name] < rewards["env", "zero"]
+            # the rule's term: 1.0 x zero-flow loss x sum over s of the share pushed out
+            penalty = rewards["paper", action_name] - rewards["env", action_name]
+            assert penalty == pytest.approx(2 * zero_loss * (1 - kept[action_name]), rel=1e-4)
+        assert kept["huge"] < 0.05 and kept["half"] < 0.9
 
 
 def test_ground_truth_beats_zero_flow(recording):
