@@ -31,7 +31,19 @@ from .policy import RecurrentPolicy
 
 __all__ = ["SequenceResult", "evaluate", "results_table", "results_json"]
 
-METRICS = ("aee", "outlier_pct", "hmc", "hmc_zero", "fwl", "rsat")
+METRICS = ("aee", "outlier_pct", "cosine", "hmc", "hmc_zero", "fwl", "rsat")
+
+
+def flow_cosine(flow: np.ndarray, flow_gt: np.ndarray, mask: np.ndarray) -> float:
+    """Mean cosine between predicted and true flow vectors over ``mask`` pixels where both are
+    non-zero: 1 = right directions everywhere, ~0 = unrelated (e.g. a constant flow on varied
+    motion). NaN when no pixel qualifies."""
+    a, b = flow[:, mask].astype(np.float64), flow_gt[:, mask].astype(np.float64)
+    na, nb = np.hypot(*a), np.hypot(*b)
+    ok = (na > 1e-6) & (nb > 1e-6)
+    if not ok.any():
+        return float("nan")
+    return float(np.mean((a[:, ok] * b[:, ok]).sum(0) / (na[ok] * nb[ok])))
 
 
 @dataclass
@@ -131,6 +143,8 @@ def evaluate(
                 if err["n_pixels"] > 0:
                     result.add("aee", err["aee"])
                     result.add("outlier_pct", err["outlier_pct"])
+                    mask = event_mask(_EventView(win), size) & info["flow_gt_valid"]
+                    result.add("cosine", flow_cosine(flow, info["flow_gt"], mask))
             if pictures_dir is not None and result.windows < pictures_per_sequence and n_events:
                 stem = Path(pictures_dir) / f"{info['sequence']}_w{result.windows:03d}"
                 save_png(f"{stem}_events.png", count_image_to_rgb(obs["count_image"]))
@@ -158,14 +172,14 @@ def results_table(named_results: dict[str, list[SequenceResult]], title: str = "
     the mean L_HMC (and zero flow's), FWL and RSAT over all windows."""
     methods = list(named_results)
     sequences = [r.name for r in named_results[methods[0]]]
-    head = ["method"] + [f"{s} AEE / %Out" for s in sequences] + ["mean AEE", "L_HMC", "L_HMC zero", "FWL", "RSAT"]
+    head = ["method"] + [f"{s} AEE / %Out" for s in sequences] + ["mean AEE", "cos", "L_HMC", "L_HMC zero", "FWL", "RSAT"]
     lines = ([f"**{title}**", ""] if title else []) + ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for method in methods:
         rows = named_results[method]
         cells = [method] + [f"{_fmt(r.mean('aee'), 2)} / {_fmt(r.mean('outlier_pct'), 2)}" for r in rows]
         pooled = {k: _pooled(rows, k) for k in METRICS}
         aees = [r.mean("aee") for r in rows if math.isfinite(r.mean("aee"))]
-        cells += [_fmt(float(np.mean(aees)) if aees else float("nan"), 3)]
+        cells += [_fmt(float(np.mean(aees)) if aees else float("nan"), 3), _fmt(pooled["cosine"], 3)]
         cells += [_fmt(pooled["hmc"], 4), _fmt(pooled["hmc_zero"], 4), _fmt(pooled["fwl"], 4), _fmt(pooled["rsat"], 4)]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)

@@ -34,7 +34,7 @@ import torch.distributed as dist
 from gymnasium.vector import AutoresetMode
 
 from envs.env import EventFlowEnv
-from losses import EventBatch, accumulated_hmc_loss, at_loss, hmc_loss
+from losses import EventBatch, accumulated_hmc_loss, at_loss, hmc_loss, to_full_resolution
 
 from .checkpoint import rng_state, set_rng_state
 from .policy import RecurrentPolicy
@@ -63,7 +63,7 @@ class TrainConfig:
     warmup_steps: int = 0
     decay: str = "none"  # "none" or "cosine"
     grad_clip: float = 100.0  # Hagenaars
-    loss: str = "hmc"  # "hmc" or "at"
+    loss: str = "hmc"  # "hmc", "at", or "supervised" (endpoint error against ground truth: an upper bound)
     loss_mode: str = "window"  # "window" (per-window, default) or "accumulated"
     lambda_1: float = 1.0
     lambda_2: float = 1e-3
@@ -143,9 +143,19 @@ class Learner:
             factor *= 0.5 * (1 + math.cos(math.pi * min(step, cfg.steps) / max(cfg.steps, 1)))
         return factor
 
+    def _supervised(self, flows) -> torch.Tensor:
+        """Mean endpoint error against the envs' ground truth over valid pixels, all scales
+        (not the method: a reference for what the network can learn in a given budget)."""
+        if "flow_gt" not in self.info:
+            raise ValueError("loss 'supervised' needs data with ground-truth flow (e.g. a synthetic split)")
+        gt = torch.as_tensor(np.asarray(self.info["flow_gt"]), device=self.device)
+        valid = torch.as_tensor(np.asarray(self.info["flow_gt_valid"]), device=self.device).unsqueeze(1)
+        errors = [((f - gt).norm(dim=1, keepdim=True) * valid).sum() / valid.sum().clamp_min(1) for f in to_full_resolution(flows)]
+        return torch.stack(errors).mean()
+
     def _loss(self, flows, batch: EventBatch, border_penalty=0.0):
         cfg = self.cfg
-        if cfg.loss == "hmc":
+        if cfg.loss == "hmc" or cfg.loss == "supervised":
             return hmc_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
                             lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty)
         return at_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_2=cfg.lambda_2,
@@ -169,7 +179,9 @@ class Learner:
             with torch.no_grad():  # the reference the border rule scales with, and a logged baseline
                 zero = self._loss(torch.zeros_like(flows[-1]), batch)
             zero_losses.append(zero.loss)
-            if cfg.loss_mode == "window":
+            if cfg.loss == "supervised":
+                losses.append(self._supervised(flows))
+            elif cfg.loss_mode == "window":
                 losses.append(self._loss(flows, batch, cfg.border_penalty * zero.per_sample).loss)
             else:
                 finest.append(flows[-1])
@@ -178,7 +190,7 @@ class Learner:
             done = np.logical_or(terminated, truncated)
             if done.any():
                 self.policy.reset(mask=done)  # new sequences start from a fresh state
-        if cfg.loss_mode == "window":
+        if cfg.loss == "supervised" or cfg.loss_mode == "window":
             loss = torch.stack(losses).mean()
         else:
             with torch.no_grad():

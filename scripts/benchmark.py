@@ -6,7 +6,7 @@
   python scripts/benchmark.py --quick              # fewer repetitions
 
 Sections: foundation (project h5 windows + count images), simulator, losses, agents, env,
-readers. Timings are wall-clock on whatever machine runs them; compare rows of one run.
+training, readers. Timings are wall-clock on whatever machine runs them; compare rows of one run.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-SECTIONS = ("foundation", "simulator", "losses", "agents", "env", "readers")
+SECTIONS = ("foundation", "simulator", "losses", "agents", "env", "training", "readers")
 
 
 def report(section: str, row: str, value: float, unit: str) -> None:
@@ -97,6 +97,41 @@ def bench_env(quick: bool) -> None:
                 report("env", f"make_vec 4 envs {mode}, reward={'on' if reward else 'off'}", rate, "env-steps/s")
 
 
+def bench_training(quick: bool) -> None:
+    """Training windows/s (rollout + loss + backward + step) at 128x128, batch 8, CPU width,
+    per model; and a 2-process DDP run beside the single process."""
+    import json
+    import os
+    import subprocess
+
+    from agents.learner import Learner, TrainConfig
+    from tests.recordings import write_translating_recording
+
+    steps = 2 if quick else 4
+    with tempfile.TemporaryDirectory() as tmp:
+        data = [str(write_translating_recording(Path(tmp) / f"r{i}.h5", np.random.default_rng(i), sensor_size=(128, 128),
+                                                 duration_us=2_000_000, events_per_s=400_000)) for i in range(2)]
+        for model in ("ev-mgrflownet", "convgru-ev-flownet", "ev-flownet", "xlif-ev-flownet"):
+            learner = Learner(TrainConfig(model=model, data=data, num_envs=8, unroll=10, width="cpu", flips=False))
+            learner.update()  # warm-up
+            start = time.perf_counter()
+            for _ in range(steps):
+                learner.update()
+            report("training", f"{model} cpu width 128x128 B=8 L=10", 80 * steps / (time.perf_counter() - start), "windows/s")
+            learner.close()
+        root = Path(__file__).resolve().parents[1]
+        for nproc in (1, 2):
+            out = Path(tmp) / f"ddp{nproc}"
+            cmd = [sys.executable, "-m", "torch.distributed.run", f"--nproc_per_node={nproc}", "--master_port=29555",
+                   str(root / "scripts" / "train.py"), "--data", *data, "--num-envs", str(8 // nproc), "--steps", str(steps + 1),
+                   "--out", str(out), "--val-data", "", "--no-progress", "--no-flips", "--device", "cpu"]
+            env = {**os.environ, "OMP_NUM_THREADS": str(max(1, 2 // nproc)), "PYTHONPATH": str(root)}
+            subprocess.run(cmd, check=True, capture_output=True, env=env)
+            rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+            rate = rows[-1]["windows_per_s"] * nproc  # rank 0 logs its own windows; ranks roll equal shares
+            report("training", f"ev-mgrflownet 128x128, 8 envs in all, torchrun {nproc} process(es)", rate, "windows/s")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", nargs="+", choices=SECTIONS, default=list(SECTIONS))
@@ -111,6 +146,8 @@ def main(argv=None) -> int:
             bench_foundation(args.quick)
         elif section == "env":
             bench_env(args.quick)
+        elif section == "training":
+            bench_training(args.quick)
         elif section == "simulator":
             import bench_simulator
 

@@ -71,7 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--decay", default=d.decay, choices=["none", "cosine"])
     g.add_argument("--grad-clip", type=float, default=d.grad_clip)
     g = p.add_argument_group("loss")
-    g.add_argument("--loss", default=d.loss, choices=["hmc", "at"])
+    g.add_argument("--loss", default=d.loss, choices=["hmc", "at", "supervised"],
+                   help="hmc (paper), at (baseline), supervised (endpoint error vs ground truth: a reference bound)")
     g.add_argument("--loss-mode", default=d.loss_mode, choices=["window", "accumulated"])
     g.add_argument("--lambda-1", type=float, default=d.lambda_1)
     g.add_argument("--lambda-2", type=float, default=d.lambda_2)
