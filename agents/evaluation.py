@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from envs.env import EventFlowEnv
+from envs.env import EventFlowEnv, NoWindowsError
 from envs.representations import event_mask
 from envs.visualize import count_image_to_rgb, flow_to_rgb, save_png
 from envs.windows import window_bounds
@@ -121,7 +121,11 @@ def evaluate(
             options["windows"] = windows_fn(reader)
         elif window == "frames" and reader.flow_timestamps() is None:
             options["windows"] = window_bounds(reader, "time", no_gt_window_us)[:, :2]
-        obs, info = env.reset(options=options)
+        try:
+            obs, info = env.reset(options=options)
+        except NoWindowsError:  # too short for this window size: reported with 0 windows
+            results.append(SequenceResult(env.sequence_names[index]))
+            continue
         if policy is not None:
             policy.reset()
         result = SequenceResult(info["sequence"])

@@ -18,7 +18,11 @@ from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import WINDOW_MODES, window_bounds
 from losses import EventBatch, at_loss, hmc_loss
 
-__all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "WindowEvents", "score_flow"]
+__all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "WindowEvents", "score_flow", "NoWindowsError"]
+
+
+class NoWindowsError(ValueError):
+    """The chosen recording has no window of the requested kind (e.g. shorter than one window)."""
 
 
 OBSERVATION_KEYS = ("count_image", "voxel_grid", "events")
@@ -124,7 +128,8 @@ class EventFlowEnv(gym.Env):
         data: synthetic split name (default ``"synthetic-train"``), a recording path, a
             directory, or a list of these. All recordings must share one sensor size
             unless ``crop`` fixes the frame.
-        data_format: force a reader (``"evflow-h5"``, ``"mvsec"``, ...); default: detected.
+        data_format (or ``format``): force a reader (``"evflow-h5"``, ``"mvsec"``, ``"dsec"``,
+            ``"hagenaars"``, ``"ecd-text"``, ``"aedat4"``); default: detected from the file.
         data_options: keyword arguments for the reader, e.g. ``{"crop": "center256"}`` (MVSEC).
         window: ``"frames"`` (ground-truth aligned), ``"time"`` or ``"count"``.
         window_size: grid steps (``frames``, default 1), µs (``time``, default 10 000) or
@@ -155,6 +160,7 @@ class EventFlowEnv(gym.Env):
         data: str | Sequence = "synthetic-train",
         *,
         data_format: str | None = None,
+        format: str | None = None,
         data_options: dict | None = None,
         window: str = "frames",
         window_size: int | None = None,
@@ -200,7 +206,7 @@ class EventFlowEnv(gym.Env):
         self.voxel_bins = int(voxel_bins)
         self.max_events = int(max_events)
 
-        self.sources = resolve_data(data, format=data_format, options=data_options)
+        self.sources = resolve_data(data, format=data_format or format, options=data_options)
         if sequences is not None:
             names = [s.name for s in self.sources]
             picked = []
@@ -312,7 +318,7 @@ class EventFlowEnv(gym.Env):
         else:
             bounds = window_bounds(reader, self.window, self.window_size, t_from=options.get("start"))
         if len(bounds) == 0:
-            raise ValueError(
+            raise NoWindowsError(
                 f"recording {self.sources[index].name!r} has no {self.window} window of size "
                 f"{self.window_size} after t={options.get('start', reader.t_start)} us"
             )

@@ -82,7 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--flow-scaling", type=float, default=None, help="pixels per network unit (default max(H, W))")
     g = p.add_argument_group("run")
     g.add_argument("--out", default="runs/train", help="output directory")
-    g.add_argument("--resume", default=None, help="checkpoint to continue from (its config is used; --steps/--minutes/--out may change)")
+    g.add_argument("--resume", nargs="?", const="auto", default=None, metavar="CHECKPOINT",
+                   help="continue from CHECKPOINT (default with no value: OUT/checkpoint.pt); its config is used, --steps/--minutes/--out may change")
     g.add_argument("--seed", type=int, default=d.seed)
     g.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     g.add_argument("--ckpt-every", type=int, default=100)
@@ -133,7 +134,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     payload = None
     if args.resume:
-        payload = load_checkpoint(args.resume)
+        resume = out / "checkpoint.pt" if args.resume == "auto" else Path(args.resume)
+        payload = load_checkpoint(resume)
         cfg = TrainConfig(**payload["config"])
         cfg.steps, cfg.device = args.steps, args.device
     else:

@@ -65,7 +65,7 @@ def test_resume_reproduces_uninterrupted_run(recording, tmp_path):
     full, part = tmp_path / "full", tmp_path / "part"
     train_script.main(common + ["--steps", "6", "--out", str(full)])
     train_script.main(common + ["--steps", "3", "--out", str(part)])
-    train_script.main(["--resume", str(part / "checkpoint.pt"), "--steps", "6", "--out", str(part), "--val-data", "", "--no-progress"])
+    train_script.main(["--resume", "--steps", "6", "--out", str(part), "--val-data", "", "--no-progress"])  # OUT/checkpoint.pt
     a, b = _losses(full), _losses(part)
     assert len(a) == len(b) == 6
     np.testing.assert_allclose(b, a, rtol=1e-6)  # episodes cross a sequence boundary in 6 x 3 windows
