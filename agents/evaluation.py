@@ -109,8 +109,10 @@ def evaluate(
     no_gt_window_us: in ``frames`` mode, a recording without a ground-truth grid is cut into
     time windows of this length instead (FWL, RSAT and L_HMC only; AEE is reported as NaN).
     """
+    parts = ("count_image",) if policy is None or policy.input_key == "count_image" else ("count_image", policy.input_key)
     env = EventFlowEnv(data, window=window, window_size=window_size, crop=crop, compute_reward=False,
-                       flow_scaling=flow_scaling, data_format=data_format, data_options=data_options)
+                       flow_scaling=flow_scaling, data_format=data_format, data_options=data_options,
+                       observations=parts, voxel_bins=policy.voxel_bins if policy is not None else 5)
     size = (env.height, env.width)
     results = []
     total = len(env.sources)

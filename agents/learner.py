@@ -50,6 +50,8 @@ class TrainConfig:
     model: str = "ev-mgrflownet"  # registry name or package.module:factory
     width: str | int = "cpu"  # "paper" (base width 32), "cpu" (8) or an int
     model_kwargs: dict = field(default_factory=dict)  # e.g. {"use_st_convgru": False}
+    input: str = "count_image"  # network input: "count_image" (paper eq. 2) or "voxel_grid"
+    voxel_bins: int = 5
     data: Any = "synthetic-train"
     window: str = "frames"
     window_size: int | None = None
@@ -92,7 +94,7 @@ def make_vector_env(cfg: TrainConfig, *, rank: int = 0, world: int = 1, data=Non
     kwargs = dict(
         data=data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop,
         flips=cfg.flips if flips is None else flips, compute_reward=False, sequences=shard,
-        flow_scaling=cfg.flow_scaling,
+        flow_scaling=cfg.flow_scaling, observations=(cfg.input,), voxel_bins=cfg.voxel_bins,
     )
     fns = [lambda i=i: EventFlowEnv(**kwargs, env_index=i) for i in range(cfg.num_envs)]
     cls = gymnasium.vector.SyncVectorEnv if cfg.vector == "sync" else gymnasium.vector.AsyncVectorEnv
@@ -121,10 +123,12 @@ class Learner:
         space = self.envs.single_action_space
         self.height, self.width = space.shape[1:]
         self.flow_scaling = float(cfg.flow_scaling or max(self.height, self.width))
-        self.model_config = {**_width_kwargs(cfg.width), "flow_scaling": self.flow_scaling, **cfg.model_kwargs}
+        in_channels = 2 if cfg.input == "count_image" else cfg.voxel_bins
+        self.model_config = {**_width_kwargs(cfg.width), "flow_scaling": self.flow_scaling, "in_channels": in_channels,
+                             **cfg.model_kwargs}
         model = make_model(cfg.model, **self.model_config)
         self.model_config = dict(getattr(model, "config", self.model_config))
-        self.policy = RecurrentPolicy(model, device=self.device)
+        self.policy = RecurrentPolicy(model, device=self.device, input_key=cfg.input, voxel_bins=cfg.voxel_bins)
         if self.world > 1:
             for p in self.policy.parameters():
                 dist.broadcast(p.data, src=0)
@@ -172,7 +176,7 @@ class Learner:
         n = cfg.num_envs
         losses, zero_losses, finest, batches, events_seen = [], [], [], [], 0
         for _ in range(cfg.unroll):
-            x = torch.as_tensor(self.obs["count_image"], device=self.device)
+            x = torch.as_tensor(self.obs[cfg.input], device=self.device)
             flows = self.policy(x)  # multi-scale, finest last, pixels per window
             batch = EventBatch.from_windows(_windows_from_info(self.info, n), device=self.device)
             events_seen += int(batch.mask.sum())

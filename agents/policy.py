@@ -26,10 +26,21 @@ class RecurrentPolicy(nn.Module):
     Args:
         model: a module honouring the protocol (``forward(x, state) -> (flows, state)``).
         device: where to run it; None keeps the device of the model's parameters (CPU if none).
+        input_key: the observation part fed to the model: "count_image" (paper, 2 channels) or
+            "voxel_grid" (voxel_bins channels).
     """
 
-    def __init__(self, model: nn.Module, device: torch.device | str | None = None):
+    def __init__(
+        self,
+        model: nn.Module,
+        device: torch.device | str | None = None,
+        *,
+        input_key: str = "count_image",
+        voxel_bins: int = 5,
+    ):
         super().__init__()
+        self.input_key = input_key  # which observation part the model reads
+        self.voxel_bins = int(voxel_bins)  # its size, when the input is "voxel_grid"
         if device is None:
             parameter = next(model.parameters(), None)
             device = parameter.device if parameter is not None else torch.device("cpu")
@@ -88,12 +99,12 @@ class RecurrentPolicy(nn.Module):
     def act(self, obs: dict | np.ndarray | Tensor) -> np.ndarray:
         """Rollout step without gradients.
 
-        obs: an env observation dict with "count_image" (2, H, W) (single env) or (B, 2, H, W)
-            (vector env), or that array itself.
+        obs: an env observation dict with ``input_key`` ("count_image" (2, H, W) by default)
+            for a single env, or (B, C, H, W) for a vector env; or that array itself.
         Returns: the finest flow, float32 numpy, (2, H, W) or (B, 2, H, W), pixels over the window.
         """
-        count_image = obs["count_image"] if isinstance(obs, dict) else obs
-        x = torch.as_tensor(np.asarray(count_image) if not isinstance(count_image, Tensor) else count_image)
+        part = obs[self.input_key] if isinstance(obs, dict) else obs
+        x = torch.as_tensor(np.asarray(part) if not isinstance(part, Tensor) else part)
         single = x.dim() == 3
         if single:
             x = x.unsqueeze(0)

@@ -77,7 +77,9 @@ def main(argv=None) -> int:
     for i, path in enumerate(args.checkpoint):
         model, payload = load_model(path, map_location=args.device, expect_model=args.model)
         name = names[i] if i < len(names) else Path(path).parent.name or Path(path).stem
-        policies[name] = RecurrentPolicy(model, device=args.device)
+        cfg = payload.get("config") or {}
+        policies[name] = RecurrentPolicy(model, device=args.device, input_key=cfg.get("input", "count_image"),
+                                         voxel_bins=cfg.get("voxel_bins", 5))
     if args.model and not args.checkpoint:
         width = int(args.width) if str(args.width).isdigit() else args.width
         kwargs = {"width": width} if isinstance(width, str) else {"base_width": width}

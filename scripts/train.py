@@ -53,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("model")
     g.add_argument("--model", default=d.model, help="registry name (ev-mgrflownet, ev-flownet, convgru-ev-flownet, xlif-ev-flownet) or package.module:factory")
     g.add_argument("--width", default=d.width, help="'paper' (base width 32), 'cpu' (8) or an integer base width")
+    g.add_argument("--input", default=d.input, choices=["count_image", "voxel_grid"],
+                   help="network input: the paper's 2-channel count image, or a voxel grid (--voxel-bins)")
+    g.add_argument("--voxel-bins", type=int, default=d.voxel_bins)
     g.add_argument("--model-kwarg", action="append", default=[], metavar="KEY=VALUE", help="extra model argument, e.g. use_st_convgru=false (repeatable)")
     g = p.add_argument_group("data")
     g.add_argument("--data", nargs="+", default=[d.data], help="synthetic split name, recording files or directories")
@@ -98,7 +101,8 @@ def config_from_args(args) -> TrainConfig:
     data = args.data[0] if len(args.data) == 1 else args.data
     width = int(args.width) if str(args.width).isdigit() else args.width
     return TrainConfig(
-        model=args.model, width=width, model_kwargs=parse_kv(args.model_kwarg), data=data, window=args.window,
+        model=args.model, width=width, model_kwargs=parse_kv(args.model_kwarg), input=args.input,
+        voxel_bins=args.voxel_bins, data=data, window=args.window,
         window_size=args.window_size, crop=tuple(args.crop) if args.crop else None, flips=not args.no_flips,
         num_envs=args.num_envs, vector=args.vector, unroll=args.unroll, steps=args.steps, lr=args.lr,
         warmup_steps=args.warmup_steps, decay=args.decay, grad_clip=args.grad_clip, loss=args.loss,
@@ -109,7 +113,8 @@ def config_from_args(args) -> TrainConfig:
 
 def validate(learner: Learner, data: str, windows: int) -> dict:
     """Mean L_HMC and AEE of the current weights vs zero flow on held-out sequences."""
-    policy = RecurrentPolicy(learner.policy.model, device=learner.device)  # own state
+    policy = RecurrentPolicy(learner.policy.model, device=learner.device, input_key=learner.cfg.input,
+                             voxel_bins=learner.cfg.voxel_bins)  # own state
     named = {
         "model": evaluate(policy, data, crop=learner.cfg.crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling),
         "zero": evaluate(None, data, crop=learner.cfg.crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling),

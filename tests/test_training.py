@@ -71,6 +71,17 @@ def test_resume_reproduces_uninterrupted_run(recording, tmp_path):
     np.testing.assert_allclose(b, a, rtol=1e-6)  # episodes cross a sequence boundary in 6 x 3 windows
 
 
+def test_voxel_grid_input_trains_and_evaluates(recording, tmp_path):
+    train_script.main(["--data", str(recording), "--input", "voxel_grid", "--voxel-bins", "3", "--width", "4",
+                       "--num-envs", "1", "--unroll", "2", "--steps", "1", "--out", str(tmp_path / "vox"),
+                       "--val-data", "", "--no-progress"])
+    payload = load_checkpoint(tmp_path / "vox" / "checkpoint.pt")
+    assert payload["model_config"]["in_channels"] == 3 and payload["config"]["input"] == "voxel_grid"
+    evaluate_script.main(["--checkpoint", str(tmp_path / "vox" / "checkpoint.pt"), "--data", str(recording), "--dt", "1",
+                          "--out", str(tmp_path / "ev"), "--max-windows", "2", "--no-progress", "--pictures", "0"])
+    assert json.loads((tmp_path / "ev" / "results.json").read_text())["overall"]["dt1"]["windows"] == 2
+
+
 def test_checkpoint_write_is_atomic_and_checked(tmp_path):
     path = save_checkpoint(tmp_path / "c.pt", {"model_name": "ev-flownet", "model_config": {}, "model": {}})
     before = path.read_bytes()
