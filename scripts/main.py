@@ -2,7 +2,9 @@
 """The main job, end to end on the embedded synthetic benchmark (no files needed):
 
 1. train a CPU-size EV-MGRFlowNet with truncated BPTT on the synthetic train split for
-   --minutes (default 12) with the hybrid motion-compensation loss;
+   --minutes (default 12) with the hybrid motion-compensation loss (per window, border rule on),
+   flow_scaling 16 and lr 1e-3: the per-window recipe that came closest to zero flow in the
+   probes of docs/results.md (the paper's lr 1e-4 / flow_scaling 128 did worse in this budget);
 2. evaluate it and the zero-flow baseline on the synthetic test split;
 3. print the table and where the pictures are.
 
@@ -37,7 +39,8 @@ def main(argv=None) -> int:
     device = ["--device", args.device] if args.device else []
     print(f"[main] 1/2 training EV-MGRFlowNet (CPU width) for {args.minutes:g} min on synthetic-train", flush=True)
     train_script.main(
-        ["--data", "synthetic-train", "--width", "cpu", "--minutes", str(args.minutes), "--steps", str(args.steps),
+        ["--data", "synthetic-train", "--width", "cpu", "--flow-scaling", "16", "--lr", "1e-3",
+         "--minutes", str(args.minutes), "--steps", str(args.steps),
          "--out", str(out / "train"), "--val-data", "synthetic-mini", "--val-every", "50", *device, *args.train_args]
     )
     print(f"[main] 2/2 evaluating the trained model and zero flow on {args.eval_data}", flush=True)
