@@ -166,9 +166,13 @@ class Learner:
                        border_penalty=border_penalty)
 
     def _accumulated(self, flows, batches, border_penalty=0.0):
+        """Accumulated-window loss; with the border rule on, also the slope back into the frame
+        (outside distance, same per-window weight) so that a net whose events all left the
+        frame is not stuck where the dropped share is flat."""
         cfg = self.cfg
         return accumulated_hmc_loss(flows, batches, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
-                                    lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty)
+                                    lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty,
+                                    outside_weight=border_penalty)
 
     def update(self) -> dict[str, float]:
         """One truncated-BPTT update over ``unroll`` windows; returns logged scalars."""

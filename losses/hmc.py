@@ -28,6 +28,7 @@ from .events import EventBatch
 from .image_terms import event_image_terms
 from .sampling import sample_flow
 from .smoothness import charbonnier_smoothness, event_pixel_mask
+from .warp import outside_distance
 
 __all__ = ["LossOutput", "hmc_loss", "at_loss", "accumulated_hmc_loss", "to_full_resolution"]
 
@@ -172,6 +173,7 @@ def accumulated_hmc_loss(
     lambda_2: float = 1e-3,
     alpha: float = 0.6,
     border_penalty: float | torch.Tensor = 0.0,
+    outside_weight: float | torch.Tensor = 0.0,
 ) -> LossOutput:
     """Accumulated-window variant (REFERENCE sec. 5, Hagenaars "sequential learning").
 
@@ -181,6 +183,10 @@ def accumulated_hmc_loss(
     references s in {0, K}; its timestamp weight is ``1 - |s - T_i| / K`` (so T_P stays in
     [0, 1]). L_AT(0) + L_AT(K) + lambda_1 (L_EC(0) + L_EC(K)) + lambda_2 * mean over k of
     L_smooth(flow k, window k's event pixels). With K = 1 this equals ``hmc_loss``.
+    outside_weight (float or (B,) tensor): adds ``outside_weight * outside_distance / max(H, W)``
+    (mean distance in pixels by which warped events lie outside the image, see
+    ``warp.outside_distance``), a slope back into the frame for a net whose events all left it,
+    where the border penalty alone is flat. ``components["outside_px"]`` reports the distance.
     """
     flows = list(flows)
     events_list = list(events_list)
@@ -202,6 +208,13 @@ def accumulated_hmc_loss(
     cat = lambda name: torch.cat([getattr(ev, name) for ev in events_list], dim=1)  # noqa: E731
     t = torch.cat([ev.tau.to(flows[0].dtype) + k for k, ev in enumerate(events_list)], dim=1)
     masks = [event_pixel_mask(ev.x, ev.y, ev.mask, H, W) for ev in events_list]
-    terms = _terms(cat("x"), cat("y"), t, cat("p"), cat("mask"), torch.cat(us, dim=1),
+    u = torch.cat(us, dim=1)
+    terms = _terms(cat("x"), cat("y"), t, cat("p"), cat("mask"), u,
                    flows, masks, H, W, (0.0, float(K)), float(K), alpha, scaling, True)
-    return _combine([terms], lambda_1, lambda_2, border_penalty, True)
+    out = _combine([terms], lambda_1, lambda_2, border_penalty, True)
+    if isinstance(outside_weight, torch.Tensor) or outside_weight:
+        distance = outside_distance(cat("x"), cat("y"), t, u, cat("mask"), H, W, (0.0, float(K)))
+        per_sample = out.per_sample + outside_weight * distance / max(H, W)
+        out = LossOutput(loss=per_sample.mean(), per_sample=per_sample,
+                         components={**out.components, "outside_px": distance.detach()})
+    return out

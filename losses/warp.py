@@ -6,7 +6,7 @@ import torch
 
 from .splat import bilinear_splat
 
-__all__ = ["warp_events", "forward_warp_flow"]
+__all__ = ["warp_events", "forward_warp_flow", "outside_distance"]
 
 
 def warp_events(
@@ -20,6 +20,32 @@ def warp_events(
     """
     dt = reference - t
     return x + dt * u[..., 0], y + dt * u[..., 1]
+
+
+def outside_distance(
+    x: torch.Tensor,
+    y: torch.Tensor,
+    t: torch.Tensor,
+    u: torch.Tensor,
+    mask: torch.Tensor,
+    height: int,
+    width: int,
+    references: tuple[float, ...] = (0.0, 1.0),
+) -> torch.Tensor:
+    """How far warped events lie outside the image: (B,) mean over valid events and reference
+    times of ``relu(-x') + relu(x' - (W-1)) + relu(-y') + relu(y' - (H-1))``, in pixels.
+
+    x, y, t: (B, N); u: (B, N, 2) pixels per window; mask: (B, N) bool. 0 when every warped
+    event stays inside; unlike the share of splat weight dropped at the border, it keeps a
+    gradient that points back into the image however far the events went.
+    """
+    total = x.new_zeros(x.shape[0], dtype=u.dtype)
+    m = mask.to(u.dtype)
+    for s in references:
+        xw, yw = warp_events(x.to(u.dtype), y.to(u.dtype), t.to(u.dtype), u, s)
+        d = (torch.relu(-xw) + torch.relu(xw - (width - 1)) + torch.relu(-yw) + torch.relu(yw - (height - 1))) * m
+        total = total + d.sum(dim=1)
+    return total / (m.sum(dim=1).clamp_min(1) * len(references))
 
 
 def forward_warp_flow(flow: torch.Tensor) -> torch.Tensor:

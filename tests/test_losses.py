@@ -548,3 +548,32 @@ def test_cuda_matches_cpu():
     fcpu = flow.clone().requires_grad_()
     hmc_loss(fcpu, EventBatch.from_windows(wins, dtype=torch.float64)).loss.backward()
     np.testing.assert_allclose(fc.grad.cpu().numpy(), fcpu.grad.numpy(), rtol=1e-7, atol=1e-12)
+
+
+def test_outside_distance_analytic_and_points_back_into_the_frame():
+    from losses.warp import outside_distance
+
+    x = torch.tensor([[0.0, 5.0, 9.0]])
+    y = torch.tensor([[0.0, 2.0, 4.0]])
+    t = torch.zeros(1, 3)
+    mask = torch.tensor([[True, True, True]])
+    u = torch.tensor([[[-3.0, 0.0], [0.0, 0.0], [2.0, 10.0]]], requires_grad=True)
+    # s = 0: nothing moves; s = 1: 3 px left of x = 0, 1 px right of x = 10, 10 px below y = 4
+    d = outside_distance(x, y, t, u, mask, 5, 11, (0.0, 1.0))
+    assert float(d) == pytest.approx((3 + 1 + 10) / 3 / 2)
+    d.sum().backward()
+    assert u.grad[0, 0, 0] < 0 and u.grad[0, 2, 0] > 0 and u.grad[0, 2, 1] > 0  # descent moves them back
+    assert u.grad[0, 1].abs().sum() == 0
+
+
+def test_accumulated_loss_outside_weight_adds_the_distance_term():
+    rng = np.random.default_rng(0)
+    n, H, W = 50, 12, 16
+    windows = [dict(x=rng.integers(0, W, n), y=rng.integers(0, H, n), t=np.sort(rng.integers(0, 1000, n)),
+                    p=rng.integers(0, 2, n), t_start=0, t_end=1000) for _ in range(2)]
+    batches = [EventBatch.from_windows([w]) for w in windows]
+    flows = [torch.full((1, 2, H, W), 40.0) for _ in range(2)]  # pushes everything out
+    plain = accumulated_hmc_loss(flows, batches)
+    pulled = accumulated_hmc_loss(flows, batches, outside_weight=2.0)
+    extra = float(pulled.loss - plain.loss)
+    assert extra == pytest.approx(2.0 * float(pulled.components["outside_px"][0]) / W, rel=1e-5) and extra > 0
