@@ -293,14 +293,6 @@ class H5Reader(EventReader):
         self._frame_t = f["frames/t"][:] if "frames" in f else None
 
     # -- events -----------------------------------------------------------------------------
-    @property
-    def t_start(self) -> int:
-        return self._t_start
-
-    @property
-    def t_end(self) -> int:
-        return self._t_end
-
     def index_at(self, t_us: int) -> int:
         if t_us <= self._t_start:
             return 0

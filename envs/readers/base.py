@@ -42,14 +42,16 @@ class EventReader(ABC):
         """Index of the first event with t >= t_us (num_events if none)."""
 
     @property
-    @abstractmethod
     def t_start(self) -> int:
-        """Time (us) at which the recording starts (<= first event time)."""
+        """Time (us) at which the recording starts (<= first event time); readers set
+        ``_t_start`` or override this."""
+        return self._t_start
 
     @property
-    @abstractmethod
     def t_end(self) -> int:
-        """Exclusive end time (us): every event has t < t_end."""
+        """Exclusive end time (us): every event has t < t_end; readers set ``_t_end`` or
+        override this."""
+        return self._t_end
 
     def events_between(self, t_start: int, t_end: int) -> Events:
         """Events with t in [t_start, t_end) (µs)."""

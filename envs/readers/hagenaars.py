@@ -168,14 +168,6 @@ class HagenaarsReader(EventReader):
         return intervals
 
     # -- events -----------------------------------------------------------------------------
-    @property
-    def t_start(self) -> int:
-        return self._t_start
-
-    @property
-    def t_end(self) -> int:
-        return self._t_end
-
     def index_at(self, t_us: int) -> int:
         return self._times.searchsorted(int(t_us))
 

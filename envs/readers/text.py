@@ -207,14 +207,6 @@ class TextReader(EventReader):
         return rows
 
     # -- the reader interface ----------------------------------------------------------------
-    @property
-    def t_start(self) -> int:
-        return self._t_start
-
-    @property
-    def t_end(self) -> int:
-        return self._t_end
-
     def index_at(self, t_us: int) -> int:
         j = int(np.searchsorted(self._block_t, int(t_us), side="left"))
         if j == 0:
