@@ -56,6 +56,7 @@ class TrainConfig:
     window: str = "frames"
     window_size: int | None = None
     crop: tuple | None = None
+    random_crop: bool = False  # a new random crop position per episode (train on small crops)
     flips: bool = True  # Hagenaars: h/v/polarity flips, once per sequence
     num_envs: int = 4  # B, sequences rolled out in parallel
     vector: str = "sync"  # "sync" or "async"
@@ -87,12 +88,13 @@ def make_vector_env(cfg: TrainConfig, *, rank: int = 0, world: int = 1, data=Non
     """B EventFlow envs over this rank's shard of the recordings, autoresetting in the same
     step (the observation returned with ``truncated=True`` already opens the next sequence)."""
     data = cfg.data if data is None else data
-    probe = EventFlowEnv(data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop)
+    probe = EventFlowEnv(data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop,
+                         random_crop=cfg.random_crop)
     n_seq = len(probe.sources)
     probe.close()
     shard = list(range(rank, n_seq, world)) if world > 1 and n_seq >= world else None
     kwargs = dict(
-        data=data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop,
+        data=data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop, random_crop=cfg.random_crop,
         flips=cfg.flips if flips is None else flips, compute_reward=False, sequences=shard,
         flow_scaling=cfg.flow_scaling, observations=(cfg.input,), voxel_bins=cfg.voxel_bins,
     )

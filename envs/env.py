@@ -122,7 +122,8 @@ class EventFlowEnv(gym.Env):
     evaluation protocol's valid range).
 
     **Randomness** (all through ``self.np_random``): the sequence chosen at ``reset`` (unless
-    ``options["sequence"]``), the start time when ``random_start``, and the flips.
+    ``options["sequence"]``), the start time when ``random_start``, the crop position when
+    ``random_crop``, and the flips.
 
     Args:
         data: synthetic split name (default ``"synthetic-train"``), a recording path, a
@@ -135,6 +136,8 @@ class EventFlowEnv(gym.Env):
         window_size: grid steps (``frames``, default 1), µs (``time``, default 10 000) or
             events (``count``, default 15 000).
         crop: None, ``(height, width)`` centred, or ``(top, left, height, width)``.
+        random_crop: place the ``crop`` window at a random position in each episode (the
+            whole recording stays in play while training on small crops); needs ``crop``.
         observations: which of ``OBSERVATION_KEYS`` to include.
         voxel_bins, max_events: sizes of the optional parts.
         flips: False, True (all of "h", "v", "p") or a subset of ``("h", "v", "p")``:
@@ -165,6 +168,7 @@ class EventFlowEnv(gym.Env):
         window: str = "frames",
         window_size: int | None = None,
         crop: Sequence[int] | None = None,
+        random_crop: bool = False,
         observations: Sequence[str] = ("count_image",),
         voxel_bins: int = 5,
         max_events: int = 30_000,
@@ -232,6 +236,10 @@ class EventFlowEnv(gym.Env):
         self.sensor_size = tuple(first.sensor_size)
         self._crop = self._parse_crop(crop, self.sensor_size)
         self.height, self.width = self._crop[2], self._crop[3]
+        if random_crop and crop is None:
+            raise ValueError("random_crop=True needs crop=(height, width): the size of the randomly placed window")
+        self.random_crop = bool(random_crop)
+        self._origin: tuple[int, int] | None = None  # this episode's crop corner (random_crop)
         self.flow_scaling = float(flow_scaling if flow_scaling is not None else max(self.height, self.width))
         self.flow_limit = float(flow_limit if flow_limit is not None else self.flow_scaling)
 
@@ -287,6 +295,8 @@ class EventFlowEnv(gym.Env):
         return reader
 
     def _crop_for(self, reader) -> tuple[int, int, int, int]:
+        if self.random_crop and self._origin is not None:
+            return (*self._origin, self.height, self.width)
         if tuple(reader.sensor_size) == self.sensor_size:
             return self._crop
         sh, sw = reader.sensor_size
@@ -328,6 +338,11 @@ class EventFlowEnv(gym.Env):
         self._seq_index = index
         self._step = 0
         self._flips = {k: bool(self.np_random.random() < 0.5) for k in self.flip_kinds}
+        self._origin = None
+        if self.random_crop:
+            sh, sw = reader.sensor_size
+            self._origin = (int(self.np_random.integers(sh - self.height + 1)),
+                            int(self.np_random.integers(sw - self.width + 1)))
         self._last_action = None
         self._scored_window = None
         self._window = self._load_window(0)
@@ -453,6 +468,7 @@ class EventFlowEnv(gym.Env):
             "bounds": None if self._bounds is None else self._bounds.copy(),
             "step": self._step,
             "flips": dict(self._flips),
+            "origin": self._origin,
             "rng": self.np_random.bit_generator.state,
             "active": self._window is not None,
         }
@@ -466,6 +482,8 @@ class EventFlowEnv(gym.Env):
         self._bounds = None if state["bounds"] is None else np.asarray(state["bounds"], np.int64)
         self._step = int(state["step"])
         self._flips = dict(state["flips"])
+        origin = state.get("origin")
+        self._origin = None if origin is None else (int(origin[0]), int(origin[1]))
         self._last_action = self._scored_window = None
         self._window = self._load_window(self._step) if state["active"] else None
 

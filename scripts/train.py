@@ -62,6 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--window", default=d.window, choices=["frames", "time", "count"])
     g.add_argument("--window-size", type=int, default=None, help="frames: grid steps (1); time: us (10000); count: events (15000)")
     g.add_argument("--crop", type=int, nargs="+", default=None, help="H W (centred) or TOP LEFT H W")
+    g.add_argument("--random-crop", action="store_true",
+                   help="place the --crop H W window at a random position in each episode (validation uses whole frames)")
     g.add_argument("--no-flips", action="store_true", help="disable the random h/v/polarity flips")
     g = p.add_argument_group("optimisation")
     g.add_argument("--num-envs", type=int, default=d.num_envs, help="B, sequences rolled out in parallel")
@@ -104,6 +106,7 @@ def config_from_args(args) -> TrainConfig:
         model=args.model, width=width, model_kwargs=parse_kv(args.model_kwarg), input=args.input,
         voxel_bins=args.voxel_bins, data=data, window=args.window,
         window_size=args.window_size, crop=tuple(args.crop) if args.crop else None, flips=not args.no_flips,
+        random_crop=args.random_crop,
         num_envs=args.num_envs, vector=args.vector, unroll=args.unroll, steps=args.steps, lr=args.lr,
         warmup_steps=args.warmup_steps, decay=args.decay, grad_clip=args.grad_clip, loss=args.loss,
         loss_mode=args.loss_mode, lambda_1=args.lambda_1, lambda_2=args.lambda_2, alpha=args.alpha,
@@ -115,9 +118,10 @@ def validate(learner: Learner, data: str, windows: int) -> dict:
     """Mean L_HMC and AEE of the current weights vs zero flow on held-out sequences."""
     policy = RecurrentPolicy(learner.policy.model, device=learner.device, input_key=learner.cfg.input,
                              voxel_bins=learner.cfg.voxel_bins)  # own state
+    val_crop = None if learner.cfg.random_crop else learner.cfg.crop  # random crops: whole frames
     named = {
-        "model": evaluate(policy, data, crop=learner.cfg.crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling),
-        "zero": evaluate(None, data, crop=learner.cfg.crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling),
+        "model": evaluate(policy, data, crop=val_crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling),
+        "zero": evaluate(None, data, crop=val_crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling),
     }
     out = {}
     for name, rows in named.items():

@@ -133,6 +133,34 @@ def test_crop_shifts_events_and_ground_truth(recording):
     assert cropped.action_space.shape == (2, 20, 30)
 
 
+def test_random_crop_moves_per_episode_and_matches_a_fixed_crop(recording):
+    env = EventFlowEnv(recording, crop=(20, 30), random_crop=True)
+    full = EventFlowEnv(recording)
+    _, a = full.reset(options={"sequence": 0})
+    origins = set()
+    for seed in range(8):
+        _, b = env.reset(seed=seed, options={"sequence": 0})
+        top, left = env._origin
+        origins.add((top, left))
+        assert 0 <= top <= full.height - 20 and 0 <= left <= full.width - 30
+        fixed = EventFlowEnv(recording, crop=(top, left, 20, 30))
+        _, c = fixed.reset(options={"sequence": 0})
+        for key in ("x", "y", "t", "p"):
+            np.testing.assert_array_equal(b["events"][key], c["events"][key])
+        np.testing.assert_array_equal(b["flow_gt"], a["flow_gt"][:, top : top + 20, left : left + 30])
+        # a checkpointed episode continues with the same crop
+        env.step(np.zeros(env.action_space.shape, np.float32))
+        state = env.episode_state()
+        other = EventFlowEnv(recording, crop=(20, 30), random_crop=True)
+        other.restore_episode_state(state)
+        _, _, _, _, i1 = env.step(np.zeros(env.action_space.shape, np.float32))
+        _, _, _, _, i2 = other.step(np.zeros(env.action_space.shape, np.float32))
+        np.testing.assert_array_equal(i1["events"]["x"], i2["events"]["x"])
+    assert len(origins) > 3
+    with pytest.raises(ValueError, match="random_crop"):
+        EventFlowEnv(recording, random_crop=True)
+
+
 def test_same_seed_same_episode(recording, tmp_path):
     other = write_translating_recording(tmp_path / "other.h5", np.random.default_rng(9), velocity=(10.0, 5.0))
     env = EventFlowEnv([recording, other], window="time", window_size=10_000, random_start=True)
