@@ -34,8 +34,11 @@ def main(argv=None) -> int:
     p.add_argument("--eval-data", default="synthetic-test")
     p.add_argument("--eval-windows", type=int, default=15)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("train_args", nargs="*")
-    args = p.parse_args(argv)
+    p.add_argument("train_args", nargs="*", help="train.py options, after a '--'")
+    argv = list(sys.argv[1:] if argv is None else argv)
+    cut = argv.index("--") if "--" in argv else len(argv)
+    args = p.parse_args(argv[:cut])
+    args.train_args = [*args.train_args, *argv[cut + 1 :]]
     run = Path(args.out) / args.name
     train_script.main(["--minutes", str(args.minutes), "--steps", "100000", "--out", str(run / "train"), "--val-data", "",
                        "--no-progress", "--seed", str(args.seed), *args.train_args])
