@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import numpy as np
 import torch
 
 from .splat import crop_padding, padded_corners
@@ -104,6 +105,64 @@ class _EventImageTerms(torch.autograd.Function):
         return grad_u, None, None, None, None, None, None, None, None, None, None
 
 
+try:  # compiled CPU kernels; without numba the torch path serves CPU too
+    from . import _kernels
+except ImportError:  # pragma: no cover - numba is a dependency, but stay usable without it
+    _kernels = None
+
+
+def compiled_available() -> bool:
+    """True when the compiled (numba) CPU kernels can be used."""
+    return _kernels is not None
+
+
+class _EventImageTermsCompiled(torch.autograd.Function):
+    """The same function as ``_EventImageTerms`` through the fused numba kernels (CPU only)."""
+
+    @staticmethod
+    def forward(ctx, u, x, y, t, p, mask, height, width, references, span, alpha):
+        B, N = x.shape
+        R = len(references)
+        dtype = u.dtype
+        np_dtype = np.float64 if dtype == torch.float64 else np.float32
+        arrays = (
+            np.ascontiguousarray(x.detach().numpy(), dtype=np_dtype),
+            np.ascontiguousarray(y.detach().numpy(), dtype=np_dtype),
+            np.ascontiguousarray(t.detach().numpy(), dtype=np_dtype),
+            np.ascontiguousarray((p <= 0).numpy()),
+            np.ascontiguousarray(mask.numpy()),
+            np.ascontiguousarray(u.detach().numpy()),
+            np.asarray(references, np.float64),
+        )
+        images = np.empty((B, R, 3, 2, height + 2, width + 2), np_dtype)
+        stats = np.empty((B, R, 3), np.float64)
+        at = np.empty((B, R), np.float64)
+        ec = np.empty((B, R), np.float64)
+        kept = np.empty((B, R), np.float64)
+        fwd, _ = _kernels.kernels(_kernels.use_threads())
+        fwd(*arrays, float(span), float(alpha), int(height), int(width), images, stats, at, ec, kept)
+        ctx.arrays, ctx.images, ctx.stats = arrays, images, stats
+        ctx.geometry = (height, width, span, alpha)
+        ctx.mark_non_differentiable(kept_t := torch.from_numpy(kept).to(dtype))
+        ctx.set_materialize_grads(False)
+        return torch.from_numpy(at).to(dtype), torch.from_numpy(ec).to(dtype), kept_t
+
+    @staticmethod
+    def backward(ctx, grad_at, grad_ec, _grad_kept):
+        height, width, span, alpha = ctx.geometry
+        x = ctx.arrays[0]
+        B, N = x.shape
+        R = ctx.stats.shape[1]
+        g_at = np.zeros((B, R)) if grad_at is None else grad_at.detach().double().numpy()
+        g_ec = np.zeros((B, R)) if grad_ec is None else grad_ec.detach().double().numpy()
+        grad_u = np.empty((B, R, N, 2), ctx.arrays[5].dtype)
+        _, bwd = _kernels.kernels(_kernels.use_threads())
+        bwd(*ctx.arrays, float(span), float(alpha), int(height), int(width), ctx.images, ctx.stats,
+            np.ascontiguousarray(g_at), np.ascontiguousarray(g_ec), grad_u)
+        grad = torch.from_numpy(grad_u).sum(dim=1)
+        return grad, None, None, None, None, None, None, None, None, None, None
+
+
 def event_image_terms(
     x: torch.Tensor,
     y: torch.Tensor,
@@ -123,5 +182,8 @@ def event_image_terms(
     Returns (at, ec, kept), each (B, R) in u's dtype; at and ec are differentiable in u
     (fused backward), kept = sum over pixels of C_+ + C_- (not differentiable).
     """
-    return _EventImageTerms.apply(u, x, y, t, p, mask, height, width, tuple(references),
-                                  float(span), float(alpha))
+    if _kernels is not None and u.device.type == "cpu" and u.dtype in (torch.float32, torch.float64):
+        fn = _EventImageTermsCompiled
+    else:
+        fn = _EventImageTerms
+    return fn.apply(u, x, y, t, p, mask, height, width, tuple(references), float(span), float(alpha))

@@ -1,0 +1,245 @@
+"""Compiled CPU kernels (numba) for L_AT(s) and L_EC(s) straight from the events.
+
+The same arithmetic as the torch path of ``image_terms.py`` (see its docstring for the
+equations), but fused: one loop over the events splats the count and timestamp images of one
+(batch element, reference time) pair, one loop over the pixels reduces them to L_AT, L_EC and
+the kept weight, and the backward is one more loop over the events that reads the images at
+each event's 4 corners. The work is split into B x R independent tasks (each owns its images),
+so there are no write races and B = 1 still uses two threads for the two reference times.
+
+Layout as in ``splat.py``: every image is padded by a 1-pixel ring (pixel (r, q) stored at
+(r + 1, q + 1)); corners that fall outside the real image land on the ring and are ignored.
+
+Used on CPU tensors when numba is importable (``image_terms.py`` decides); the torch path is
+the reference the tests compare against and the path for CUDA.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+
+__all__ = ["kernels", "smoothness_kernels", "use_threads"]
+
+_OPTIONS = dict(nogil=True, cache=True, fastmath=False, boundscheck=False, error_model="numpy")
+
+
+@numba.njit(inline="always", **_OPTIONS)
+def _corner_gradient(img, c, rr, q, height, width, w, k_at, k_ec):
+    """G = dL/dC + w dL/dA at padded pixel (rr, q) of polarity c; 0 on the ring (dropped)."""
+    if rr == 0 or rr == height + 1 or q == 0 or q == width + 1:
+        return 0.0
+    inv = 1.0 / (img[0, c, rr, q] + 1e-9)
+    tt = img[1, c, rr, q] * inv  # T, eq. 13
+    g_stamp = tt * inv * k_at  # dL_AT/dA = 2 T / (C + 1e-9) / Z
+    g_count = -g_stamp * tt + img[2, c, rr, q] * k_ec  # dL_AT/dC = -T dL/dA; dL_EC/dC = alpha HW E / S^2
+    return g_count + w * g_stamp
+
+
+def _make(parallel: bool):
+    loop = numba.prange if parallel else range
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def forward(x, y, t, off, mask, u, refs, span, alpha, height, width, images, stats, at, ec, kept):
+        """images: (B, R, 3, 2, H + 2, W + 2) out: [count, stamp, exp(-alpha count)] x [ON, OFF].
+        stats: (B, R, 3) out: N_nz, S_ON, S_OFF (for the backward). at, ec, kept: (B, R) out."""
+        B, N = x.shape
+        R = refs.shape[0]
+        hp, wp = height + 2, width + 2
+        hw = height * width
+        for task in loop(B * R):
+            b = task // R
+            r = task % R
+            s = refs[r]
+            img = images[b, r]
+            img[0] = 0.0
+            img[1] = 0.0
+            for i in range(N):
+                if not mask[b, i]:
+                    continue
+                dt = s - t[b, i]
+                xw = x[b, i] + dt * u[b, i, 0]
+                yw = y[b, i] + dt * u[b, i, 1]
+                x0f = math.floor(xw)
+                y0f = math.floor(yw)
+                if not (x0f >= -1.0 and x0f <= width - 1.0 and y0f >= -1.0 and y0f <= height - 1.0):
+                    continue  # all 4 corners outside (or a NaN): dropped
+                fx = xw - x0f
+                fy = yw - y0f
+                col = int(x0f) + 1
+                row = int(y0f) + 1
+                c = 1 if off[b, i] else 0
+                w = 1.0 - abs(dt) / span
+                k00 = (1.0 - fy) * (1.0 - fx)
+                k01 = (1.0 - fy) * fx
+                k10 = fy * (1.0 - fx)
+                k11 = fy * fx
+                img[0, c, row, col] += k00
+                img[0, c, row, col + 1] += k01
+                img[0, c, row + 1, col] += k10
+                img[0, c, row + 1, col + 1] += k11
+                img[1, c, row, col] += k00 * w
+                img[1, c, row, col + 1] += k01 * w
+                img[1, c, row + 1, col] += k10 * w
+                img[1, c, row + 1, col + 1] += k11 * w
+            sum_t2 = 0.0
+            nnz = 0
+            s_on = 0.0
+            s_off = 0.0
+            total = 0.0
+            for rr in range(1, hp - 1):
+                for q in range(1, wp - 1):
+                    c_on = img[0, 0, rr, q]
+                    c_off = img[0, 1, rr, q]
+                    t_on = img[1, 0, rr, q] / (c_on + 1e-9)
+                    t_off = img[1, 1, rr, q] / (c_off + 1e-9)
+                    sum_t2 += t_on * t_on + t_off * t_off
+                    if c_on + c_off > 0:
+                        nnz += 1
+                    e_on = math.exp(-alpha * c_on) if c_on != 0 else 1.0
+                    e_off = math.exp(-alpha * c_off) if c_off != 0 else 1.0
+                    img[2, 0, rr, q] = e_on
+                    img[2, 1, rr, q] = e_off
+                    s_on += e_on
+                    s_off += e_off
+                    total += c_on + c_off
+            at[b, r] = sum_t2 / (nnz + 1e-9)
+            ec[b, r] = hw / s_on + hw / s_off - 2.0
+            kept[b, r] = total
+            stats[b, r, 0] = nnz
+            stats[b, r, 1] = s_on
+            stats[b, r, 2] = s_off
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def backward(x, y, t, off, mask, u, refs, span, alpha, height, width, images, stats, grad_at, grad_ec, grad_u):
+        """grad_at, grad_ec: (B, R). grad_u: (B, R, N, 2) out (summed over R by the caller)."""
+        B, N = x.shape
+        R = refs.shape[0]
+        hw = height * width
+        for task in loop(B * R):
+            b = task // R
+            r = task % R
+            s = refs[r]
+            img = images[b, r]
+            nnz = stats[b, r, 0]
+            s_on = stats[b, r, 1]
+            s_off = stats[b, r, 2]
+            k_at = 2.0 * grad_at[b, r] / (nnz + 1e-9)
+            k_on = alpha * hw * grad_ec[b, r] / (s_on * s_on)
+            k_off = alpha * hw * grad_ec[b, r] / (s_off * s_off)
+            for i in range(N):
+                grad_u[b, r, i, 0] = 0.0
+                grad_u[b, r, i, 1] = 0.0
+                if not mask[b, i]:
+                    continue
+                dt = s - t[b, i]
+                xw = x[b, i] + dt * u[b, i, 0]
+                yw = y[b, i] + dt * u[b, i, 1]
+                x0f = math.floor(xw)
+                y0f = math.floor(yw)
+                if not (x0f >= -1.0 and x0f <= width - 1.0 and y0f >= -1.0 and y0f <= height - 1.0):
+                    continue
+                fx = xw - x0f
+                fy = yw - y0f
+                col = int(x0f) + 1
+                row = int(y0f) + 1
+                c = 1 if off[b, i] else 0
+                k_ec = k_off if c == 1 else k_on
+                w = 1.0 - abs(dt) / span
+                g0 = _corner_gradient(img, c, row, col, height, width, w, k_at, k_ec)
+                g1 = _corner_gradient(img, c, row, col + 1, height, width, w, k_at, k_ec)
+                g2 = _corner_gradient(img, c, row + 1, col, height, width, w, k_at, k_ec)
+                g3 = _corner_gradient(img, c, row + 1, col + 1, height, width, w, k_at, k_ec)
+                gx = (1.0 - fy) * (g1 - g0) + fy * (g3 - g2)  # sum_c G_c dk_c/dx'
+                gy = (1.0 - fx) * (g2 - g0) + fx * (g3 - g1)  # sum_c G_c dk_c/dy'
+
+                grad_u[b, r, i, 0] = gx * dt
+                grad_u[b, r, i, 1] = gy * dt
+
+    return forward, backward
+
+
+_KERNELS: dict[bool, tuple] = {}
+
+
+def use_threads() -> bool:
+    """Follow torch's intra-op thread count: several threads -> the parallel kernels with as
+    many numba threads; one thread (e.g. inside a forked env worker, where a threading runtime
+    inherited from the parent is not safe to start) -> the serial kernels."""
+    threads = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
+    if threads <= 1:
+        return False
+    numba.set_num_threads(threads)
+    return True
+
+
+def kernels(parallel: bool):
+    """(forward, backward) compiled for threads (``parallel``) or for one thread."""
+    if parallel not in _KERNELS:
+        _KERNELS[parallel] = _make(parallel)
+    return _KERNELS[parallel]
+
+
+_DIRECTIONS = np.array([[0, 1], [1, 0], [1, 1], [-1, 1]], np.int64)  # as smoothness._DIRECTIONS
+
+
+def _make_smoothness(parallel: bool):
+    loop = numba.prange if parallel else range
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def forward(f, event_mask, eps, total):
+        """f: (B, 2, H, W) flow in network units; event_mask: (B, H, W) bool; total: (B,) out,
+        sum over counted pairs and components of sqrt(d^2 + eps^2)."""
+        B, _, H, W = f.shape
+        for b in loop(B):
+            acc = 0.0
+            for r in range(H):
+                for c in range(W):
+                    if not event_mask[b, r, c]:
+                        continue
+                    for k in range(4):
+                        r2 = r + _DIRECTIONS[k, 0]
+                        c2 = c + _DIRECTIONS[k, 1]
+                        if r2 < 0 or r2 >= H or c2 >= W or not event_mask[b, r2, c2]:
+                            continue
+                        for ch in range(2):
+                            d = f[b, ch, r2, c2] - f[b, ch, r, c]
+                            acc += math.sqrt(d * d + eps * eps)
+            total[b] = acc
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def backward(f, event_mask, eps, grad_total, grad):
+        """grad: (B, 2, H, W) out, d total[b] / d f times grad_total[b]."""
+        B, _, H, W = f.shape
+        for b in loop(B):
+            g_b = grad_total[b]
+            grad[b] = 0.0
+            for r in range(H):
+                for c in range(W):
+                    if not event_mask[b, r, c]:
+                        continue
+                    for k in range(4):
+                        r2 = r + _DIRECTIONS[k, 0]
+                        c2 = c + _DIRECTIONS[k, 1]
+                        if r2 < 0 or r2 >= H or c2 >= W or not event_mask[b, r2, c2]:
+                            continue
+                        for ch in range(2):
+                            d = f[b, ch, r2, c2] - f[b, ch, r, c]
+                            g = g_b * d / math.sqrt(d * d + eps * eps)
+                            grad[b, ch, r2, c2] += g
+                            grad[b, ch, r, c] -= g
+
+    return forward, backward
+
+
+_SMOOTHNESS: dict[bool, tuple] = {}
+
+
+def smoothness_kernels(parallel: bool):
+    """(forward, backward) of the Charbonnier sum, for threads or for one thread."""
+    if parallel not in _SMOOTHNESS:
+        _SMOOTHNESS[parallel] = _make_smoothness(parallel)
+    return _SMOOTHNESS[parallel]
