@@ -54,7 +54,7 @@ class TrainConfig:
     voxel_bins: int = 5
     data: Any = "synthetic-train"
     window: str = "frames"
-    window_size: int | None = None
+    window_size: int | list | None = None  # a list: one size drawn per episode
     crop: tuple | None = None
     random_crop: bool = False  # a new random crop position per episode (train on small crops)
     flips: bool = True  # Hagenaars: h/v/polarity flips, once per sequence

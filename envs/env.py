@@ -134,7 +134,8 @@ class EventFlowEnv(gym.Env):
         data_options: keyword arguments for the reader, e.g. ``{"crop": "center256"}`` (MVSEC).
         window: ``"frames"`` (ground-truth aligned), ``"time"`` or ``"count"``.
         window_size: grid steps (``frames``, default 1), µs (``time``, default 10 000) or
-            events (``count``, default 15 000).
+            events (``count``, default 15 000); a list of sizes draws one per episode (e.g.
+            ``[1, 2, 3, 4]`` frames: training on several motion magnitudes).
         crop: None, ``(height, width)`` centred, or ``(top, left, height, width)``.
         random_crop: place the ``crop`` window at a random position in each episode (the
             whole recording stays in play while training on small crops); needs ``crop``.
@@ -166,7 +167,7 @@ class EventFlowEnv(gym.Env):
         format: str | None = None,
         data_options: dict | None = None,
         window: str = "frames",
-        window_size: int | None = None,
+        window_size: int | Sequence[int] | None = None,
         crop: Sequence[int] | None = None,
         random_crop: bool = False,
         observations: Sequence[str] = ("count_image",),
@@ -189,7 +190,13 @@ class EventFlowEnv(gym.Env):
         if window not in WINDOW_MODES:
             raise ValueError(f"window must be one of {WINDOW_MODES}, got {window!r}")
         self.window = window
-        self.window_size = int(window_size if window_size is not None else {"frames": 1, "time": 10_000, "count": 15_000}[window])
+        if window_size is None:
+            window_size = {"frames": 1, "time": 10_000, "count": 15_000}[window]
+        sizes = [int(v) for v in (window_size if isinstance(window_size, (list, tuple, np.ndarray)) else [window_size])]
+        if not sizes or min(sizes) <= 0:
+            raise ValueError(f"window_size must be a positive int or a non-empty list of them, got {window_size!r}")
+        self.window_sizes = tuple(sizes)  # one is drawn per episode when there are several
+        self.window_size = sizes[0]
         unknown = [k for k in observations if k not in OBSERVATION_KEYS]
         if unknown or not observations:
             raise ValueError(f"observations must be a non-empty subset of {OBSERVATION_KEYS}, got {list(observations)}")
@@ -326,6 +333,8 @@ class EventFlowEnv(gym.Env):
             idx = np.array([[reader.index_at(int(a)), reader.index_at(int(b))] for a, b in spans], np.int64).reshape(-1, 2)
             bounds = np.concatenate([spans, idx], axis=1)
         else:
+            if len(self.window_sizes) > 1:
+                self.window_size = self.window_sizes[int(self.np_random.integers(len(self.window_sizes)))]
             bounds = window_bounds(reader, self.window, self.window_size, t_from=options.get("start"))
         if len(bounds) == 0:
             raise NoWindowsError(

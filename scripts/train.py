@@ -60,7 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("data")
     g.add_argument("--data", nargs="+", default=[d.data], help="synthetic split name, recording files or directories")
     g.add_argument("--window", default=d.window, choices=["frames", "time", "count"])
-    g.add_argument("--window-size", type=int, default=None, help="frames: grid steps (1); time: us (10000); count: events (15000)")
+    g.add_argument("--window-size", type=int, nargs="+", default=None,
+                   help="frames: grid steps (1); time: us (10000); count: events (15000); "
+                        "several values: one drawn per episode (e.g. 1 2 3 4)")
     g.add_argument("--crop", type=int, nargs="+", default=None, help="H W (centred) or TOP LEFT H W")
     g.add_argument("--random-crop", action="store_true",
                    help="place the --crop H W window at a random position in each episode (validation uses whole frames)")
@@ -105,7 +107,8 @@ def config_from_args(args) -> TrainConfig:
     return TrainConfig(
         model=args.model, width=width, model_kwargs=parse_kv(args.model_kwarg), input=args.input,
         voxel_bins=args.voxel_bins, data=data, window=args.window,
-        window_size=args.window_size, crop=tuple(args.crop) if args.crop else None, flips=not args.no_flips,
+        window_size=(None if args.window_size is None else args.window_size[0] if len(args.window_size) == 1
+                     else list(args.window_size)), crop=tuple(args.crop) if args.crop else None, flips=not args.no_flips,
         random_crop=args.random_crop,
         num_envs=args.num_envs, vector=args.vector, unroll=args.unroll, steps=args.steps, lr=args.lr,
         warmup_steps=args.warmup_steps, decay=args.decay, grad_clip=args.grad_clip, loss=args.loss,

@@ -161,6 +161,21 @@ def test_random_crop_moves_per_episode_and_matches_a_fixed_crop(recording):
         EventFlowEnv(recording, random_crop=True)
 
 
+def test_window_size_list_draws_one_size_per_episode(recording):
+    env = EventFlowEnv(recording, window="time", window_size=[4_000, 9_000])
+    seen = set()
+    for seed in range(10):
+        _, info = env.reset(seed=seed)
+        size = info["t_end"] - info["t_start"]
+        assert size in (4_000, 9_000)
+        _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
+        assert truncated or info["t_end"] - info["t_start"] == size  # one size per episode
+        seen.add(size)
+    assert seen == {4_000, 9_000}
+    with pytest.raises(ValueError, match="window_size"):
+        EventFlowEnv(recording, window="time", window_size=[])
+
+
 def test_same_seed_same_episode(recording, tmp_path):
     other = write_translating_recording(tmp_path / "other.h5", np.random.default_rng(9), velocity=(10.0, 5.0))
     env = EventFlowEnv([recording, other], window="time", window_size=10_000, random_start=True)
