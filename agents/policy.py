@@ -48,6 +48,15 @@ class RecurrentPolicy(nn.Module):
         self.model = model.to(self.device)
         self._state: State | None = None
 
+    @classmethod
+    def from_pretrained(cls, name: str | None = None, device: torch.device | str | None = "cpu") -> "RecurrentPolicy":
+        """The actor of a shipped pretrained model (see ``agents/pretrained.py``), reading the
+        observation part it was trained on."""
+        from .pretrained import load_pretrained
+
+        model, info = load_pretrained(name, map_location=device or "cpu")
+        return cls(model, device=device, input_key=info["input"], voxel_bins=info["voxel_bins"])
+
     @property
     def state(self) -> State | None:
         """The state the next window continues from (None = fresh sequence for every element)."""

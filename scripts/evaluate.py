@@ -3,6 +3,7 @@
 L_HMC against zero flow's, FWL and RSAT, per sequence; Markdown table + JSON + PNG pictures.
 
 Examples:
+  python scripts/evaluate.py --pretrained --zero                                   # the shipped model
   python scripts/evaluate.py --checkpoint runs/mgr/checkpoint.pt --zero            # synthetic-test
   python scripts/evaluate.py --checkpoint ckpt.pt --data rec1.h5 rec2.h5 --dt 4
   python scripts/evaluate.py --model mypkg.models:build --data synthetic-test     # untrained plug-in
@@ -26,12 +27,15 @@ import torch  # noqa: E402
 from agents.checkpoint import load_model  # noqa: E402
 from agents.evaluation import evaluate, results_json, results_table  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
+import agents.pretrained as pretrained_module  # noqa: E402
 from agents.registry import make_model  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", nargs="*", default=[], help="checkpoint(s) written by scripts/train.py")
+    p.add_argument("--pretrained", nargs="*", default=None, metavar="NAME",
+                   help="shipped pretrained model(s) by name (see agents/weights/; no name: the default one)")
     p.add_argument("--name", nargs="*", default=None, help="row names for the checkpoints (default: file stem / parent dir)")
     p.add_argument("--model", default=None, help="evaluate an untrained model (registry name or package.module:factory)")
     p.add_argument("--width", default="cpu")
@@ -80,6 +84,10 @@ def main(argv=None) -> int:
         cfg = payload.get("config") or {}
         policies[name] = RecurrentPolicy(model, device=args.device, input_key=cfg.get("input", "count_image"),
                                          voxel_bins=cfg.get("voxel_bins", 5))
+    pretrained = [] if args.pretrained is None else (args.pretrained or [pretrained_module.DEFAULT_PRETRAINED])
+    for name in pretrained:
+        policy = RecurrentPolicy.from_pretrained(name, device=args.device)
+        policies[f"{name} (pretrained)"] = policy
     if args.model and not args.checkpoint:
         width = int(args.width) if str(args.width).isdigit() else args.width
         kwargs = {"width": width} if isinstance(width, str) else {"base_width": width}

@@ -173,6 +173,7 @@ def main(argv=None) -> int:
             stats = learner.update()
             elapsed = time.time() - start
             stats["windows_per_s"] = stats["windows"] * (learner.step - (payload or {}).get("step", 0)) / max(elapsed, 1e-9)
+            stats["elapsed_s"] = round(elapsed, 1)  # since this process started (resumes restart it)
             if log:
                 log.write(json.dumps(stats) + "\n")
                 log.flush()

@@ -153,3 +153,43 @@ def test_two_process_ddp_smoke(recording, tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     assert len(_losses(out)) == 3
     assert load_checkpoint(out / "checkpoint.pt")["step"] == 3
+
+
+def test_export_and_load_pretrained_by_name(recording, tmp_path, monkeypatch):
+    import agents.pretrained as pretrained
+    import export_model as export_script
+
+    train_script.main(["--data", str(recording), "--input", "voxel_grid", "--voxel-bins", "3", "--width", "4",
+                       "--num-envs", "1", "--unroll", "2", "--steps", "2", "--out", str(tmp_path / "run"),
+                       "--val-data", "", "--no-progress"])
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    export_script.main([str(tmp_path / "run" / "checkpoint.pt"), "--name", "tiny", "--command", "train.py ...",
+                        "--dir", str(weights)])
+    assert pretrained.list_pretrained(weights) == ["tiny"]
+    info = pretrained.pretrained_info("tiny", weights)
+    assert info["input"] == "voxel_grid" and info["budget"]["optimizer_steps"] == 2 and info["command"] == "train.py ..."
+    slim = load_checkpoint(weights / "tiny.pt")
+    assert "optimizer" not in slim and "env_states" not in slim  # weights only
+    # the shipped actor gives exactly the trained model's flow on an env observation
+    monkeypatch.setattr(pretrained, "WEIGHTS_DIR", weights)
+    monkeypatch.setattr(pretrained, "DEFAULT_PRETRAINED", "tiny")
+    policy = RecurrentPolicy.from_pretrained()
+    from agents.checkpoint import load_model
+    model, _ = load_model(tmp_path / "run" / "checkpoint.pt")
+    with torch.no_grad():  # the shipped file holds float16 weights
+        for p in model.parameters():
+            p.copy_(p.half().float())
+    reference = RecurrentPolicy(model, input_key="voxel_grid", voxel_bins=3)
+    env = EventFlowEnv(recording, observations=("voxel_grid",), voxel_bins=3)
+    obs, _ = env.reset(seed=0)
+    for _ in range(3):
+        action = policy.act(obs)
+        np.testing.assert_allclose(action, reference.act(obs), rtol=1e-6, atol=1e-6)
+        obs, *_ = env.step(action)
+    monkeypatch.setattr(sys, "argv", ["evaluate.py"])
+    evaluate_script.main(["--pretrained", "--data", str(recording), "--dt", "1", "--out", str(tmp_path / "ev"),
+                          "--max-windows", "2", "--no-progress", "--pictures", "0"])
+    assert "tiny (pretrained)" in (tmp_path / "ev" / "table.md").read_text()
+    with pytest.raises(KeyError, match="no pretrained model 'nope'"):
+        RecurrentPolicy.from_pretrained("nope")

@@ -1,0 +1,95 @@
+"""Pretrained models shipped with the package, loadable by name.
+
+Each model is two files in ``agents/weights/``: ``NAME.pt``, a weights-only checkpoint (model
+name, config and state dict; no optimizer), and ``NAME.json``, its provenance: the command that
+trained it, the data, the budget, the date and the measured metrics. Nothing is downloaded.
+
+    from agents.pretrained import load_pretrained, list_pretrained
+    policy = RecurrentPolicy.from_pretrained("ev-mgrflownet-cpu-synthetic")
+    action = policy.act(observation)          # observation from an EventFlow env
+
+``scripts/export_model.py`` turns a training checkpoint into such a pair.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .checkpoint import CheckpointError, load_checkpoint, load_model, save_checkpoint
+
+__all__ = ["WEIGHTS_DIR", "DEFAULT_PRETRAINED", "list_pretrained", "pretrained_info", "load_pretrained", "export_pretrained"]
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+DEFAULT_PRETRAINED = "ev-mgrflownet-cpu-synthetic"
+
+
+def list_pretrained(directory: str | os.PathLike | None = None) -> list[str]:
+    """Names of the shipped models (those with both NAME.pt and NAME.json)."""
+    directory = Path(WEIGHTS_DIR if directory is None else directory)
+    return sorted(p.stem for p in directory.glob("*.pt") if p.with_suffix(".json").exists())
+
+
+def _paths(name: str, directory: str | os.PathLike | None) -> tuple[Path, Path]:
+    directory = Path(WEIGHTS_DIR if directory is None else directory)
+    known = list_pretrained(directory)
+    if name not in known:
+        raise KeyError(f"no pretrained model {name!r}; shipped: {known or 'none'} (in {directory})")
+    return directory / f"{name}.pt", directory / f"{name}.json"
+
+
+def pretrained_info(name: str, directory: str | os.PathLike | None = None) -> dict[str, Any]:
+    """The provenance record of a shipped model (command, data, budget, date, metrics)."""
+    return json.loads(_paths(name, directory)[1].read_text())
+
+
+def load_pretrained(
+    name: str | None = None, map_location: str | torch.device = "cpu", directory: str | os.PathLike | None = None
+) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """(model in eval mode, provenance) of a shipped model. The provenance's ``"input"`` says
+    which observation the model reads ("count_image" or "voxel_grid", with ``"voxel_bins"``)."""
+    name = DEFAULT_PRETRAINED if name is None else name
+    weights, _ = _paths(name, directory)
+    model, payload = load_model(weights, map_location=map_location)
+    info = pretrained_info(name, directory)
+    info.setdefault("input", (payload.get("config") or {}).get("input", "count_image"))
+    info.setdefault("voxel_bins", (payload.get("config") or {}).get("voxel_bins", 5))
+    return model, info
+
+
+def export_pretrained(
+    checkpoint: str | os.PathLike, name: str, provenance: dict[str, Any], directory: str | os.PathLike | None = None
+) -> tuple[Path, Path]:
+    """Write ``NAME.pt`` (weights only, float32, CPU) and ``NAME.json`` from a training
+    checkpoint. Both files are written atomically; the weights are checked to load first.
+    Floating-point weights are stored as float16 (half the size; loading casts them back to the
+    model's float32, a relative change below 1e-3 per weight)."""
+    payload = load_checkpoint(checkpoint)
+    config = payload.get("config") or {}
+    slim = {
+        "model_name": payload["model_name"],
+        "model_config": payload["model_config"],
+        "model": {k: v.detach().to("cpu", torch.float16) if v.is_floating_point() else v.cpu()
+                  for k, v in payload["model"].items()},
+        "step": payload.get("step"),
+        "config": config,
+    }
+    directory = Path(WEIGHTS_DIR if directory is None else directory)
+    weights = save_checkpoint(directory / f"{name}.pt", slim)
+    try:
+        load_model(weights)
+    except CheckpointError:
+        weights.unlink(missing_ok=True)
+        raise
+    record = {"name": name, "model": payload["model_name"], "model_config": payload["model_config"],
+              "input": config.get("input", "count_image"), "voxel_bins": config.get("voxel_bins", 5),
+              "steps": payload.get("step"), **provenance}
+    meta = directory / f"{name}.json"
+    tmp = meta.with_name(f"{meta.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(record, indent=2, default=str) + "\n")
+    os.replace(tmp, meta)
+    return weights, meta

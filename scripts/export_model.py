@@ -1,0 +1,60 @@
+#!/usr/bin/env python
+"""Ship a trained model: turn a training checkpoint into agents/weights/NAME.pt (weights only)
+and NAME.json (provenance), loadable with RecurrentPolicy.from_pretrained(NAME) and
+scripts/evaluate.py --pretrained NAME.
+
+  python scripts/export_model.py runs/ship/train/checkpoint.pt --name ev-mgrflownet-cpu-synthetic \\
+      --command "python scripts/train.py ..." --eval runs/ship/eval/results.json
+
+The provenance records the command, the training data and budget (from the checkpoint's config
+and metrics.jsonl beside it), the date, and the evaluation metrics when --eval is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agents.pretrained import export_pretrained  # noqa: E402
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("checkpoint")
+    p.add_argument("--name", required=True)
+    p.add_argument("--command", default="", help="the command(s) that trained it")
+    p.add_argument("--eval", default=None, help="results.json of scripts/evaluate.py on the model")
+    p.add_argument("--note", default="")
+    p.add_argument("--dir", default=None, help="default: agents/weights/")
+    args = p.parse_args(argv)
+    ckpt = Path(args.checkpoint)
+    metrics = ckpt.parent / "metrics.jsonl"
+    budget = {}
+    if metrics.exists():
+        rows = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
+        steps = [r for r in rows if "loss" in r]
+        seconds, last = 0.0, 0.0
+        for r in steps:  # elapsed_s restarts at each --resume: add up the segments
+            e = r.get("elapsed_s", 0.0)
+            if e < last:
+                seconds += last
+            last = e
+        seconds += last
+        budget = {"optimizer_steps": steps[-1]["step"] if steps else 0,
+                  "training_windows": int(sum(r.get("windows", 0) for r in steps)),
+                  "wall_minutes": round(seconds / 60, 1)}
+    provenance = {"command": args.command, "date": datetime.date.today().isoformat(), "budget": budget, "note": args.note}
+    if args.eval:
+        provenance["evaluation"] = json.loads(Path(args.eval).read_text())
+    weights, meta = export_pretrained(ckpt, args.name, provenance, args.dir)
+    print(f"wrote {weights} ({weights.stat().st_size / 1e6:.1f} MB) and {meta}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
