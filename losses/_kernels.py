@@ -243,3 +243,77 @@ def smoothness_kernels(parallel: bool):
     if parallel not in _SMOOTHNESS:
         _SMOOTHNESS[parallel] = _make_smoothness(parallel)
     return _SMOOTHNESS[parallel]
+
+
+def _make_sampling(parallel: bool):
+    loop = numba.prange if parallel else range
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def forward(flow, x, y, out):
+        """Bilinear sample of flow (B, 2, H, W) at (x, y) (B, N), coordinates clamped to the
+        image ("border"); out: (B, N, 2)."""
+        B, _, H, W = flow.shape
+        N = x.shape[1]
+        for b in loop(B):
+            for i in range(N):
+                xi = min(max(x[b, i], 0.0), W - 1.0)
+                yi = min(max(y[b, i], 0.0), H - 1.0)
+                x0 = int(math.floor(xi))
+                y0 = int(math.floor(yi))
+                fx = xi - x0
+                fy = yi - y0
+                x1 = min(x0 + 1, W - 1)
+                y1 = min(y0 + 1, H - 1)
+                for c in range(2):
+                    out[b, i, c] = ((1.0 - fy) * ((1.0 - fx) * flow[b, c, y0, x0] + fx * flow[b, c, y0, x1])
+                                    + fy * ((1.0 - fx) * flow[b, c, y1, x0] + fx * flow[b, c, y1, x1]))
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def backward(grad_out, x, y, grad_flow):
+        """grad_flow (B, 2, H, W) out: the adjoint of ``forward``."""
+        B, _, H, W = grad_flow.shape
+        N = x.shape[1]
+        for b in loop(B):
+            grad_flow[b] = 0.0
+            for i in range(N):
+                xi = min(max(x[b, i], 0.0), W - 1.0)
+                yi = min(max(y[b, i], 0.0), H - 1.0)
+                x0 = int(math.floor(xi))
+                y0 = int(math.floor(yi))
+                fx = xi - x0
+                fy = yi - y0
+                x1 = min(x0 + 1, W - 1)
+                y1 = min(y0 + 1, H - 1)
+                for c in range(2):
+                    g = grad_out[b, i, c]
+                    grad_flow[b, c, y0, x0] += (1.0 - fy) * (1.0 - fx) * g
+                    grad_flow[b, c, y0, x1] += (1.0 - fy) * fx * g
+                    grad_flow[b, c, y1, x0] += fy * (1.0 - fx) * g
+                    grad_flow[b, c, y1, x1] += fy * fx * g
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def event_mask(x, y, mask, out):
+        """out (B, H, W) bool: pixels holding a valid event, coordinates rounded half to even."""
+        B, H, W = out.shape
+        N = x.shape[1]
+        for b in loop(B):
+            out[b] = False
+            for i in range(N):
+                if not mask[b, i]:
+                    continue
+                xi = np.round(x[b, i])
+                yi = np.round(y[b, i])
+                if xi >= 0 and xi < W and yi >= 0 and yi < H:
+                    out[b, int(yi), int(xi)] = True
+
+    return forward, backward, event_mask
+
+
+_SAMPLING: dict[bool, tuple] = {}
+
+
+def sampling_kernels(parallel: bool):
+    """(sample forward, sample backward, event-pixel mask), for threads or for one thread."""
+    if parallel not in _SAMPLING:
+        _SAMPLING[parallel] = _make_sampling(parallel)
+    return _SAMPLING[parallel]

@@ -2,9 +2,35 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
+try:  # compiled CPU kernel; without numba the torch path serves CPU too
+    from . import _kernels
+except ImportError:  # pragma: no cover
+    _kernels = None
+
 __all__ = ["sample_flow"]
+
+
+class _SampleCompiled(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, flow, x, y):
+        np_dtype = np.float64 if flow.dtype == torch.float64 else np.float32
+        f = np.ascontiguousarray(flow.detach().numpy())
+        xs = np.ascontiguousarray(x.detach().numpy(), dtype=np_dtype)
+        ys = np.ascontiguousarray(y.detach().numpy(), dtype=np_dtype)
+        out = np.empty((x.shape[0], x.shape[1], 2), np_dtype)
+        _kernels.sampling_kernels(_kernels.use_threads())[0](f, xs, ys, out)
+        ctx.coords, ctx.shape = (xs, ys), flow.shape
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        grad = np.empty(tuple(ctx.shape), ctx.coords[0].dtype)
+        g = np.ascontiguousarray(grad_out.detach().numpy())
+        _kernels.sampling_kernels(_kernels.use_threads())[1](g, *ctx.coords, grad)
+        return torch.from_numpy(grad), None, None
 
 
 def sample_flow(flow: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -18,6 +44,8 @@ def sample_flow(flow: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.T
     are clamped to [0, W-1] x [0, H-1] first ("border" rule), so an event off the sensor takes
     the flow of the nearest border pixel. Differentiable in flow.
     """
+    if _kernels is not None and flow.device.type == "cpu" and flow.dtype in (torch.float32, torch.float64):
+        return _SampleCompiled.apply(flow, x, y)
     B, _, H, W = flow.shape
     hw = H * W
     x = x.to(flow.dtype).clamp(0, W - 1)

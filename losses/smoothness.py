@@ -30,6 +30,12 @@ def event_pixel_mask(
     identity for raw integer events and nearest-pixel for rectified float ones; events that
     round outside the image are ignored.
     """
+    if _kernels is not None and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64):
+        out = np.empty((x.shape[0], height, width), np.bool_)
+        _kernels.sampling_kernels(_kernels.use_threads())[2](
+            np.ascontiguousarray(x.numpy()), np.ascontiguousarray(y.numpy(), dtype=x.numpy().dtype),
+            np.ascontiguousarray(mask.numpy()), out)
+        return torch.from_numpy(out)
     B, N = x.shape
     xi = torch.round(x).long()
     yi = torch.round(y).long()

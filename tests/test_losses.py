@@ -22,7 +22,7 @@ from losses import (
     warped_event_images,
 )
 
-from losses import image_terms, smoothness
+from losses import image_terms, sampling, smoothness
 
 RTOL = 1e-6
 
@@ -34,6 +34,7 @@ def backend(request, monkeypatch):
     if request.param == "torch":
         monkeypatch.setattr(image_terms, "_kernels", None)
         monkeypatch.setattr(smoothness, "_kernels", None)
+        monkeypatch.setattr(sampling, "_kernels", None)
     elif not image_terms.compiled_available():
         pytest.skip("numba not installed")
     return request.param
@@ -257,7 +258,7 @@ def test_accumulated_matches_reference_and_reduces_to_per_window(backend):
 # --------------------------------------------------------------------------------------------
 
 
-def test_sample_flow_exact_at_integers_and_matches_reference():
+def test_sample_flow_exact_at_integers_and_matches_reference(backend):
     rng = np.random.default_rng(4)
     H, W = 7, 9
     flow = rng.normal(0, 3, (2, H, W)).astype(np.float32)
@@ -332,7 +333,7 @@ def test_forward_warp_flow_integer_shift_and_reference():
     assert torch.autograd.gradcheck(forward_warp_flow, (g,))
 
 
-def test_event_pixel_mask_rounds_and_ignores_padding():
+def test_event_pixel_mask_rounds_and_ignores_padding(backend):
     x = torch.tensor([[0.0, 2.4, 2.6, -0.7, 3.0]])
     y = torch.tensor([[0.0, 1.0, 1.0, 0.0, 9.0]])
     m = torch.tensor([[True, True, True, True, False]])
@@ -605,6 +606,7 @@ def test_compiled_kernels_equal_torch_path(scale, monkeypatch):
         if name == "torch":
             monkeypatch.setattr(image_terms, "_kernels", None)
             monkeypatch.setattr(smoothness, "_kernels", None)
+            monkeypatch.setattr(sampling, "_kernels", None)
         for dtype in (torch.float64, torch.float32):
             f = torch.from_numpy(flow).to(dtype).requires_grad_()
             out = hmc_loss(f, EventBatch.from_windows(wins, dtype=dtype), border_penalty=0.7)
