@@ -73,6 +73,7 @@ class TrainConfig:
     alpha: float = 0.6
     border_penalty: float = 1.0  # border rule: weight x zero-flow loss x share of events pushed out (0 = paper)
     flow_scaling: float | None = None  # default max(H, W)
+    head_init: float | None = None  # re-draw the flow heads' weights from U(-a, a), biases 0: start near zero flow
     seed: int = 0
     device: str = "cpu"
 
@@ -103,6 +104,23 @@ def make_vector_env(cfg: TrainConfig, *, rank: int = 0, world: int = 1, data=Non
     return cls(fns, autoreset_mode=AutoresetMode.SAME_STEP)
 
 
+def init_flow_heads(model: torch.nn.Module, scale: float) -> None:
+    """Start a built-in network near zero flow: its flow heads' weights ~ U(-scale, scale),
+    biases 0, and (EV-MGRFlowNet) the FGD refiners' input biases 0, so that a zero estimate
+    with a zero prior refines to zero instead of tanh(bias) x flow_scaling. Models without
+    ``decoder.heads`` (e.g. plug-ins) raise a ValueError."""
+    heads = getattr(getattr(model, "decoder", None), "heads", None)
+    if heads is None:
+        raise ValueError(f"head_init: model {type(model).__name__} has no decoder.heads to re-initialise")
+    with torch.no_grad():
+        for head in heads:
+            head.weight.uniform_(-scale, scale)
+            if head.bias is not None:
+                head.bias.zero_()
+        for refiner in getattr(model.decoder, "refiners", None) or []:
+            refiner.x_convs.bias.zero_()
+
+
 def _windows_from_info(info: dict, num_envs: int) -> list[dict]:
     """Per-env window dicts (events + bounds) out of a vector env's stacked info."""
     return [
@@ -129,6 +147,8 @@ class Learner:
         self.model_config = {**_width_kwargs(cfg.width), "flow_scaling": self.flow_scaling, "in_channels": in_channels,
                              **cfg.model_kwargs}
         model = make_model(cfg.model, **self.model_config)
+        if cfg.head_init is not None:
+            init_flow_heads(model, cfg.head_init)
         self.model_config = dict(getattr(model, "config", self.model_config))
         self.policy = RecurrentPolicy(model, device=self.device, input_key=cfg.input, voxel_bins=cfg.voxel_bins)
         if self.world > 1:

@@ -87,6 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--border-penalty", type=float, default=d.border_penalty,
                    help="border rule weight: x zero-flow loss x share of events pushed out of the image (0: the paper's loss)")
     g.add_argument("--flow-scaling", type=float, default=None, help="pixels per network unit (default max(H, W))")
+    g.add_argument("--head-init", type=float, default=None, metavar="A",
+                   help="re-draw the flow heads' weights from U(-A, A), biases 0 (start near zero flow)")
     g = p.add_argument_group("run")
     g.add_argument("--out", default="runs/train", help="output directory")
     g.add_argument("--resume", nargs="?", const="auto", default=None, metavar="CHECKPOINT",
@@ -113,7 +115,7 @@ def config_from_args(args) -> TrainConfig:
         num_envs=args.num_envs, vector=args.vector, unroll=args.unroll, steps=args.steps, lr=args.lr,
         warmup_steps=args.warmup_steps, decay=args.decay, grad_clip=args.grad_clip, loss=args.loss,
         loss_mode=args.loss_mode, lambda_1=args.lambda_1, lambda_2=args.lambda_2, alpha=args.alpha,
-        border_penalty=args.border_penalty, flow_scaling=args.flow_scaling, seed=args.seed, device=args.device,
+        border_penalty=args.border_penalty, flow_scaling=args.flow_scaling, head_init=args.head_init, seed=args.seed, device=args.device,
     )
 
 

@@ -211,3 +211,18 @@ def test_ablation_script_writes_tables_and_resumes(recording, tmp_path):
     ablation_script.main(argv)  # done runs are not repeated; the block is replaced, not appended
     assert (tmp_path / "ab" / "mgr-hmc-s0" / "eval" / "results.json").stat().st_mtime_ns == stamp
     assert report.read_text().count("<!-- ablations:start -->") == 1
+
+
+def test_head_init_starts_every_builtin_model_near_zero_flow():
+    from agents.learner import init_flow_heads
+
+    x = torch.rand(2, 2, 32, 48) * 3
+    for name in ("ev-mgrflownet", "convgru-ev-flownet", "ev-flownet", "xlif-ev-flownet"):
+        torch.manual_seed(0)
+        model = make_model(name, base_width=4, flow_scaling=32.0)
+        init_flow_heads(model, 1e-3)
+        flows, state = model(x, None)
+        flows, _ = model(x, state)  # second window: the prior flow path too
+        assert max(float(f.abs().max()) for f in flows) < 0.5, name  # px, vs up to 32 with the default init
+    with pytest.raises(ValueError, match="decoder.heads"):
+        init_flow_heads(torch.nn.Linear(2, 2), 1e-3)
