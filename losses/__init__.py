@@ -6,6 +6,7 @@ events come as a padded :class:`EventBatch`.
 """
 
 from .average_timestamp import average_timestamp_loss
+from .contrast import contrast_maximisation_flow
 from .event_count import event_count_loss
 from .events import EventBatch
 from .hmc import LossOutput, accumulated_hmc_loss, at_loss, hmc_loss, to_full_resolution
@@ -18,6 +19,7 @@ from .splat import bilinear_splat, crop_padding, padded_corners, splat_rows
 from .warp import forward_warp_flow, warp_events
 
 __all__ = [
+    "contrast_maximisation_flow",
     "EventBatch",
     "LossOutput",
     "hmc_loss",

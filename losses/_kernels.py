@@ -29,22 +29,23 @@ _OPTIONS = dict(nogil=True, cache=True, fastmath=False, boundscheck=False, error
 
 @numba.njit(inline="always", **_OPTIONS)
 def _corner_gradient(img, c, rr, q, height, width, w, k_at, k_ec):
-    """G = dL/dC + w dL/dA at padded pixel (rr, q) of polarity c; 0 on the ring (dropped)."""
+    """G = dL/dC + w dL/dA at padded pixel (rr, q) of polarity c; 0 on the ring (dropped).
+    With k_at = 2 dL/dL_AT / Z: dL_AT/dA = k_at T / (C + 1e-9) = k_at P1 and dL_AT/dC = -T dL_AT/dA
+    = -k_at P2; dL_EC/dC = k_ec E with k_ec = alpha HW dL/dL_EC / S^2 (eqs. 13-16)."""
     if rr == 0 or rr == height + 1 or q == 0 or q == width + 1:
         return 0.0
-    inv = 1.0 / (img[0, c, rr, q] + 1e-9)
-    tt = img[1, c, rr, q] * inv  # T, eq. 13
-    g_stamp = tt * inv * k_at  # dL_AT/dA = 2 T / (C + 1e-9) / Z
-    g_count = -g_stamp * tt + img[2, c, rr, q] * k_ec  # dL_AT/dC = -T dL/dA; dL_EC/dC = alpha HW E / S^2
-    return g_count + w * g_stamp
+    return k_at * (w * img[1, c, rr, q] - img[0, c, rr, q]) + k_ec * img[2, c, rr, q]
 
 
 def _make(parallel: bool):
     loop = numba.prange if parallel else range
 
     @numba.njit(parallel=parallel, **_OPTIONS)
-    def forward(x, y, t, off, mask, u, refs, span, alpha, height, width, images, stats, at, ec, kept):
-        """images: (B, R, 3, 2, H + 2, W + 2) out: [count, stamp, exp(-alpha count)] x [ON, OFF].
+    def forward(x, y, t, off, mask, u, refs, span, neg_alpha, height, width, images, stats, at, ec, kept):
+        """images: (B, R, 3, 2, H + 2, W + 2) out, [P2, P1, E] x [ON, OFF] per pixel, for the
+        backward (the count and timestamp images are built in the first two slots, then
+        replaced): P1 = T / (C + 1e-9), P2 = T P1, E = exp(-alpha C); P1 = P2 = 0 where C = 0.
+        neg_alpha: (1,) array of -alpha in the images' dtype (float32 images: float32 exp).
         stats: (B, R, 3) out: N_nz, S_ON, S_OFF (for the backward). at, ec, kept: (B, R) out."""
         B, N = x.shape
         R = refs.shape[0]
@@ -78,12 +79,12 @@ def _make(parallel: bool):
                 k10 = fy * (1.0 - fx)
                 k11 = fy * fx
                 img[0, c, row, col] += k00
-                img[0, c, row, col + 1] += k01
-                img[0, c, row + 1, col] += k10
-                img[0, c, row + 1, col + 1] += k11
                 img[1, c, row, col] += k00 * w
+                img[0, c, row, col + 1] += k01
                 img[1, c, row, col + 1] += k01 * w
+                img[0, c, row + 1, col] += k10
                 img[1, c, row + 1, col] += k10 * w
+                img[0, c, row + 1, col + 1] += k11
                 img[1, c, row + 1, col + 1] += k11 * w
             sum_t2 = 0.0
             nnz = 0
@@ -94,18 +95,35 @@ def _make(parallel: bool):
                 for q in range(1, wp - 1):
                     c_on = img[0, 0, rr, q]
                     c_off = img[0, 1, rr, q]
-                    t_on = img[1, 0, rr, q] / (c_on + 1e-9)
-                    t_off = img[1, 1, rr, q] / (c_off + 1e-9)
-                    sum_t2 += t_on * t_on + t_off * t_off
                     if c_on + c_off > 0:
                         nnz += 1
-                    e_on = math.exp(-alpha * c_on) if c_on != 0 else 1.0
-                    e_off = math.exp(-alpha * c_off) if c_off != 0 else 1.0
-                    img[2, 0, rr, q] = e_on
-                    img[2, 1, rr, q] = e_off
-                    s_on += e_on
-                    s_off += e_off
                     total += c_on + c_off
+                    # per polarity: T = A / (C + 1e-9) (eq. 13); kept for the backward as
+                    # P1 = T / (C + 1e-9), P2 = T P1 and E = exp(-alpha C), in place of C and A
+                    if c_on != 0:
+                        inv = 1.0 / (c_on + 1e-9)
+                        tt = img[1, 0, rr, q] * inv
+                        sum_t2 += tt * tt
+                        e = math.exp(neg_alpha[0] * c_on)
+                        img[1, 0, rr, q] = tt * inv
+                        img[0, 0, rr, q] = tt * tt * inv
+                        img[2, 0, rr, q] = e
+                        s_on += e
+                    else:
+                        img[2, 0, rr, q] = 1.0
+                        s_on += 1.0
+                    if c_off != 0:
+                        inv = 1.0 / (c_off + 1e-9)
+                        tt = img[1, 1, rr, q] * inv
+                        sum_t2 += tt * tt
+                        e = math.exp(neg_alpha[0] * c_off)
+                        img[1, 1, rr, q] = tt * inv
+                        img[0, 1, rr, q] = tt * tt * inv
+                        img[2, 1, rr, q] = e
+                        s_off += e
+                    else:
+                        img[2, 1, rr, q] = 1.0
+                        s_off += 1.0
             at[b, r] = sum_t2 / (nnz + 1e-9)
             ec[b, r] = hw / s_on + hw / s_off - 2.0
             kept[b, r] = total
@@ -249,13 +267,17 @@ def _make_sampling(parallel: bool):
     loop = numba.prange if parallel else range
 
     @numba.njit(parallel=parallel, **_OPTIONS)
-    def forward(flow, x, y, out):
+    def forward(flow, x, y, mask, out):
         """Bilinear sample of flow (B, 2, H, W) at (x, y) (B, N), coordinates clamped to the
-        image ("border"); out: (B, N, 2)."""
+        image ("border"); out: (B, N, 2); 0 where mask (B, N) is False (padding)."""
         B, _, H, W = flow.shape
         N = x.shape[1]
         for b in loop(B):
             for i in range(N):
+                if not mask[b, i]:
+                    out[b, i, 0] = 0.0
+                    out[b, i, 1] = 0.0
+                    continue
                 xi = min(max(x[b, i], 0.0), W - 1.0)
                 yi = min(max(y[b, i], 0.0), H - 1.0)
                 x0 = int(math.floor(xi))
@@ -269,13 +291,15 @@ def _make_sampling(parallel: bool):
                                     + fy * ((1.0 - fx) * flow[b, c, y1, x0] + fx * flow[b, c, y1, x1]))
 
     @numba.njit(parallel=parallel, **_OPTIONS)
-    def backward(grad_out, x, y, grad_flow):
+    def backward(grad_out, x, y, mask, grad_flow):
         """grad_flow (B, 2, H, W) out: the adjoint of ``forward``."""
         B, _, H, W = grad_flow.shape
         N = x.shape[1]
         for b in loop(B):
             grad_flow[b] = 0.0
             for i in range(N):
+                if not mask[b, i]:
+                    continue
                 xi = min(max(x[b, i], 0.0), W - 1.0)
                 yi = min(max(y[b, i], 0.0), H - 1.0)
                 x0 = int(math.floor(xi))

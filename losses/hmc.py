@@ -117,7 +117,7 @@ def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_pe
     ev_mask = event_pixel_mask(events.x, events.y, events.mask, H, W)
     terms = []
     for f in flows:
-        u = sample_flow(f, events.x, events.y)
+        u = sample_flow(f, events.x, events.y, events.mask)
         terms.append(
             _terms(events.x, events.y, events.tau, events.p, events.mask, u, [f], [ev_mask],
                    H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec)
@@ -204,7 +204,7 @@ def accumulated_hmc_loss(
         check_events(ev, batch_size=B, name=f"events_list[{k}]")
     K = len(flows)
     scaling = float(max(H, W)) if flow_scaling is None else float(flow_scaling)
-    us = [sample_flow(f, ev.x, ev.y) for f, ev in zip(flows, events_list)]
+    us = [sample_flow(f, ev.x, ev.y, ev.mask) for f, ev in zip(flows, events_list)]
     cat = lambda name: torch.cat([getattr(ev, name) for ev in events_list], dim=1)  # noqa: E731
     t = torch.cat([ev.tau.to(flows[0].dtype) + k for k, ev in enumerate(events_list)], dim=1)
     masks = [event_pixel_mask(ev.x, ev.y, ev.mask, H, W) for ev in events_list]

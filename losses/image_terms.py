@@ -140,7 +140,7 @@ class _EventImageTermsCompiled(torch.autograd.Function):
         ec = np.empty((B, R), np.float64)
         kept = np.empty((B, R), np.float64)
         fwd, _ = _kernels.kernels(_kernels.use_threads())
-        fwd(*arrays, float(span), float(alpha), int(height), int(width), images, stats, at, ec, kept)
+        fwd(*arrays, float(span), np.array([-alpha], np_dtype), int(height), int(width), images, stats, at, ec, kept)
         ctx.arrays, ctx.images, ctx.stats = arrays, images, stats
         ctx.geometry = (height, width, span, alpha)
         ctx.mark_non_differentiable(kept_t := torch.from_numpy(kept).to(dtype))

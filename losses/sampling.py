@@ -15,14 +15,15 @@ __all__ = ["sample_flow"]
 
 class _SampleCompiled(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, flow, x, y):
+    def forward(ctx, flow, x, y, mask):
         np_dtype = np.float64 if flow.dtype == torch.float64 else np.float32
         f = np.ascontiguousarray(flow.detach().numpy())
         xs = np.ascontiguousarray(x.detach().numpy(), dtype=np_dtype)
         ys = np.ascontiguousarray(y.detach().numpy(), dtype=np_dtype)
+        valid = np.ones(x.shape, np.bool_) if mask is None else np.ascontiguousarray(mask.numpy())
         out = np.empty((x.shape[0], x.shape[1], 2), np_dtype)
-        _kernels.sampling_kernels(_kernels.use_threads())[0](f, xs, ys, out)
-        ctx.coords, ctx.shape = (xs, ys), flow.shape
+        _kernels.sampling_kernels(_kernels.use_threads())[0](f, xs, ys, valid, out)
+        ctx.coords, ctx.shape = (xs, ys, valid), flow.shape
         return torch.from_numpy(out)
 
     @staticmethod
@@ -30,10 +31,10 @@ class _SampleCompiled(torch.autograd.Function):
         grad = np.empty(tuple(ctx.shape), ctx.coords[0].dtype)
         g = np.ascontiguousarray(grad_out.detach().numpy())
         _kernels.sampling_kernels(_kernels.use_threads())[1](g, *ctx.coords, grad)
-        return torch.from_numpy(grad), None, None
+        return torch.from_numpy(grad), None, None, None
 
 
-def sample_flow(flow: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+def sample_flow(flow: torch.Tensor, x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """Bilinearly sample ``flow`` at (x, y).
 
     flow: (B, 2, H, W) float, pixels per window. x, y: (B, N) float, pixels.
@@ -42,10 +43,12 @@ def sample_flow(flow: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.T
     Exact at integer pixels (the event's own pixel gets weight exactly 1; when every
     coordinate is an integer a single gather per event is used). Coordinates outside the image
     are clamped to [0, W-1] x [0, H-1] first ("border" rule), so an event off the sensor takes
-    the flow of the nearest border pixel. Differentiable in flow.
+    the flow of the nearest border pixel. Differentiable in flow. mask: optional (B, N) bool,
+    padding events (False) may be skipped (their value is then 0, or whatever the torch path
+    gives: callers must not use them).
     """
     if _kernels is not None and flow.device.type == "cpu" and flow.dtype in (torch.float32, torch.float64):
-        return _SampleCompiled.apply(flow, x, y)
+        return _SampleCompiled.apply(flow, x, y, mask)
     B, _, H, W = flow.shape
     hw = H * W
     x = x.to(flow.dtype).clamp(0, W - 1)
