@@ -34,7 +34,8 @@ import torch.distributed as dist
 from gymnasium.vector import AutoresetMode
 
 from envs.env import EventFlowEnv
-from losses import EventBatch, accumulated_hmc_loss, at_loss, hmc_loss, to_full_resolution
+from losses import (EventBatch, accumulated_hmc_loss, at_loss, contrast_maximisation_flow, event_pixel_mask, hmc_loss,
+                    to_full_resolution)
 
 from .checkpoint import rng_state, set_rng_state
 from .policy import RecurrentPolicy
@@ -66,13 +67,18 @@ class TrainConfig:
     warmup_steps: int = 0
     decay: str = "none"  # "none" or "cosine"
     grad_clip: float = 100.0  # Hagenaars
-    loss: str = "hmc"  # "hmc", "at", or "supervised" (endpoint error against ground truth: an upper bound)
+    loss: str = "hmc"  # "hmc", "at", "teacher" (regress per-window contrast-maximisation flows), or
+    # "supervised" (endpoint error against ground truth: a reference bound, not the method)
     loss_mode: str = "window"  # "window" (per-window, default) or "accumulated"
     lambda_1: float = 1.0
     lambda_2: float = 1e-3
     alpha: float = 0.6
     border_penalty: float = 1.0  # border rule: weight x zero-flow loss x share of events pushed out (0 = paper)
     flow_scaling: float | None = None  # default max(H, W)
+    teacher_grids: tuple = (4, 8)  # loss "teacher": coarse-to-fine cells along the longer side
+    teacher_steps: int = 40  # Adam steps per level
+    teacher_lr: float = 0.05  # pixels
+    teacher_lambda_2: float = 1e-2  # the teacher's smoothness weight
     head_init: float | None = None  # re-draw the flow heads' weights from U(-a, a), biases 0: start near zero flow
     seed: int = 0
     device: str = "cpu"
@@ -179,6 +185,26 @@ class Learner:
         errors = [((f - gt).norm(dim=1, keepdim=True) * valid).sum() / valid.sum().clamp_min(1) for f in to_full_resolution(flows)]
         return torch.stack(errors).mean()
 
+    def _teacher_loss(self, all_flows: list, windows: list[dict]) -> torch.Tensor:
+        """Mean endpoint error, on pixels holding events, between every scale of the network's
+        flows and the per-window contrast-maximisation flow of L_HMC (all L x B windows of the
+        unroll solved together; the teacher sees only the events)."""
+        cfg = self.cfg
+        batch = EventBatch.from_windows(windows, device=self.device)
+        target = contrast_maximisation_flow(
+            batch, self.height, self.width, grids=cfg.teacher_grids, steps=cfg.teacher_steps, lr=cfg.teacher_lr,
+            flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1, lambda_2=cfg.teacher_lambda_2, alpha=cfg.alpha,
+            border_penalty=cfg.border_penalty,
+        )
+        weight = event_pixel_mask(batch.x, batch.y, batch.mask, self.height, self.width).unsqueeze(1).to(target.dtype)
+        n = cfg.num_envs
+        errors = []
+        for k, flows in enumerate(all_flows):
+            t, w = target[k * n : (k + 1) * n], weight[k * n : (k + 1) * n]
+            for f in to_full_resolution(flows):
+                errors.append(((f - t).norm(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1))
+        return torch.stack(errors).mean()
+
     def _loss(self, flows, batch: EventBatch, border_penalty=0.0):
         cfg = self.cfg
         if cfg.loss == "hmc" or cfg.loss == "supervised":
@@ -201,6 +227,7 @@ class Learner:
         cfg = self.cfg
         n = cfg.num_envs
         losses, zero_losses, finest, batches, events_seen = [], [], [], [], 0
+        all_flows, windows, model_losses = [], [], []
         for _ in range(cfg.unroll):
             x = torch.as_tensor(self.obs[cfg.input], device=self.device)
             flows = self.policy(x)  # multi-scale, finest last, pixels per window
@@ -209,7 +236,12 @@ class Learner:
             with torch.no_grad():  # the reference the border rule scales with, and a logged baseline
                 zero = self._loss(torch.zeros_like(flows[-1]), batch)
             zero_losses.append(zero.loss)
-            if cfg.loss == "supervised":
+            if cfg.loss == "teacher":
+                all_flows.append(flows)
+                windows += _windows_from_info(self.info, n)
+                with torch.no_grad():  # logged: the network's own L_HMC beside zero flow's
+                    model_losses.append(self._loss(flows[-1].detach(), batch, cfg.border_penalty * zero.per_sample).loss)
+            elif cfg.loss == "supervised":
                 losses.append(self._supervised(flows))
             elif cfg.loss_mode == "window":
                 losses.append(self._loss(flows, batch, cfg.border_penalty * zero.per_sample).loss)
@@ -220,7 +252,9 @@ class Learner:
             done = np.logical_or(terminated, truncated)
             if done.any():
                 self.policy.reset(mask=done)  # new sequences start from a fresh state
-        if cfg.loss == "supervised" or cfg.loss_mode == "window":
+        if cfg.loss == "teacher":
+            loss = self._teacher_loss(all_flows, windows)
+        elif cfg.loss == "supervised" or cfg.loss_mode == "window":
             loss = torch.stack(losses).mean()
         else:
             with torch.no_grad():
@@ -239,7 +273,9 @@ class Learner:
         self.scheduler.step()
         self.policy.detach()  # truncated BPTT: the next update continues, without the graph
         self.step += 1
+        extra = {"model_hmc": float(torch.stack(model_losses).mean())} if model_losses else {}
         return {
+            **extra,
             "step": self.step,
             "loss": float(loss.detach()),
             "zero_flow_loss": float(torch.stack(zero_losses).mean()),

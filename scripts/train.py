@@ -78,8 +78,14 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--decay", default=d.decay, choices=["none", "cosine"])
     g.add_argument("--grad-clip", type=float, default=d.grad_clip)
     g = p.add_argument_group("loss")
-    g.add_argument("--loss", default=d.loss, choices=["hmc", "at", "supervised"],
-                   help="hmc (paper), at (baseline), supervised (endpoint error vs ground truth: a reference bound)")
+    g.add_argument("--loss", default=d.loss, choices=["hmc", "at", "teacher", "supervised"],
+                   help="hmc (paper), at (baseline), teacher (regress per-window contrast-maximisation flows of "
+                        "L_HMC: unsupervised), supervised (endpoint error vs ground truth: a reference bound)")
+    g.add_argument("--teacher-grids", type=int, nargs="+", default=list(d.teacher_grids),
+                   help="teacher: coarse-to-fine grid cells along the longer side (default 4 8)")
+    g.add_argument("--teacher-steps", type=int, default=d.teacher_steps, help="teacher: Adam steps per level")
+    g.add_argument("--teacher-lr", type=float, default=d.teacher_lr, help="teacher: Adam step size (pixels)")
+    g.add_argument("--teacher-lambda-2", type=float, default=d.teacher_lambda_2, help="teacher: smoothness weight")
     g.add_argument("--loss-mode", default=d.loss_mode, choices=["window", "accumulated"])
     g.add_argument("--lambda-1", type=float, default=d.lambda_1)
     g.add_argument("--lambda-2", type=float, default=d.lambda_2)
@@ -115,7 +121,9 @@ def config_from_args(args) -> TrainConfig:
         num_envs=args.num_envs, vector=args.vector, unroll=args.unroll, steps=args.steps, lr=args.lr,
         warmup_steps=args.warmup_steps, decay=args.decay, grad_clip=args.grad_clip, loss=args.loss,
         loss_mode=args.loss_mode, lambda_1=args.lambda_1, lambda_2=args.lambda_2, alpha=args.alpha,
-        border_penalty=args.border_penalty, flow_scaling=args.flow_scaling, head_init=args.head_init, seed=args.seed, device=args.device,
+        border_penalty=args.border_penalty, flow_scaling=args.flow_scaling, head_init=args.head_init,
+        teacher_grids=tuple(args.teacher_grids), teacher_steps=args.teacher_steps, teacher_lr=args.teacher_lr,
+        teacher_lambda_2=args.teacher_lambda_2, seed=args.seed, device=args.device,
     )
 
 
@@ -179,7 +187,10 @@ def main(argv=None) -> int:
             if log:
                 log.write(json.dumps(stats) + "\n")
                 log.flush()
-            bar.set_postfix(loss=f"{stats['loss']:.4f}", zero=f"{stats['zero_flow_loss']:.4f}", win_s=f"{stats['windows_per_s']:.1f}")
+            shown = {"loss": f"{stats['loss']:.4f}", "zero": f"{stats['zero_flow_loss']:.4f}"}
+            if "model_hmc" in stats:
+                shown["hmc"] = f"{stats['model_hmc']:.4f}"
+            bar.set_postfix(**shown, win_s=f"{stats['windows_per_s']:.1f}")
             bar.update(1)
             if args.val_every and learner.step % args.val_every == 0 and args.val_data and rank == 0:
                 val = {"step": learner.step, **validate(learner, args.val_data, args.val_windows)}
