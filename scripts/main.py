@@ -1,21 +1,23 @@
 #!/usr/bin/env python
 """The main job, end to end on the embedded synthetic benchmark (no files needed):
 
-1. train a CPU-size EV-MGRFlowNet with truncated BPTT on the synthetic train split for
-   --minutes (default 12) with the hybrid motion-compensation loss (per window, border rule on),
-   flow_scaling 16 and lr 1e-3: the per-window recipe that came closest to zero flow in the
-   probes of docs/results.md (the paper's lr 1e-4 / flow_scaling 128 did worse in this budget);
-2. evaluate it and the zero-flow baseline on the synthetic test split;
-3. print the table and where the pictures are.
+1. evaluate the shipped pretrained EV-MGRFlowNet (agents/weights/, if one ships) and the
+   zero-flow baseline on the synthetic test split at dt = 1 and dt = 4, and print the table;
+2. a short training demo of the project's recipe from scratch (--demo-minutes, default 3):
+   per-window contrast-maximisation teacher of L_HMC distilled into a CPU-size EV-MGRFlowNet,
+   printing the network's own L_HMC beside zero flow's on the same training windows, then a
+   quick evaluation of the demo model;
+3. print the command for the full training.
 
-Everything goes to --out (default runs/main): train/ (checkpoint, metrics.jsonl) and eval/
-(table.md, results.json, pictures/). Any train.py option can follow `--` to override, e.g.
-  python scripts/main.py --minutes 3 -- --model convgru-ev-flownet --loss at
+Everything goes to --out (default runs/main): eval/ (table.md, results.json, pictures/),
+demo/ (checkpoint, metrics.jsonl) and demo-eval/. Extra scripts/train.py options for the demo
+follow `--`, e.g.  python scripts/main.py --demo-minutes 1 -- --num-envs 4
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -25,29 +27,64 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import evaluate as evaluate_script  # noqa: E402
 import train as train_script  # noqa: E402
 
+from agents.pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info  # noqa: E402
+
+#: The recipe of the shipped model (docs/results.md says how it was found).
+RECIPE = ["--model", "ev-mgrflownet", "--width", "cpu", "--input", "voxel_grid", "--loss", "teacher",
+          "--crop", "64", "64", "--random-crop", "--window-size", "1", "2", "3", "4", "--flow-scaling", "32",
+          "--lr", "1e-3", "--head-init", "0.01", "--num-envs", "8", "--unroll", "4", "--teacher-steps", "20"]
+
+
+def demo_summary(metrics: Path) -> None:
+    rows = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
+    steps = [r for r in rows if "loss" in r]
+    if not steps:
+        return
+    chunk = max(1, len(steps) // 6)
+    print("[main] demo: the network's L_HMC / zero flow's L_HMC on the same training windows "
+          "(below 1 = better than zero flow), and its distance to the teacher (px)")
+    for i in range(0, len(steps), chunk):
+        part = steps[i : i + chunk]
+        ratio = sum(r.get("model_hmc", r["loss"]) for r in part) / sum(r["zero_flow_loss"] for r in part)
+        print(f"  steps {part[0]['step']:>4}-{part[-1]['step']:<4}  L_HMC ratio {ratio:.3f}  "
+              f"teacher distance {sum(r['loss'] for r in part) / len(part):.3f}")
+
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--minutes", type=float, default=12.0, help="training time budget (default 12)")
-    parser.add_argument("--steps", type=int, default=100_000, help="optimizer step limit (the time budget usually ends first)")
+    parser.add_argument("--demo-minutes", type=float, default=3.0, help="length of the training demo (0: skip)")
     parser.add_argument("--out", default="runs/main")
     parser.add_argument("--eval-data", default="synthetic-test")
     parser.add_argument("--device", default=None)
-    parser.add_argument("train_args", nargs="*", help="extra scripts/train.py options (after --)")
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    cut = argv.index("--") if "--" in argv else len(argv)
+    args = parser.parse_args(argv[:cut])
+    extra = argv[cut + 1 :]
     out = Path(args.out)
     device = ["--device", args.device] if args.device else []
-    print(f"[main] 1/2 training EV-MGRFlowNet (CPU width) for {args.minutes:g} min on synthetic-train", flush=True)
-    train_script.main(
-        ["--data", "synthetic-train", "--width", "cpu", "--flow-scaling", "16", "--lr", "1e-3",
-         "--minutes", str(args.minutes), "--steps", str(args.steps),
-         "--out", str(out / "train"), "--val-data", "synthetic-mini", "--val-every", "50", *device, *args.train_args]
-    )
-    print(f"[main] 2/2 evaluating the trained model and zero flow on {args.eval_data}", flush=True)
-    evaluate_script.main(
-        ["--checkpoint", str(out / "train" / "checkpoint.pt"), "--name", "EV-MGRFlowNet (trained here)", "--zero",
-         "--data", args.eval_data, "--out", str(out / "eval"), *device]
-    )
+
+    if DEFAULT_PRETRAINED in list_pretrained():
+        info = pretrained_info(DEFAULT_PRETRAINED)
+        print(f"[main] 1/3 evaluating the shipped model {DEFAULT_PRETRAINED!r} ({info.get('date')}, "
+              f"{info.get('budget', {}).get('optimizer_steps')} steps) and zero flow on {args.eval_data}", flush=True)
+        evaluate_script.main(["--pretrained", DEFAULT_PRETRAINED, "--zero", "--data", args.eval_data,
+                              "--out", str(out / "eval"), "--no-progress", *device])
+    else:
+        print("[main] 1/3 no pretrained model ships in agents/weights/: evaluating zero flow only", flush=True)
+        evaluate_script.main(["--zero", "--data", args.eval_data, "--out", str(out / "eval"), "--no-progress", *device])
+
+    if args.demo_minutes > 0:
+        print(f"\n[main] 2/3 training demo: {args.demo_minutes:g} min of the recipe from scratch", flush=True)
+        train_script.main([*RECIPE, "--minutes", str(args.demo_minutes), "--steps", "1000000",
+                           "--out", str(out / "demo"), "--val-data", "", "--no-progress", *device, *extra])
+        demo_summary(out / "demo" / "metrics.jsonl")
+        evaluate_script.main(["--checkpoint", str(out / "demo" / "checkpoint.pt"), "--name", "demo model", "--zero",
+                              "--data", args.eval_data, "--dt", "1", "--max-windows", "15", "--pictures", "0",
+                              "--out", str(out / "demo-eval"), "--no-progress", *device])
+
+    print("\n[main] 3/3 the full training of the shipped recipe (resumable; --device cuda on a GPU):")
+    print("  python scripts/train.py " + " ".join(RECIPE) + " --steps 20000 --out runs/recipe")
+    print("  python scripts/train.py --resume --out runs/recipe --steps 40000    # continue later")
     return 0
 
 

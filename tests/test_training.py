@@ -226,3 +226,15 @@ def test_head_init_starts_every_builtin_model_near_zero_flow():
         assert max(float(f.abs().max()) for f in flows) < 0.5, name  # px, vs up to 32 with the default init
     with pytest.raises(ValueError, match="decoder.heads"):
         init_flow_heads(torch.nn.Linear(2, 2), 1e-3)
+
+
+def test_main_job_runs_end_to_end_on_mini_data(tmp_path, capsys):
+    import main as main_script
+
+    out = tmp_path / "main"
+    main_script.main(["--demo-minutes", "0.01", "--eval-data", "synthetic-mini", "--out", str(out), "--",
+                      "--data", "synthetic-mini", "--width", "4", "--num-envs", "2", "--unroll", "2", "--teacher-steps", "2"])
+    printed = capsys.readouterr().out
+    assert "| zero flow |" in (out / "eval" / "table.md").read_text()
+    assert (out / "demo" / "checkpoint.pt").exists() and "| demo model |" in (out / "demo-eval" / "table.md").read_text()
+    assert "L_HMC ratio" in printed and "scripts/train.py --model ev-mgrflownet" in printed
