@@ -137,7 +137,9 @@ def render(results: dict[str, list[dict]], zero: dict, args, recipe: list[str]) 
         f"Budget: {args.minutes:g} minutes of training per configuration on the project's 2-core CPU "
         f"(one process per run{', ' + args.threads_note if args.threads_note else ''}); "
         f"seeds {', '.join(map(str, args.seeds))} for the main configuration, seed {args.seeds[0]} for the others. "
-        "Evaluated on `synthetic-test` (11 sequences, every window; the 256x256 ones centre-cropped to 128x128), "
+        f"Evaluated on `{args.eval_data}` ("
+        + (f"the first {args.max_windows} windows of each sequence" if args.max_windows else "every window")
+        + "; 256x256 sequences centre-cropped to 128x128), "
         "dt = 1 and dt = 4. The paper column is MVSEC, a different data set: compare orderings, not values. "
         "Mean ± sample standard deviation over seeds where there are several.",
         "",
