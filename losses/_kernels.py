@@ -16,6 +16,7 @@ the reference the tests compare against and the path for CUDA.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -35,6 +36,39 @@ def _corner_gradient(img, c, rr, q, height, width, w, k_at, k_ec):
     if rr == 0 or rr == height + 1 or q == 0 or q == width + 1:
         return 0.0
     return k_at * (w * img[1, c, rr, q] - img[0, c, rr, q]) + k_ec * img[2, c, rr, q]
+
+
+@numba.njit(inline="always", **_OPTIONS)
+def _warp_event(x, y, t, u, b, i, s, height, width):
+    """Event i of window b warped to reference s (eq. 12) in the padded layout: (inside, row,
+    col, fx, fy, dt); ``inside`` False when all 4 corners fall outside the image (or on NaN)."""
+    dt = s - t[b, i]
+    xw = x[b, i] + dt * u[b, i, 0]
+    yw = y[b, i] + dt * u[b, i, 1]
+    x0f = math.floor(xw)
+    y0f = math.floor(yw)
+    inside = x0f >= -1.0 and x0f <= width - 1.0 and y0f >= -1.0 and y0f <= height - 1.0
+    if not inside:
+        return False, 0, 0, 0.0, 0.0, dt
+    return True, int(y0f) + 1, int(x0f) + 1, xw - x0f, yw - y0f, dt
+
+
+@numba.njit(inline="always", **_OPTIONS)
+def _finish_pixel(img, c, rr, q, neg_alpha):
+    """One polarity of one pixel after splatting: returns (T^2, E) with T = A / (C + 1e-9)
+    (eq. 13) and E = exp(-alpha C), and keeps the backward factors in place of C and A:
+    P1 = T / (C + 1e-9), P2 = T P1 (0 where C = 0), E."""
+    count = img[0, c, rr, q]
+    if count == 0:
+        img[2, c, rr, q] = 1.0
+        return 0.0, 1.0
+    inv = 1.0 / (count + 1e-9)
+    tt = img[1, c, rr, q] * inv
+    e = math.exp(neg_alpha[0] * count)
+    img[1, c, rr, q] = tt * inv
+    img[0, c, rr, q] = tt * tt * inv
+    img[2, c, rr, q] = e
+    return tt * tt, e
 
 
 def _make(parallel: bool):
@@ -61,17 +95,9 @@ def _make(parallel: bool):
             for i in range(N):
                 if not mask[b, i]:
                     continue
-                dt = s - t[b, i]
-                xw = x[b, i] + dt * u[b, i, 0]
-                yw = y[b, i] + dt * u[b, i, 1]
-                x0f = math.floor(xw)
-                y0f = math.floor(yw)
-                if not (x0f >= -1.0 and x0f <= width - 1.0 and y0f >= -1.0 and y0f <= height - 1.0):
-                    continue  # all 4 corners outside (or a NaN): dropped
-                fx = xw - x0f
-                fy = yw - y0f
-                col = int(x0f) + 1
-                row = int(y0f) + 1
+                inside, row, col, fx, fy, dt = _warp_event(x, y, t, u, b, i, s, height, width)
+                if not inside:
+                    continue  # all 4 corners outside: dropped
                 c = 1 if off[b, i] else 0
                 w = 1.0 - abs(dt) / span
                 k00 = (1.0 - fy) * (1.0 - fx)
@@ -98,32 +124,11 @@ def _make(parallel: bool):
                     if c_on + c_off > 0:
                         nnz += 1
                     total += c_on + c_off
-                    # per polarity: T = A / (C + 1e-9) (eq. 13); kept for the backward as
-                    # P1 = T / (C + 1e-9), P2 = T P1 and E = exp(-alpha C), in place of C and A
-                    if c_on != 0:
-                        inv = 1.0 / (c_on + 1e-9)
-                        tt = img[1, 0, rr, q] * inv
-                        sum_t2 += tt * tt
-                        e = math.exp(neg_alpha[0] * c_on)
-                        img[1, 0, rr, q] = tt * inv
-                        img[0, 0, rr, q] = tt * tt * inv
-                        img[2, 0, rr, q] = e
-                        s_on += e
-                    else:
-                        img[2, 0, rr, q] = 1.0
-                        s_on += 1.0
-                    if c_off != 0:
-                        inv = 1.0 / (c_off + 1e-9)
-                        tt = img[1, 1, rr, q] * inv
-                        sum_t2 += tt * tt
-                        e = math.exp(neg_alpha[0] * c_off)
-                        img[1, 1, rr, q] = tt * inv
-                        img[0, 1, rr, q] = tt * tt * inv
-                        img[2, 1, rr, q] = e
-                        s_off += e
-                    else:
-                        img[2, 1, rr, q] = 1.0
-                        s_off += 1.0
+                    t2_on, e_on = _finish_pixel(img, 0, rr, q, neg_alpha)
+                    t2_off, e_off = _finish_pixel(img, 1, rr, q, neg_alpha)
+                    sum_t2 += t2_on + t2_off
+                    s_on += e_on
+                    s_off += e_off
             at[b, r] = sum_t2 / (nnz + 1e-9)
             ec[b, r] = hw / s_on + hw / s_off - 2.0
             kept[b, r] = total
@@ -153,17 +158,9 @@ def _make(parallel: bool):
                 grad_u[b, r, i, 1] = 0.0
                 if not mask[b, i]:
                     continue
-                dt = s - t[b, i]
-                xw = x[b, i] + dt * u[b, i, 0]
-                yw = y[b, i] + dt * u[b, i, 1]
-                x0f = math.floor(xw)
-                y0f = math.floor(yw)
-                if not (x0f >= -1.0 and x0f <= width - 1.0 and y0f >= -1.0 and y0f <= height - 1.0):
+                inside, row, col, fx, fy, dt = _warp_event(x, y, t, u, b, i, s, height, width)
+                if not inside:
                     continue
-                fx = xw - x0f
-                fy = yw - y0f
-                col = int(x0f) + 1
-                row = int(y0f) + 1
                 c = 1 if off[b, i] else 0
                 k_ec = k_off if c == 1 else k_on
                 w = 1.0 - abs(dt) / span
@@ -180,9 +177,6 @@ def _make(parallel: bool):
     return forward, backward
 
 
-_KERNELS: dict[bool, tuple] = {}
-
-
 def use_threads() -> bool:
     """Follow torch's intra-op thread count: several threads -> the parallel kernels with as
     many numba threads; one thread (e.g. inside a forked env worker, where a threading runtime
@@ -194,11 +188,10 @@ def use_threads() -> bool:
     return True
 
 
+@functools.cache
 def kernels(parallel: bool):
     """(forward, backward) compiled for threads (``parallel``) or for one thread."""
-    if parallel not in _KERNELS:
-        _KERNELS[parallel] = _make(parallel)
-    return _KERNELS[parallel]
+    return _make(parallel)
 
 
 _DIRECTIONS = np.array([[0, 1], [1, 0], [1, 1], [-1, 1]], np.int64)  # as smoothness._DIRECTIONS
@@ -253,14 +246,21 @@ def _make_smoothness(parallel: bool):
     return forward, backward
 
 
-_SMOOTHNESS: dict[bool, tuple] = {}
-
-
+@functools.cache
 def smoothness_kernels(parallel: bool):
     """(forward, backward) of the Charbonnier sum, for threads or for one thread."""
-    if parallel not in _SMOOTHNESS:
-        _SMOOTHNESS[parallel] = _make_smoothness(parallel)
-    return _SMOOTHNESS[parallel]
+    return _make_smoothness(parallel)
+
+
+@numba.njit(inline="always", **_OPTIONS)
+def _bilinear_taps(x, y, H, W):
+    """Corner columns/rows and fractions of a bilinear sample at (x, y), clamped to the image
+    ("border"): (x0, x1, y0, y1, fx, fy)."""
+    xi = min(max(x, 0.0), W - 1.0)
+    yi = min(max(y, 0.0), H - 1.0)
+    x0 = int(math.floor(xi))
+    y0 = int(math.floor(yi))
+    return x0, min(x0 + 1, W - 1), y0, min(y0 + 1, H - 1), xi - x0, yi - y0
 
 
 def _make_sampling(parallel: bool):
@@ -278,14 +278,7 @@ def _make_sampling(parallel: bool):
                     out[b, i, 0] = 0.0
                     out[b, i, 1] = 0.0
                     continue
-                xi = min(max(x[b, i], 0.0), W - 1.0)
-                yi = min(max(y[b, i], 0.0), H - 1.0)
-                x0 = int(math.floor(xi))
-                y0 = int(math.floor(yi))
-                fx = xi - x0
-                fy = yi - y0
-                x1 = min(x0 + 1, W - 1)
-                y1 = min(y0 + 1, H - 1)
+                x0, x1, y0, y1, fx, fy = _bilinear_taps(x[b, i], y[b, i], H, W)
                 for c in range(2):
                     out[b, i, c] = ((1.0 - fy) * ((1.0 - fx) * flow[b, c, y0, x0] + fx * flow[b, c, y0, x1])
                                     + fy * ((1.0 - fx) * flow[b, c, y1, x0] + fx * flow[b, c, y1, x1]))
@@ -300,14 +293,7 @@ def _make_sampling(parallel: bool):
             for i in range(N):
                 if not mask[b, i]:
                     continue
-                xi = min(max(x[b, i], 0.0), W - 1.0)
-                yi = min(max(y[b, i], 0.0), H - 1.0)
-                x0 = int(math.floor(xi))
-                y0 = int(math.floor(yi))
-                fx = xi - x0
-                fy = yi - y0
-                x1 = min(x0 + 1, W - 1)
-                y1 = min(y0 + 1, H - 1)
+                x0, x1, y0, y1, fx, fy = _bilinear_taps(x[b, i], y[b, i], H, W)
                 for c in range(2):
                     g = grad_out[b, i, c]
                     grad_flow[b, c, y0, x0] += (1.0 - fy) * (1.0 - fx) * g
@@ -333,11 +319,7 @@ def _make_sampling(parallel: bool):
     return forward, backward, event_mask
 
 
-_SAMPLING: dict[bool, tuple] = {}
-
-
+@functools.cache
 def sampling_kernels(parallel: bool):
     """(sample forward, sample backward, event-pixel mask), for threads or for one thread."""
-    if parallel not in _SAMPLING:
-        _SAMPLING[parallel] = _make_sampling(parallel)
-    return _SAMPLING[parallel]
+    return _make_sampling(parallel)
