@@ -3,12 +3,16 @@
 
   python scripts/diagnose.py scale   --window-size 1      # L_HMC of c x ground truth, c = 0 .. 2
   python scripts/diagnose.py teacher --window-size 1      # per-window contrast maximisation vs truth
+  python scripts/diagnose.py overfit --window-size 3      # can a network fit the loss on one fixed batch?
 
 scale: for windows of the training split, the loss (with the border rule) of c x the true
 flow divided by zero flow's, for c in 0.5, 0.75, 1, 1.25, 1.5, 2: the mean ratio per c, the share
 of windows where the truth beats zero flow, and how often each c is the best.
 teacher: ``losses.contrast_maximisation_flow`` on a batch of windows: AEE against the truth
 (pixels with events and valid truth) and the cosine, beside zero flow's AEE.
+overfit: a CPU-width EV-FlowNet (voxel input, near-zero heads) trained with L_HMC on one fixed
+batch of windows (the second window of every --sequences-th sequence): loss / zero flow's, AEE
+and cosine every 30 steps.
 """
 
 from __future__ import annotations
@@ -66,6 +70,7 @@ def scale(args) -> None:
 
 
 def teacher(args) -> None:
+    args.steps = 40 if args.steps is None else args.steps
     b, gt, valid = batch_of(windows(args))
     H, W = gt.shape[-2:]
     mask = valid & event_pixel_mask(b.x, b.y, b.mask, H, W)
@@ -80,9 +85,48 @@ def teacher(args) -> None:
           f"AEE {aee:.3f} vs zero flow {zero:.3f} ({aee / zero:.2f}x), cos {cos:.2f}, {seconds:.1f} s")
 
 
+def overfit(args) -> None:
+    args.steps = 150 if args.steps is None else args.steps
+    from agents import make_model
+    from agents.learner import init_flow_heads
+
+    crop = dict(crop=tuple(args.crop), random_crop=True) if args.crop else {}
+    env = EventFlowEnv(args.data, window_size=args.window_size, compute_reward=False, observations=("voxel_grid",), **crop)
+    xs, infos = [], []
+    for seq in range(0, len(env.sources), max(1, len(env.sources) // args.sequences)):
+        env.reset(seed=seq, options={"sequence": seq})
+        obs, _, _, _, info = env.step(np.zeros(env.action_space.shape, np.float32))
+        xs.append(obs["voxel_grid"])
+        infos.append(info)
+    x = torch.from_numpy(np.stack(xs))
+    b, gt, valid = batch_of(infos)
+    H, W = gt.shape[-2:]
+    mask = valid & event_pixel_mask(b.x, b.y, b.mask, H, W)
+    zero = hmc_loss(torch.zeros_like(gt), b, flow_scaling=args.flow_scaling)
+    penalty = zero.per_sample.detach()  # the border rule
+    truth = hmc_loss(gt, b, flow_scaling=args.flow_scaling, border_penalty=penalty).loss.item() / zero.loss.item()
+    torch.manual_seed(0)
+    model = make_model("ev-flownet", width="cpu", flow_scaling=args.flow_scaling, in_channels=x.shape[1])
+    init_flow_heads(model, 0.01)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    aee_zero = gt.norm(dim=1)[mask].mean().item()
+    print(f"{gt.shape[0]} windows {H}x{W}, dt = {args.window_size}; the true flow's loss / zero flow's: {truth:.3f}")
+    for step in range(args.steps + 1):
+        flows, _ = model(x, None)
+        out = hmc_loss(flows, b, flow_scaling=args.flow_scaling, border_penalty=penalty)
+        if step % 30 == 0:
+            f = flows[-1].detach()
+            print(f"  step {step:>3}: loss / zero {out.loss.item() / zero.loss.item():.3f}, "
+                  f"AEE {(f - gt).norm(dim=1)[mask].mean().item():.2f} (zero flow {aee_zero:.2f}), "
+                  f"cos {F.cosine_similarity(f, gt, dim=1)[mask].mean().item():.2f}", flush=True)
+        optimizer.zero_grad()
+        out.loss.backward()
+        optimizer.step()
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("what", choices=["scale", "teacher"])
+    p.add_argument("what", choices=["scale", "teacher", "overfit"])
     p.add_argument("--data", default="synthetic-train")
     p.add_argument("--window-size", type=int, default=1, help="frames per window")
     p.add_argument("--crop", type=int, nargs=2, default=[64, 64], help="random crop H W ('0 0': whole frames)")
@@ -90,7 +134,7 @@ def main(argv=None) -> int:
     p.add_argument("--per-sequence", type=int, default=3)
     p.add_argument("--flow-scaling", type=float, default=32.0)
     p.add_argument("--grids", type=int, nargs="+", default=[4, 8])
-    p.add_argument("--steps", type=int, default=40)
+    p.add_argument("--steps", type=int, default=None, help="teacher: Adam steps per level (40); overfit: steps (150)")
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--lambda-2", type=float, default=1e-2)
     p.add_argument("--threads", type=int, default=None)
@@ -99,7 +143,7 @@ def main(argv=None) -> int:
         args.crop = None
     if args.threads:
         torch.set_num_threads(args.threads)
-    {"scale": scale, "teacher": teacher}[args.what](args)
+    {"scale": scale, "teacher": teacher, "overfit": overfit}[args.what](args)
     return 0
 
 
