@@ -29,7 +29,7 @@ import train as train_script  # noqa: E402
 
 from agents.pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info  # noqa: E402
 
-#: The recipe of the shipped model (docs/results.md says how it was found).
+#: The project's current recipe (docs/results.md says how it was found and how far it gets).
 RECIPE = ["--model", "ev-mgrflownet", "--width", "cpu", "--input", "voxel_grid", "--loss", "teacher",
           "--crop", "64", "64", "--random-crop", "--window-size", "1", "2", "3", "4", "--flow-scaling", "32",
           "--lr", "1e-3", "--head-init", "0.01", "--num-envs", "8", "--unroll", "4", "--teacher-steps", "20"]
@@ -82,7 +82,7 @@ def main(argv=None) -> int:
                               "--data", args.eval_data, "--dt", "1", "--max-windows", "15", "--pictures", "0",
                               "--out", str(out / "demo-eval"), "--no-progress", *device])
 
-    print("\n[main] 3/3 the full training of the shipped recipe (resumable; --device cuda on a GPU):")
+    print("\n[main] 3/3 the full training of the recipe (resumable; --device cuda on a GPU):")
     print("  python scripts/train.py " + " ".join(RECIPE) + " --steps 20000 --out runs/recipe")
     print("  python scripts/train.py --resume --out runs/recipe --steps 40000    # continue later")
     return 0
