@@ -79,6 +79,8 @@ class TrainConfig:
     teacher_steps: int = 40  # Adam steps per level
     teacher_lr: float = 0.05  # pixels
     teacher_lambda_2: float = 1e-2  # the teacher's smoothness weight
+    teacher_pixels: str = "events"  # where the network is regressed onto the teacher: "events" or "all"
+    teacher_max_events: int | None = None  # the teacher solves on at most this many events per window (evenly subsampled)
     head_init: float | None = None  # re-draw the flow heads' weights from U(-a, a), biases 0: start near zero flow
     seed: int = 0
     device: str = "cpu"
@@ -135,6 +137,15 @@ def _windows_from_info(info: dict, num_envs: int) -> list[dict]:
     ]
 
 
+def _subsample_window(window: dict, max_events: int) -> dict:
+    """The window with at most ``max_events`` events, taken evenly along the (time-ordered) stream."""
+    n = len(window["t"])
+    if n <= max_events:
+        return window
+    keep = np.linspace(0, n - 1, max_events).round().astype(np.int64)
+    return {key: (value[keep] if key in ("x", "y", "t", "p") else value) for key, value in window.items()}
+
+
 class Learner:
     """Owns the policy, optimizer and training envs of one process."""
 
@@ -186,17 +197,23 @@ class Learner:
         return torch.stack(errors).mean()
 
     def _teacher_loss(self, all_flows: list, windows: list[dict]) -> torch.Tensor:
-        """Mean endpoint error, on pixels holding events, between every scale of the network's
+        """Mean endpoint error, on pixels holding events (or all pixels), between every scale of the network's
         flows and the per-window contrast-maximisation flow of L_HMC (all L x B windows of the
         unroll solved together; the teacher sees only the events)."""
         cfg = self.cfg
         batch = EventBatch.from_windows(windows, device=self.device)
+        solved = batch
+        if cfg.teacher_max_events:
+            solved = EventBatch.from_windows([_subsample_window(w, cfg.teacher_max_events) for w in windows], device=self.device)
         target = contrast_maximisation_flow(
-            batch, self.height, self.width, grids=cfg.teacher_grids, steps=cfg.teacher_steps, lr=cfg.teacher_lr,
+            solved, self.height, self.width, grids=cfg.teacher_grids, steps=cfg.teacher_steps, lr=cfg.teacher_lr,
             flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1, lambda_2=cfg.teacher_lambda_2, alpha=cfg.alpha,
             border_penalty=cfg.border_penalty,
         )
-        weight = event_pixel_mask(batch.x, batch.y, batch.mask, self.height, self.width).unsqueeze(1).to(target.dtype)
+        if cfg.teacher_pixels == "all":  # the coarse-grid flow, interpolated between cells with events
+            weight = torch.ones_like(target[:, :1])
+        else:
+            weight = event_pixel_mask(batch.x, batch.y, batch.mask, self.height, self.width).unsqueeze(1).to(target.dtype)
         n = cfg.num_envs
         errors = []
         for k, flows in enumerate(all_flows):

@@ -86,6 +86,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--teacher-steps", type=int, default=d.teacher_steps, help="teacher: Adam steps per level")
     g.add_argument("--teacher-lr", type=float, default=d.teacher_lr, help="teacher: Adam step size (pixels)")
     g.add_argument("--teacher-lambda-2", type=float, default=d.teacher_lambda_2, help="teacher: smoothness weight")
+    g.add_argument("--teacher-pixels", default=d.teacher_pixels, choices=["events", "all"],
+                   help="teacher: regress on pixels holding events (default) or on every pixel")
+    g.add_argument("--teacher-max-events", type=int, default=d.teacher_max_events,
+                   help="teacher: solve on at most this many events per window, evenly subsampled (default: all)")
     g.add_argument("--loss-mode", default=d.loss_mode, choices=["window", "accumulated"])
     g.add_argument("--lambda-1", type=float, default=d.lambda_1)
     g.add_argument("--lambda-2", type=float, default=d.lambda_2)
@@ -123,7 +127,8 @@ def config_from_args(args) -> TrainConfig:
         loss_mode=args.loss_mode, lambda_1=args.lambda_1, lambda_2=args.lambda_2, alpha=args.alpha,
         border_penalty=args.border_penalty, flow_scaling=args.flow_scaling, head_init=args.head_init,
         teacher_grids=tuple(args.teacher_grids), teacher_steps=args.teacher_steps, teacher_lr=args.teacher_lr,
-        teacher_lambda_2=args.teacher_lambda_2, seed=args.seed, device=args.device,
+        teacher_lambda_2=args.teacher_lambda_2, teacher_pixels=args.teacher_pixels,
+        teacher_max_events=args.teacher_max_events, seed=args.seed, device=args.device,
     )
 
 
