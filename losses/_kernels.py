@@ -323,3 +323,108 @@ def _make_sampling(parallel: bool):
 def sampling_kernels(parallel: bool):
     """(sample forward, sample backward, event-pixel mask), for threads or for one thread."""
     return _make_sampling(parallel)
+
+
+def _make_forward_warp(parallel: bool):
+    loop = numba.prange if parallel else range
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def forward(flow, acc, out):
+        """Eq. 9 for flow (B, 2, H, W): acc (B, 3, H, W) out = the splatted weight and the two
+        splatted flow components (out-of-image corners dropped); out (B, 2, H, W) = their
+        ratio, 0 where no weight arrived. One task per batch element (each owns its images)."""
+        B, _, H, W = flow.shape
+        for b in loop(B):
+            acc[b] = 0.0
+            for r in range(H):
+                for q in range(W):
+                    ux = flow[b, 0, r, q]
+                    uy = flow[b, 1, r, q]
+                    x = q + ux
+                    y = r + uy
+                    x0f = math.floor(x)
+                    y0f = math.floor(y)
+                    fx = x - x0f
+                    fy = y - y0f
+                    x0 = int(x0f)
+                    y0 = int(y0f)
+                    for k in range(4):
+                        cx = x0 + (k & 1)
+                        cy = y0 + (k >> 1)
+                        if cx < 0 or cx >= W or cy < 0 or cy >= H:
+                            continue
+                        w = (fx if k & 1 else 1.0 - fx) * (fy if k >> 1 else 1.0 - fy)
+                        acc[b, 0, cy, cx] += w
+                        acc[b, 1, cy, cx] += w * ux
+                        acc[b, 2, cy, cx] += w * uy
+            for r in range(H):
+                for q in range(W):
+                    a = acc[b, 0, r, q]
+                    if a > 0:
+                        out[b, 0, r, q] = acc[b, 1, r, q] / a
+                        out[b, 1, r, q] = acc[b, 2, r, q] / a
+                    else:
+                        out[b, 0, r, q] = 0.0
+                        out[b, 1, r, q] = 0.0
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def backward(flow, acc, out, grad_out, grad_flow):
+        """grad_flow (B, 2, H, W) out: the gradient of sum(grad_out * forward(flow)).
+
+        Per target pixel with weight A0 > 0: d/dA0 = -(g . out) / A0, d/dA_c = g_c / A0 (kept in
+        acc, which the forward no longer needs); each source pixel then reads them at its 4
+        corners: through the bilinear weights (x, y move with the flow) and through the values."""
+        B, _, H, W = flow.shape
+        for b in loop(B):
+            for r in range(H):
+                for q in range(W):
+                    a = acc[b, 0, r, q]
+                    if a > 0:
+                        g0 = grad_out[b, 0, r, q]
+                        g1 = grad_out[b, 1, r, q]
+                        acc[b, 0, r, q] = -(g0 * out[b, 0, r, q] + g1 * out[b, 1, r, q]) / a
+                        acc[b, 1, r, q] = g0 / a
+                        acc[b, 2, r, q] = g1 / a
+                    else:
+                        acc[b, 0, r, q] = 0.0
+                        acc[b, 1, r, q] = 0.0
+                        acc[b, 2, r, q] = 0.0
+            for r in range(H):
+                for q in range(W):
+                    ux = flow[b, 0, r, q]
+                    uy = flow[b, 1, r, q]
+                    x = q + ux
+                    y = r + uy
+                    x0f = math.floor(x)
+                    y0f = math.floor(y)
+                    fx = x - x0f
+                    fy = y - y0f
+                    x0 = int(x0f)
+                    y0 = int(y0f)
+                    gx = 0.0
+                    gy = 0.0
+                    for k in range(4):
+                        cx = x0 + (k & 1)
+                        cy = y0 + (k >> 1)
+                        if cx < 0 or cx >= W or cy < 0 or cy >= H:
+                            continue
+                        wx = fx if k & 1 else 1.0 - fx
+                        wy = fy if k >> 1 else 1.0 - fy
+                        dwx = 1.0 if k & 1 else -1.0  # d wx / dx
+                        dwy = 1.0 if k >> 1 else -1.0  # d wy / dy
+                        g_a = acc[b, 0, cy, cx]
+                        g_x = acc[b, 1, cy, cx]
+                        g_y = acc[b, 2, cy, cx]
+                        through_weight = g_a + ux * g_x + uy * g_y
+                        gx += dwx * wy * through_weight + wx * wy * g_x
+                        gy += wx * dwy * through_weight + wx * wy * g_y
+                    grad_flow[b, 0, r, q] = gx
+                    grad_flow[b, 1, r, q] = gy
+
+    return forward, backward
+
+
+@functools.cache
+def forward_warp_kernels(parallel: bool):
+    """(forward, backward) of the prior-flow forward warp (eq. 9), for threads or one thread."""
+    return _make_forward_warp(parallel)

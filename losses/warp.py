@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from .splat import bilinear_splat
+
+try:  # compiled CPU kernel; without numba the torch path serves CPU too
+    from . import _kernels
+except ImportError:  # pragma: no cover
+    _kernels = None
 
 __all__ = ["warp_events", "forward_warp_flow", "outside_distance"]
 
@@ -48,6 +54,27 @@ def outside_distance(
     return total / (m.sum(dim=1).clamp_min(1) * len(references))
 
 
+class _ForwardWarpCompiled(torch.autograd.Function):
+    """The compiled CPU kernel of :func:`forward_warp_flow` (same arithmetic as its torch path)."""
+
+    @staticmethod
+    def forward(ctx, flow):
+        f = np.ascontiguousarray(flow.detach().numpy())
+        acc = np.empty((f.shape[0], 3, *f.shape[2:]), f.dtype)
+        out = np.empty_like(f)
+        _kernels.forward_warp_kernels(_kernels.use_threads())[0](f, acc, out)
+        ctx.arrays = (f, acc, out)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        f, acc, out = ctx.arrays
+        grad = np.empty_like(f)
+        g = np.ascontiguousarray(grad_out.detach().numpy(), dtype=f.dtype)
+        _kernels.forward_warp_kernels(_kernels.use_threads())[1](f, acc.copy(), out, g, grad)
+        return torch.from_numpy(grad)
+
+
 def forward_warp_flow(flow: torch.Tensor) -> torch.Tensor:
     """Prior flow alignment of FGD-Net (REFERENCE eq. 9): ``ubar(x + u(x)) = u(x)``.
 
@@ -58,6 +85,8 @@ def forward_warp_flow(flow: torch.Tensor) -> torch.Tensor:
     """
     if flow.ndim != 4 or flow.shape[1] != 2:
         raise ValueError(f"forward_warp_flow: flow must be (B, 2, H, W), got {tuple(flow.shape)}")
+    if _kernels is not None and flow.device.type == "cpu" and flow.dtype in (torch.float32, torch.float64):
+        return _ForwardWarpCompiled.apply(flow)
     B, _, H, W = flow.shape
     rows, cols = torch.meshgrid(
         torch.arange(H, dtype=flow.dtype, device=flow.device),

@@ -22,7 +22,7 @@ from losses import (
     warped_event_images,
 )
 
-from losses import image_terms, sampling, smoothness
+from losses import image_terms, sampling, smoothness, warp
 
 RTOL = 1e-6
 
@@ -35,6 +35,7 @@ def backend(request, monkeypatch):
         monkeypatch.setattr(image_terms, "_kernels", None)
         monkeypatch.setattr(smoothness, "_kernels", None)
         monkeypatch.setattr(sampling, "_kernels", None)
+        monkeypatch.setattr(warp, "_kernels", None)
     elif not image_terms.compiled_available():
         pytest.skip("numba not installed")
     return request.param
@@ -310,7 +311,7 @@ def test_warped_event_images_match_reference():
             np.testing.assert_allclose(stamp[b, r].numpy(), A, rtol=1e-12, atol=1e-12)
 
 
-def test_forward_warp_flow_integer_shift_and_reference():
+def test_forward_warp_flow_integer_shift_and_reference(backend):
     H, W = 5, 6
     flow = torch.zeros(1, 2, H, W, dtype=torch.float64)
     flow[:, 0], flow[:, 1] = 2.0, 1.0
@@ -331,6 +332,30 @@ def test_forward_warp_flow_integer_shift_and_reference():
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
     g = torch.from_numpy(rng.normal(0, 1.3, (1, 2, 4, 4))).requires_grad_()
     assert torch.autograd.gradcheck(forward_warp_flow, (g,))
+
+
+def test_forward_warp_flow_compiled_equals_torch_path(monkeypatch):
+    """The compiled kernel against the torch path: values and gradients, float32 and float64,
+    a batch with flows that leave the image, land on integer pixels and pile onto one pixel."""
+    if warp._kernels is None:
+        pytest.skip("numba not installed")
+    gen = torch.Generator().manual_seed(3)
+    flow = torch.randn(3, 2, 19, 26, generator=gen, dtype=torch.float64) * 4
+    flow[0, :, :6] = torch.round(flow[0, :, :6])  # integer displacements
+    flow[1, 0, :, :4] = -30.0  # out of the image
+    flow[2] = 0.5  # a constant shift: every target pixel receives from up to four sources
+    weights = torch.randn(3, 2, 19, 26, generator=gen, dtype=torch.float64)
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-4)):
+        results = []
+        for kernels in (warp._kernels, None):
+            monkeypatch.setattr(warp, "_kernels", kernels)
+            f = flow.to(dtype).requires_grad_()
+            out = forward_warp_flow(f)
+            (out * weights.to(dtype)).sum().backward()
+            results.append((out.detach(), f.grad))
+        (out_c, grad_c), (out_t, grad_t) = results
+        torch.testing.assert_close(out_c, out_t, rtol=tol, atol=tol)
+        torch.testing.assert_close(grad_c, grad_t, rtol=tol, atol=tol)
 
 
 def test_event_pixel_mask_rounds_and_ignores_padding(backend):
@@ -607,6 +632,7 @@ def test_compiled_kernels_equal_torch_path(scale, monkeypatch):
             monkeypatch.setattr(image_terms, "_kernels", None)
             monkeypatch.setattr(smoothness, "_kernels", None)
             monkeypatch.setattr(sampling, "_kernels", None)
+        monkeypatch.setattr(warp, "_kernels", None)
         for dtype in (torch.float64, torch.float32):
             f = torch.from_numpy(flow).to(dtype).requires_grad_()
             out = hmc_loss(f, EventBatch.from_windows(wins, dtype=dtype), border_penalty=0.7)
