@@ -128,9 +128,10 @@ class STConvGRU(nn.Module):
     def forward(
         self, x: Tensor, own_memory: Tensor | None, deep_memory: Tensor | None
     ) -> tuple[Tensor, Tensor]:
-        # All convolutions of X (both GRUs' input sides and Wfo) in one call: same weights,
-        # one pass over X.
-        input_convs = [self.gru_own.x_convs, self.gru_deep.x_convs, self.gate_input]
+        # Both GRUs' input sides in one call (same X, one pass); Wfo*X apart: with oneDNN on
+        # CPU, 6 x hidden output channels in one conv run faster than 7 (at CPU width, 16 -> 96
+        # plus 16 -> 16 took ~14 ms against ~20 ms for 16 -> 112, 128x128 batch 8, one thread).
+        input_convs = [self.gru_own.x_convs, self.gru_deep.x_convs]
         weight = torch.cat([conv.weight for conv in input_convs])
         bias = torch.cat([conv.bias for conv in input_convs])
         projections = F.conv2d(x, weight, bias, padding=1)
@@ -138,6 +139,6 @@ class STConvGRU(nn.Module):
         own = self.gru_own.step(projections[:, :n], own_memory)  # eq. 5, S_k
         deep = self.gru_deep.step(projections[:, n : 2 * n], deep_memory)  # eq. 5, Mbar_k
         memories = torch.cat([deep, own], dim=1)
-        gate = torch.sigmoid(projections[:, 2 * n :] + self.gate_hidden(memories))  # eq. 6, o_k
+        gate = torch.sigmoid(self.gate_input(x) + self.gate_hidden(memories))  # eq. 6, o_k
         out = gate * torch.tanh(self.fusion(memories))  # eq. 6, F_k
         return out, own
