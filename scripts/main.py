@@ -32,7 +32,8 @@ from agents.pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_in
 #: The project's current recipe (docs/results.md says how it was found and how far it gets).
 RECIPE = ["--model", "ev-mgrflownet", "--width", "cpu", "--input", "voxel_grid", "--loss", "teacher",
           "--crop", "64", "64", "--random-crop", "--window-size", "1", "2", "3", "4", "--flow-scaling", "32",
-          "--lr", "1e-3", "--head-init", "0.01", "--num-envs", "8", "--unroll", "4", "--teacher-steps", "20"]
+          "--lr", "1e-3", "--head-init", "0.1", "--num-envs", "8", "--unroll", "4", "--teacher-steps", "20",
+          "--teacher-pixels", "all", "--teacher-max-events", "8000"]
 
 
 def demo_summary(metrics: Path) -> None:

@@ -103,6 +103,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", default="runs/train", help="output directory")
     g.add_argument("--resume", nargs="?", const="auto", default=None, metavar="CHECKPOINT",
                    help="continue from CHECKPOINT (default with no value: OUT/checkpoint.pt); its config is used, --steps/--minutes/--out may change")
+    g.add_argument("--init", default=None, metavar="CHECKPOINT",
+                   help="start from the network weights of CHECKPOINT (fine-tuning: a fresh optimizer and this "
+                        "run's options; the model, width, input and flow scaling must match)")
     g.add_argument("--seed", type=int, default=d.seed)
     g.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     g.add_argument("--ckpt-every", type=int, default=100)
@@ -149,6 +152,17 @@ def validate(learner: Learner, data: str, windows: int) -> dict:
     return out
 
 
+def init_weights(learner, path: Path) -> None:
+    """Load the network weights of a training checkpoint into a new run (``--init``)."""
+    payload = load_checkpoint(path)
+    if payload.get("model_config") != learner.model_config or payload.get("model_name") != learner.cfg.model:
+        raise ValueError(
+            f"--init {path}: checkpoint holds {payload.get('model_name')} {payload.get('model_config')}, "
+            f"this run builds {learner.cfg.model} {learner.model_config}"
+        )
+    learner.policy.model.load_state_dict(payload["model"])
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -170,6 +184,8 @@ def main(argv=None) -> int:
     learner = Learner(cfg)
     if payload is not None:
         learner.load_state_dict(payload)
+    elif args.init:
+        init_weights(learner, Path(args.init))
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2, default=str))
