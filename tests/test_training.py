@@ -71,6 +71,23 @@ def test_resume_reproduces_uninterrupted_run(recording, tmp_path):
     np.testing.assert_allclose(b, a, rtol=1e-6)  # episodes cross a sequence boundary in 6 x 3 windows
 
 
+def test_init_fine_tunes_from_checkpoint_weights_and_names_a_mismatch(recording, tmp_path):
+    common = ["--data", str(recording), "--width", "4", "--num-envs", "1", "--unroll", "2", "--val-data", "",
+              "--no-progress", "--lr", "1e-3"]
+    train_script.main(common + ["--steps", "2", "--out", str(tmp_path / "a")])
+    source = load_checkpoint(tmp_path / "a" / "checkpoint.pt")
+    # --steps 0: the new run saves the weights it started from, with its own options.
+    train_script.main(common + ["--steps", "0", "--loss", "at", "--init", str(tmp_path / "a" / "checkpoint.pt"),
+                                "--out", str(tmp_path / "b")])
+    tuned = load_checkpoint(tmp_path / "b" / "checkpoint.pt")
+    assert tuned["step"] == 0 and tuned["config"]["loss"] == "at"
+    for key, value in source["model"].items():
+        torch.testing.assert_close(tuned["model"][key], value, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="--init .*checkpoint.pt"):
+        train_script.main(common + ["--steps", "0", "--width", "8", "--init", str(tmp_path / "a" / "checkpoint.pt"),
+                                    "--out", str(tmp_path / "c")])
+
+
 def test_voxel_grid_input_trains_and_evaluates(recording, tmp_path):
     train_script.main(["--data", str(recording), "--input", "voxel_grid", "--voxel-bins", "3", "--width", "4",
                        "--num-envs", "1", "--unroll", "2", "--steps", "1", "--out", str(tmp_path / "vox"),
