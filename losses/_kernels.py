@@ -325,6 +325,14 @@ def sampling_kernels(parallel: bool):
     return _make_sampling(parallel)
 
 
+@numba.njit(inline="always", **_OPTIONS)
+def _splat_taps(x, y):
+    """Top-left corner and fractions of a bilinear splat at (x, y), not clamped: (x0, y0, fx, fy)."""
+    x0f = math.floor(x)
+    y0f = math.floor(y)
+    return int(x0f), int(y0f), x - x0f, y - y0f
+
+
 def _make_forward_warp(parallel: bool):
     loop = numba.prange if parallel else range
 
@@ -340,14 +348,7 @@ def _make_forward_warp(parallel: bool):
                 for q in range(W):
                     ux = flow[b, 0, r, q]
                     uy = flow[b, 1, r, q]
-                    x = q + ux
-                    y = r + uy
-                    x0f = math.floor(x)
-                    y0f = math.floor(y)
-                    fx = x - x0f
-                    fy = y - y0f
-                    x0 = int(x0f)
-                    y0 = int(y0f)
+                    x0, y0, fx, fy = _splat_taps(q + ux, r + uy)
                     for k in range(4):
                         cx = x0 + (k & 1)
                         cy = y0 + (k >> 1)
@@ -393,14 +394,7 @@ def _make_forward_warp(parallel: bool):
                 for q in range(W):
                     ux = flow[b, 0, r, q]
                     uy = flow[b, 1, r, q]
-                    x = q + ux
-                    y = r + uy
-                    x0f = math.floor(x)
-                    y0f = math.floor(y)
-                    fx = x - x0f
-                    fy = y - y0f
-                    x0 = int(x0f)
-                    y0 = int(y0f)
+                    x0, y0, fx, fy = _splat_taps(q + ux, r + uy)
                     gx = 0.0
                     gy = 0.0
                     for k in range(4):
