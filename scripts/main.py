@@ -86,6 +86,10 @@ def main(argv=None) -> int:
     print("\n[main] 3/3 the full training of the recipe (resumable; --device cuda on a GPU):")
     print("  python scripts/train.py " + " ".join(RECIPE) + " --steps 20000 --out runs/recipe")
     print("  python scripts/train.py --resume --out runs/recipe --steps 40000    # continue later")
+    print("  then, as the shipped model was made, fine-tune on the paper's loss from it:")
+    print("  python scripts/train.py --init runs/recipe/checkpoint.pt --model ev-mgrflownet --width cpu --input voxel_grid "
+          "--loss hmc --crop 64 64 --random-crop --window-size 1 2 3 4 --flow-scaling 32 --lr 1e-4 --num-envs 8 "
+          "--unroll 4 --out runs/recipe-hmc")
     return 0
 
 
