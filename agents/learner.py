@@ -215,12 +215,13 @@ class Learner:
         else:
             weight = event_pixel_mask(batch.x, batch.y, batch.mask, self.height, self.width).unsqueeze(1).to(target.dtype)
         n = cfg.num_envs
-        errors = []
+        errors, zero_errors = [], []
         for k, flows in enumerate(all_flows):
             t, w = target[k * n : (k + 1) * n], weight[k * n : (k + 1) * n]
+            zero_errors.append((t.norm(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1))
             for f in to_full_resolution(flows):
                 errors.append(((f - t).norm(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1))
-        return torch.stack(errors).mean()
+        return torch.stack(errors).mean(), torch.stack(zero_errors).mean().detach()
 
     def _loss(self, flows, batch: EventBatch, border_penalty=0.0):
         cfg = self.cfg
@@ -253,11 +254,12 @@ class Learner:
             with torch.no_grad():  # the reference the border rule scales with, and a logged baseline
                 zero = self._loss(torch.zeros_like(flows[-1]), batch)
             zero_losses.append(zero.loss)
+            if cfg.loss_mode == "window" or cfg.loss == "teacher":
+                with torch.no_grad():  # logged: the finest flow's loss with the border rule (the env's reward)
+                    model_losses.append(self._loss(flows[-1].detach(), batch, cfg.border_penalty * zero.per_sample).loss)
             if cfg.loss == "teacher":
                 all_flows.append(flows)
                 windows += _windows_from_info(self.info, n)
-                with torch.no_grad():  # logged: the network's own L_HMC beside zero flow's
-                    model_losses.append(self._loss(flows[-1].detach(), batch, cfg.border_penalty * zero.per_sample).loss)
             elif cfg.loss == "supervised":
                 losses.append(self._supervised(flows))
             elif cfg.loss_mode == "window":
@@ -269,8 +271,9 @@ class Learner:
             done = np.logical_or(terminated, truncated)
             if done.any():
                 self.policy.reset(mask=done)  # new sequences start from a fresh state
+        extra = {}
         if cfg.loss == "teacher":
-            loss = self._teacher_loss(all_flows, windows)
+            loss, extra["zero_flow_teacher"] = self._teacher_loss(all_flows, windows)
         elif cfg.loss == "supervised" or cfg.loss_mode == "window":
             loss = torch.stack(losses).mean()
         else:
@@ -290,7 +293,9 @@ class Learner:
         self.scheduler.step()
         self.policy.detach()  # truncated BPTT: the next update continues, without the graph
         self.step += 1
-        extra = {"model_hmc": float(torch.stack(model_losses).mean())} if model_losses else {}
+        if model_losses:
+            extra["model_hmc"] = torch.stack(model_losses).mean()
+        extra = {k: float(v) for k, v in extra.items()}
         return {
             **extra,
             "step": self.step,

@@ -32,6 +32,7 @@ from agents.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from agents.evaluation import evaluate  # noqa: E402
 from agents.learner import Learner, TrainConfig  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
+from agents.pretrained import WEIGHTS_DIR, list_pretrained  # noqa: E402
 
 
 def parse_kv(items: list[str]) -> dict:
@@ -104,8 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--resume", nargs="?", const="auto", default=None, metavar="CHECKPOINT",
                    help="continue from CHECKPOINT (default with no value: OUT/checkpoint.pt); its config is used, --steps/--minutes/--out may change")
     g.add_argument("--init", default=None, metavar="CHECKPOINT",
-                   help="start from the network weights of CHECKPOINT (fine-tuning: a fresh optimizer and this "
-                        "run's options; the model, width, input and flow scaling must match)")
+                   help="start from the network weights of CHECKPOINT, a training checkpoint or the name of a shipped "
+                        "model (fine-tuning: a fresh optimizer and this run's options; the model, width, input and "
+                        "flow scaling must match)")
     g.add_argument("--seed", type=int, default=d.seed)
     g.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     g.add_argument("--ckpt-every", type=int, default=100)
@@ -153,7 +155,10 @@ def validate(learner: Learner, data: str, windows: int) -> dict:
 
 
 def init_weights(learner, path: Path) -> None:
-    """Load the network weights of a training checkpoint into a new run (``--init``)."""
+    """Load the network weights of a training checkpoint, or of a shipped model given by name,
+    into a new run (``--init``)."""
+    if not path.exists() and str(path) in list_pretrained():
+        path = WEIGHTS_DIR / f"{path}.pt"
     payload = load_checkpoint(path)
     if payload.get("model_config") != learner.model_config or payload.get("model_name") != learner.cfg.model:
         raise ValueError(

@@ -88,6 +88,24 @@ def test_init_fine_tunes_from_checkpoint_weights_and_names_a_mismatch(recording,
                                     "--out", str(tmp_path / "c")])
 
 
+def test_logged_baselines_match_a_network_at_zero_flow(recording, tmp_path):
+    """A network whose flow heads are all zero outputs zero flow, and scores what zero flow
+    scores: its logged L_HMC equals zero flow's, its distance to the teacher is the teacher's
+    own magnitude."""
+    common = ["--data", str(recording), "--model", "ev-flownet", "--width", "4", "--num-envs", "2", "--unroll", "2",
+              "--steps", "2", "--lr", "0", "--head-init", "0", "--val-data", "", "--no-progress"]
+    rows = {}
+    for loss in ("hmc", "teacher"):
+        train_script.main(common + ["--loss", loss, "--teacher-steps", "5", "--out", str(tmp_path / loss)])
+        rows[loss] = [json.loads(line) for line in (tmp_path / loss / "metrics.jsonl").read_text().splitlines()
+                      if "loss" in json.loads(line)]
+    for row in rows["hmc"] + rows["teacher"]:
+        assert row["model_hmc"] == pytest.approx(row["zero_flow_loss"], rel=1e-6)
+    for row in rows["teacher"]:
+        assert row["zero_flow_teacher"] > 0.05  # the translating dots move: the teacher is not zero
+        assert row["loss"] == pytest.approx(row["zero_flow_teacher"], rel=1e-6)
+
+
 def test_voxel_grid_input_trains_and_evaluates(recording, tmp_path):
     train_script.main(["--data", str(recording), "--input", "voxel_grid", "--voxel-bins", "3", "--width", "4",
                        "--num-envs", "1", "--unroll", "2", "--steps", "1", "--out", str(tmp_path / "vox"),
