@@ -32,7 +32,7 @@ from agents.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from agents.evaluation import evaluate  # noqa: E402
 from agents.learner import Learner, TrainConfig  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
-from agents.pretrained import WEIGHTS_DIR, list_pretrained  # noqa: E402
+from agents import pretrained as shipped  # noqa: E402
 
 
 def parse_kv(items: list[str]) -> dict:
@@ -157,8 +157,8 @@ def validate(learner: Learner, data: str, windows: int) -> dict:
 def init_weights(learner, path: Path) -> None:
     """Load the network weights of a training checkpoint, or of a shipped model given by name,
     into a new run (``--init``)."""
-    if not path.exists() and str(path) in list_pretrained():
-        path = WEIGHTS_DIR / f"{path}.pt"
+    if not path.exists() and str(path) in shipped.list_pretrained():
+        path = shipped.WEIGHTS_DIR / f"{path}.pt"
     payload = load_checkpoint(path)
     if payload.get("model_config") != learner.model_config or payload.get("model_name") != learner.cfg.model:
         raise ValueError(

@@ -222,6 +222,12 @@ def test_export_and_load_pretrained_by_name(recording, tmp_path, monkeypatch):
         action = policy.act(obs)
         np.testing.assert_allclose(action, reference.act(obs), rtol=1e-6, atol=1e-6)
         obs, *_ = env.step(action)
+    # --init NAME: fine-tuning starts from the shipped weights
+    train_script.main(["--data", str(recording), "--input", "voxel_grid", "--voxel-bins", "3", "--width", "4",
+                       "--num-envs", "1", "--steps", "0", "--init", "tiny", "--out", str(tmp_path / "tuned"),
+                       "--val-data", "", "--no-progress"])
+    for key, value in load_checkpoint(tmp_path / "tuned" / "checkpoint.pt")["model"].items():
+        torch.testing.assert_close(value, model.state_dict()[key], rtol=0, atol=0)
     monkeypatch.setattr(sys, "argv", ["evaluate.py"])
     evaluate_script.main(["--pretrained", "--data", str(recording), "--dt", "1", "--out", str(tmp_path / "ev"),
                           "--max-windows", "2", "--no-progress", "--pictures", "0"])
