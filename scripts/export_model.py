@@ -7,7 +7,8 @@ scripts/evaluate.py --pretrained NAME.
       --command "python scripts/train.py ..." --eval runs/ship/eval/results.json
 
 The provenance records the command, the training data and budget (from the checkpoint's config
-and metrics.jsonl beside it), the date, and the evaluation metrics when --eval is given.
+and the run's metrics.jsonl, by default the one beside it, counted up to the checkpoint's step),
+the date, and the evaluation metrics when --eval is given.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents.checkpoint import load_checkpoint  # noqa: E402
 from agents.pretrained import export_pretrained  # noqa: E402
 
 
@@ -31,22 +33,26 @@ def main(argv=None) -> int:
     p.add_argument("--eval", default=None, help="results.json of scripts/evaluate.py on the model")
     p.add_argument("--note", default="")
     p.add_argument("--dir", default=None, help="default: agents/weights/")
+    p.add_argument("--metrics", default=None, help="the run's metrics.jsonl (default: beside the checkpoint)")
     args = p.parse_args(argv)
     ckpt = Path(args.checkpoint)
-    metrics = ckpt.parent / "metrics.jsonl"
+    step = int(load_checkpoint(ckpt)["step"])
+    metrics = Path(args.metrics) if args.metrics else ckpt.parent / "metrics.jsonl"
     budget = {}
     if metrics.exists():
         rows = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
-        steps = [r for r in rows if "loss" in r]
+        logged = [r for r in rows if "loss" in r and r["step"] <= step]
         seconds, last = 0.0, 0.0
-        for r in steps:  # elapsed_s restarts at each --resume: add up the segments
+        for r in logged:  # elapsed_s restarts at each --resume: add up the segments
             e = r.get("elapsed_s", 0.0)
             if e < last:
                 seconds += last
             last = e
         seconds += last
-        budget = {"optimizer_steps": steps[-1]["step"] if steps else 0,
-                  "training_windows": int(sum(r.get("windows", 0) for r in steps)),
+        # one row per step up to the checkpoint's (a resume re-logs the steps after the last save)
+        steps = {r["step"]: r for r in logged}
+        budget = {"optimizer_steps": step,
+                  "training_windows": int(sum(r.get("windows", 0) for r in steps.values())),
                   "wall_minutes": round(seconds / 60, 1)}
     provenance = {"command": args.command, "date": datetime.date.today().isoformat(), "budget": budget, "note": args.note}
     if args.eval:
