@@ -4,7 +4,11 @@
   python scripts/diagnose.py scale   --window-size 1      # L_HMC of c x ground truth, c = 0 .. 2
   python scripts/diagnose.py teacher --window-size 1      # per-window contrast maximisation vs truth
   python scripts/diagnose.py overfit --window-size 3      # can a network fit the loss on one fixed batch?
+  python scripts/diagnose.py border  --window-size 1      # what the border rule costs the true flow
 
+border: for windows of the training split, the true flow's loss divided by zero flow's without
+and with the border rule (weight 1 x zero flow's loss x share of splat weight dropped, summed
+over the two reference times), how often the truth beats zero flow, and the share it drops.
 scale: for windows of the training split, the loss (with the border rule) of c x the true
 flow divided by zero flow's, for c in 0.5, 0.75, 1, 1.25, 1.5, 2: the mean ratio per c, the share
 of windows where the truth beats zero flow, and how often each c is the best.
@@ -69,6 +73,21 @@ def scale(args) -> None:
           f"best c counts {np.bincount(r.argmin(1), minlength=len(SCALES)).tolist()}")
 
 
+def border(args) -> None:
+    rows = []
+    for info in windows(args):
+        b, gt, _ = batch_of([info])
+        zero = hmc_loss(torch.zeros_like(gt), b, flow_scaling=args.flow_scaling).loss.item()
+        plain = hmc_loss(gt, b, flow_scaling=args.flow_scaling)
+        ruled = hmc_loss(gt, b, flow_scaling=args.flow_scaling, border_penalty=zero).loss.item()
+        rows.append([plain.loss.item() / zero, ruled / zero, 1 - plain.components["kept"].item()])
+    r = np.array(rows)
+    where = f"{args.crop[0]}x{args.crop[1]} crops" if args.crop else "whole frames"
+    print(f"dt = {args.window_size}, {where}, {len(r)} windows: truth / zero flow without the rule "
+          f"{r[:, 0].mean():.4f} (truth wins {100 * (r[:, 0] < 1).mean():.0f} %), with it {r[:, 1].mean():.4f} "
+          f"(wins {100 * (r[:, 1] < 1).mean():.0f} %); share of the truth's splat weight dropped {r[:, 2].mean():.4f}")
+
+
 def teacher(args) -> None:
     args.steps = 40 if args.steps is None else args.steps
     b, gt, valid = batch_of(windows(args))
@@ -126,7 +145,7 @@ def overfit(args) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("what", choices=["scale", "teacher", "overfit"])
+    p.add_argument("what", choices=["scale", "border", "teacher", "overfit"])
     p.add_argument("--data", default="synthetic-train")
     p.add_argument("--window-size", type=int, default=1, help="frames per window")
     p.add_argument("--crop", type=int, nargs=2, default=[64, 64], help="random crop H W ('0 0': whole frames)")
@@ -143,7 +162,7 @@ def main(argv=None) -> int:
         args.crop = None
     if args.threads:
         torch.set_num_threads(args.threads)
-    {"scale": scale, "teacher": teacher, "overfit": overfit}[args.what](args)
+    {"scale": scale, "border": border, "teacher": teacher, "overfit": overfit}[args.what](args)
     return 0
 
 
