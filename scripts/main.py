@@ -5,9 +5,10 @@
    zero-flow baseline on the synthetic test split at dt = 1 and dt = 4, and print the table;
 2. a short training demo of the project's recipe from scratch (--demo-minutes, default 3):
    per-window contrast-maximisation teacher of L_HMC distilled into a CPU-size EV-MGRFlowNet,
-   printing the network's own L_HMC beside zero flow's on the same training windows, then a
-   quick evaluation of the demo model;
-3. print the command for the full training.
+   printing, as ratios to zero flow's on the same training windows, the recipe's loss (the
+   distance to the teacher) and the network's own L_HMC; then a quick evaluation of the demo
+   model (a few minutes do not yet leave zero flow: docs/results.md);
+3. print the commands for the full training and the L_HMC fine-tuning stage.
 
 Everything goes to --out (default runs/main): eval/ (table.md, results.json, pictures/),
 demo/ (checkpoint, metrics.jsonl) and demo-eval/. Extra scripts/train.py options for the demo
