@@ -197,6 +197,16 @@ def kernels(parallel: bool):
 _DIRECTIONS = np.array([[0, 1], [1, 0], [1, 1], [-1, 1]], np.int64)  # as smoothness._DIRECTIONS
 
 
+@numba.njit(inline="always", **_OPTIONS)
+def _pair(event_mask, b, r, c, k):
+    """Neighbour k of pixel (r, c) of window b: (counted, r2, c2); counted when it lies in the
+    image and holds an event (the caller has checked (r, c) itself)."""
+    r2 = r + _DIRECTIONS[k, 0]
+    c2 = c + _DIRECTIONS[k, 1]
+    H, W = event_mask.shape[1], event_mask.shape[2]
+    return not (r2 < 0 or r2 >= H or c2 >= W or not event_mask[b, r2, c2]), r2, c2
+
+
 def _make_smoothness(parallel: bool):
     loop = numba.prange if parallel else range
 
@@ -212,9 +222,8 @@ def _make_smoothness(parallel: bool):
                     if not event_mask[b, r, c]:
                         continue
                     for k in range(4):
-                        r2 = r + _DIRECTIONS[k, 0]
-                        c2 = c + _DIRECTIONS[k, 1]
-                        if r2 < 0 or r2 >= H or c2 >= W or not event_mask[b, r2, c2]:
+                        counted, r2, c2 = _pair(event_mask, b, r, c, k)
+                        if not counted:
                             continue
                         for ch in range(2):
                             d = f[b, ch, r2, c2] - f[b, ch, r, c]
@@ -233,9 +242,8 @@ def _make_smoothness(parallel: bool):
                     if not event_mask[b, r, c]:
                         continue
                     for k in range(4):
-                        r2 = r + _DIRECTIONS[k, 0]
-                        c2 = c + _DIRECTIONS[k, 1]
-                        if r2 < 0 or r2 >= H or c2 >= W or not event_mask[b, r2, c2]:
+                        counted, r2, c2 = _pair(event_mask, b, r, c, k)
+                        if not counted:
                             continue
                         for ch in range(2):
                             d = f[b, ch, r2, c2] - f[b, ch, r, c]
