@@ -157,7 +157,10 @@ def validate(learner: Learner, data: str, windows: int) -> dict:
 def init_weights(learner, path: Path) -> None:
     """Load the network weights of a training checkpoint, or of a shipped model given by name,
     into a new run (``--init``)."""
-    if not path.exists() and str(path) in shipped.list_pretrained():
+    if not path.exists():
+        if str(path) not in shipped.list_pretrained():
+            raise FileNotFoundError(f"--init {path}: no such checkpoint, nor a shipped model "
+                                    f"(shipped: {', '.join(shipped.list_pretrained()) or 'none'})")
         path = shipped.WEIGHTS_DIR / f"{path}.pt"
     payload = load_checkpoint(path)
     if payload.get("model_config") != learner.model_config or payload.get("model_name") != learner.cfg.model:

@@ -228,6 +228,10 @@ def test_export_and_load_pretrained_by_name(recording, tmp_path, monkeypatch):
                        "--val-data", "", "--no-progress"])
     for key, value in load_checkpoint(tmp_path / "tuned" / "checkpoint.pt")["model"].items():
         torch.testing.assert_close(value, model.state_dict()[key], rtol=0, atol=0)
+    with pytest.raises(FileNotFoundError, match="--init nope: no such checkpoint, nor a shipped model .*tiny"):
+        train_script.main(["--data", str(recording), "--steps", "0", "--init", "nope", "--out", str(tmp_path / "bad"),
+                           "--val-data", "", "--no-progress"])
+    assert not (tmp_path / "bad").exists()  # nothing written
     monkeypatch.setattr(sys, "argv", ["evaluate.py"])
     evaluate_script.main(["--pretrained", "--data", str(recording), "--dt", "1", "--out", str(tmp_path / "ev"),
                           "--max-windows", "2", "--no-progress", "--pictures", "0"])
