@@ -11,7 +11,7 @@ One update, read top to bottom (:meth:`Learner.update`):
 
 The envs run with ``compute_reward=False``: the learner recomputes the same loss with
 gradients (including the env's border rule: ``border_penalty`` x the window's zero-flow loss x
-the share of events pushed out of the image), so the env need not compute it twice.
+the share of events pushed out of the image, ramped over ``border_ramp`` pixels), so the env need not compute it twice.
 
 Distributed: when ``torch.distributed`` is initialised (``torchrun``), each rank rolls out its
 own shard of sequences, gradients are averaged across ranks with an all-reduce after each
@@ -33,7 +33,7 @@ import torch
 import torch.distributed as dist
 from gymnasium.vector import AutoresetMode
 
-from envs.env import EventFlowEnv
+from envs.env import BORDER_RAMP, EventFlowEnv
 from losses import (EventBatch, accumulated_hmc_loss, at_loss, contrast_maximisation_flow, event_pixel_mask, hmc_loss,
                     to_full_resolution)
 
@@ -74,6 +74,7 @@ class TrainConfig:
     lambda_2: float = 1e-3
     alpha: float = 0.6
     border_penalty: float = 1.0  # border rule: weight x zero-flow loss x share of events pushed out (0 = paper)
+    border_ramp: float = BORDER_RAMP  # the rule's ramp, pixels beyond the border (0: the plain share)
     flow_scaling: float | None = None  # default max(H, W)
     teacher_grids: tuple = (4, 8)  # loss "teacher": coarse-to-fine cells along the longer side
     teacher_steps: int = 40  # Adam steps per level
@@ -208,7 +209,7 @@ class Learner:
         target = contrast_maximisation_flow(
             solved, self.height, self.width, grids=cfg.teacher_grids, steps=cfg.teacher_steps, lr=cfg.teacher_lr,
             flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1, lambda_2=cfg.teacher_lambda_2, alpha=cfg.alpha,
-            border_penalty=cfg.border_penalty,
+            border_penalty=cfg.border_penalty, border_ramp=cfg.border_ramp,
         )
         if cfg.teacher_pixels == "all":  # the coarse-grid flow, interpolated between cells with events
             weight = torch.ones_like(target[:, :1])
@@ -227,9 +228,10 @@ class Learner:
         cfg = self.cfg
         if cfg.loss == "hmc" or cfg.loss == "supervised":
             return hmc_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
-                            lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty)
+                            lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty,
+                            border_ramp=cfg.border_ramp)
         return at_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_2=cfg.lambda_2,
-                       border_penalty=border_penalty)
+                       border_penalty=border_penalty, border_ramp=cfg.border_ramp)
 
     def _accumulated(self, flows, batches, border_penalty=0.0):
         """Accumulated-window loss; with the border rule on, also the slope back into the frame
@@ -238,7 +240,7 @@ class Learner:
         cfg = self.cfg
         return accumulated_hmc_loss(flows, batches, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
                                     lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty,
-                                    outside_weight=border_penalty)
+                                    outside_weight=border_penalty, border_ramp=cfg.border_ramp)
 
     def update(self) -> dict[str, float]:
         """One truncated-BPTT update over ``unroll`` windows; returns logged scalars."""

@@ -39,6 +39,7 @@ def contrast_maximisation_flow(
     lambda_2: float = 1e-2,
     alpha: float = 0.6,
     border_penalty: float | torch.Tensor = 1.0,
+    border_ramp: float = 16.0,
 ) -> torch.Tensor:
     """(B, 2, height, width) flow in pixels per window minimising L_HMC of each window.
 
@@ -46,7 +47,7 @@ def contrast_maximisation_flow(
     number of cells along the longer image side (the other side in proportion, at least 1).
     steps: Adam steps per level, lr: its step size in pixels. The loss is ``hmc_loss`` with the
     given weights; ``border_penalty`` as there, a float multiplies each window's zero-flow loss
-    (the env's border rule). Returns a detached tensor on the events' device, float32.
+    (the env's border rule), ``border_ramp`` its ramp in pixels. Returns a detached tensor on the events' device, float32.
     """
     device = events.x.device
     B = events.x.shape[0]
@@ -69,7 +70,8 @@ def contrast_maximisation_flow(
             optimizer = torch.optim.Adam([param], lr=lr)
             for _ in range(steps):
                 flow = F.interpolate(param, size=(height, width), mode="bilinear", align_corners=False)
-                loss = hmc_loss(flow, events, border_penalty=border_penalty, **weights).per_sample.sum()
+                loss = hmc_loss(flow, events, border_penalty=border_penalty, border_ramp=border_ramp,
+                                **weights).per_sample.sum()
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()

@@ -28,9 +28,10 @@ from .events import EventBatch
 from .image_terms import event_image_terms
 from .sampling import sample_flow
 from .smoothness import charbonnier_smoothness, event_pixel_mask
-from .warp import outside_distance
+from .warp import outside_distance, warp_events
 
-__all__ = ["LossOutput", "hmc_loss", "at_loss", "accumulated_hmc_loss", "to_full_resolution"]
+__all__ = ["LossOutput", "hmc_loss", "at_loss", "accumulated_hmc_loss", "to_full_resolution",
+           "ramped_dropped_share"]
 
 FlowInput = torch.Tensor | Sequence[torch.Tensor]
 
@@ -74,9 +75,32 @@ def to_full_resolution(flow: FlowInput) -> list[torch.Tensor]:
     ]
 
 
+def ramped_dropped_share(x, y, t, u, mask, height, width, references, ramp) -> torch.Tensor:
+    """(B, R) the border charge per reference time with a distance ramp of ``ramp`` pixels.
+
+    Each valid event's charge is the share of its bilinear splat weight that falls outside the
+    image times ``min(1, d / ramp)``, d = the L1 distance (pixels) by which the warped event
+    lies beyond the image; the mean over valid events. Events just across the border (real
+    motion leaves by at most |u| pixels) cost little; events pushed far out cost their whole
+    dropped share, as with no ramp (``ramp -> 0`` gives the plain dropped share).
+    """
+    m = mask.to(u.dtype)
+    n = m.sum(dim=1).clamp_min(1)
+    out = []
+    for s in references:
+        xw, yw = warp_events(x.to(u.dtype), y.to(u.dtype), t.to(u.dtype), u, s)
+        kx = torch.minimum(xw + 1, width - xw).clamp(0, 1)  # share of the x-weights on the sensor
+        ky = torch.minimum(yw + 1, height - yw).clamp(0, 1)
+        d = (torch.relu(-xw) + torch.relu(xw - (width - 1)) + torch.relu(-yw)
+             + torch.relu(yw - (height - 1)))
+        charge = (1 - kx * ky) * (d / ramp).clamp(max=1)
+        out.append((charge * m).sum(dim=1) / n)
+    return torch.stack(out, dim=1)
+
+
 def _terms(
     x, y, t, p, mask, u, flow_for_smooth: Sequence[torch.Tensor], masks_for_smooth,
-    height, width, references, span, alpha, flow_scaling, need_ec,
+    height, width, references, span, alpha, flow_scaling, need_ec, border_ramp=0.0,
 ) -> dict:
     """(B,) tensors at, ec, smooth, dropped for one set of (possibly accumulated) events."""
     at, ec, kept = event_image_terms(x, y, t, p, mask, u, height, width, references, span, alpha)
@@ -85,10 +109,14 @@ def _terms(
     n_valid = mask.sum(dim=1).to(u.dtype)  # (B,)
     kept = kept / n_valid.clamp_min(1).unsqueeze(1)  # (B, R) share of splat weight kept
     dropped = torch.where(n_valid.unsqueeze(1) > 0, 1 - kept, torch.zeros_like(kept))
+    if border_ramp > 0:
+        charge = ramped_dropped_share(x, y, t, u, mask, height, width, references, border_ramp)
+    else:
+        charge = dropped
     smooth = sum(
         charbonnier_smoothness(f, m, flow_scaling) for f, m in zip(flow_for_smooth, masks_for_smooth)
     ) / len(flow_for_smooth)
-    return {"at": at, "ec": ec, "smooth": smooth, "dropped": dropped}
+    return {"at": at, "ec": ec, "smooth": smooth, "dropped": dropped, "charge": charge}
 
 
 def _combine(terms_per_scale, lambda_1, lambda_2, border_penalty, use_ec) -> LossOutput:
@@ -98,7 +126,7 @@ def _combine(terms_per_scale, lambda_1, lambda_2, border_penalty, use_ec) -> Los
         if use_ec:
             s = s + lambda_1 * tm["ec"]
         if isinstance(border_penalty, torch.Tensor) or border_penalty:
-            s = s + border_penalty * tm["dropped"].sum(dim=1)
+            s = s + border_penalty * tm["charge"].sum(dim=1)
         per.append(s)
     n = len(terms_per_scale)
     per_sample = sum(per) / n
@@ -109,7 +137,8 @@ def _combine(terms_per_scale, lambda_1, lambda_2, border_penalty, use_ec) -> Los
     return LossOutput(loss=per_sample.mean(), per_sample=per_sample, components=comps)
 
 
-def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_penalty, use_ec):
+def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_penalty, use_ec,
+                border_ramp=0.0):
     flows = to_full_resolution(flow)
     B, _, H, W = flows[0].shape
     check_events(events, batch_size=B)
@@ -120,9 +149,16 @@ def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_pe
         u = sample_flow(f, events.x, events.y, events.mask)
         terms.append(
             _terms(events.x, events.y, events.tau, events.p, events.mask, u, [f], [ev_mask],
-                   H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec)
+                   H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec, _check_ramp(border_ramp))
         )
     return _combine(terms, lambda_1, lambda_2, border_penalty, use_ec)
+
+
+def _check_ramp(border_ramp) -> float:
+    ramp = float(border_ramp)
+    if not ramp >= 0 or ramp == float("inf"):
+        raise ValueError(f"border_ramp must be a finite number of pixels >= 0, got {border_ramp!r}")
+    return ramp
 
 
 def hmc_loss(
@@ -134,6 +170,7 @@ def hmc_loss(
     lambda_2: float = 1e-3,
     alpha: float = 0.6,
     border_penalty: float | torch.Tensor = 0.0,
+    border_ramp: float = 0.0,
 ) -> LossOutput:
     """Hybrid motion-compensation loss, eq. 17, per window.
 
@@ -143,12 +180,15 @@ def hmc_loss(
     flow_scaling: pixels per network unit for the smoothness term; default max(H, W).
     lambda_1 = 1, lambda_2 = 1e-3, alpha = 0.6: paper values. border_penalty: 0 (paper), or the
     weight (float, or (B,) tensor per window) of ``sum_s (1 - kept_s)`` (see the module doc).
+    border_ramp: pixels; > 0 charges each event's dropped share times ``min(1, d / border_ramp)``,
+    d = how far beyond the image it lands (``ramped_dropped_share``); 0: the plain share.
     Returns LossOutput (loss = mean over batch of per_sample). Events and flow may be on CPU or
     CUDA; computations run in flow's dtype.
     Raises ValueError for a bad flow shape, NaN/inf flow, batch-size mismatch, empty batch or
     tau outside [0, 1].
     """
-    return _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_penalty, True)
+    return _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_penalty, True,
+                       border_ramp)
 
 
 def at_loss(
@@ -158,10 +198,12 @@ def at_loss(
     flow_scaling: float | None = None,
     lambda_2: float = 1e-3,
     border_penalty: float | torch.Tensor = 0.0,
+    border_ramp: float = 0.0,
 ) -> LossOutput:
     """Baseline loss "L_AT": ``L_AT(0) + L_AT(1) + lambda_2 L_smooth`` (same args as hmc_loss).
     ``components["ec"]`` is still reported (detached, alpha = 0.6) for logging."""
-    return _per_window(flow, events, flow_scaling, 1.0, lambda_2, 0.6, border_penalty, False)
+    return _per_window(flow, events, flow_scaling, 1.0, lambda_2, 0.6, border_penalty, False,
+                       border_ramp)
 
 
 def accumulated_hmc_loss(
@@ -174,6 +216,7 @@ def accumulated_hmc_loss(
     alpha: float = 0.6,
     border_penalty: float | torch.Tensor = 0.0,
     outside_weight: float | torch.Tensor = 0.0,
+    border_ramp: float = 0.0,
 ) -> LossOutput:
     """Accumulated-window variant (REFERENCE sec. 5, Hagenaars "sequential learning").
 
@@ -187,6 +230,7 @@ def accumulated_hmc_loss(
     (mean distance in pixels by which warped events lie outside the image, see
     ``warp.outside_distance``), a slope back into the frame for a net whose events all left it,
     where the border penalty alone is flat. ``components["outside_px"]`` reports the distance.
+    border_ramp: as in ``hmc_loss``.
     """
     flows = list(flows)
     events_list = list(events_list)
@@ -210,7 +254,8 @@ def accumulated_hmc_loss(
     masks = [event_pixel_mask(ev.x, ev.y, ev.mask, H, W) for ev in events_list]
     u = torch.cat(us, dim=1)
     terms = _terms(cat("x"), cat("y"), t, cat("p"), cat("mask"), u,
-                   flows, masks, H, W, (0.0, float(K)), float(K), alpha, scaling, True)
+                   flows, masks, H, W, (0.0, float(K)), float(K), alpha, scaling, True,
+                   _check_ramp(border_ramp))
     out = _combine([terms], lambda_1, lambda_2, border_penalty, True)
     if isinstance(outside_weight, torch.Tensor) or outside_weight:
         distance = outside_distance(cat("x"), cat("y"), t, u, cat("mask"), H, W, (0.0, float(K)))

@@ -8,7 +8,9 @@
 
 border: for windows of the training split, the true flow's loss divided by zero flow's without
 and with the border rule (weight 1 x zero flow's loss x share of splat weight dropped, summed
-over the two reference times), how often the truth beats zero flow, and the share it drops.
+over the two reference times), plain and with each --ramps distance ramp; how often the truth
+beats zero flow, and the share it drops; and, under each rule, the best of a sweep of constant
+actions (the game the rule must stop) divided by zero flow's loss.
 scale: for windows of the training split, the loss (with the border rule) of c x the true
 flow divided by zero flow's, for c in 0.5, 0.75, 1, 1.25, 1.5, 2: the mean ratio per c, the share
 of windows where the truth beats zero flow, and how often each c is the best.
@@ -74,18 +76,43 @@ def scale(args) -> None:
 
 
 def border(args) -> None:
-    rows = []
+    """Truth / zero flow without the rule, with it, and with it ramped over --ramps pixels; and
+    the best constant action (--game-magnitudes x 8 directions) / zero flow under each rule."""
+    ramps = [0.0] + list(args.ramps)
+    angles = np.arange(8) * np.pi / 4
+    rows, games = [], []
     for info in windows(args):
         b, gt, _ = batch_of([info])
-        zero = hmc_loss(torch.zeros_like(gt), b, flow_scaling=args.flow_scaling).loss.item()
-        plain = hmc_loss(gt, b, flow_scaling=args.flow_scaling)
-        ruled = hmc_loss(gt, b, flow_scaling=args.flow_scaling, border_penalty=zero).loss.item()
-        rows.append([plain.loss.item() / zero, ruled / zero, 1 - plain.components["kept"].item()])
+        kw = dict(flow_scaling=args.flow_scaling)
+        zero = hmc_loss(torch.zeros_like(gt), b, **kw).loss.item()
+        plain = hmc_loss(gt, b, **kw)
+        row = [plain.loss.item() / zero]
+        row += [hmc_loss(gt, b, border_penalty=zero, border_ramp=r, **kw).loss.item() / zero for r in ramps]
+        rows.append(row + [1 - plain.components["kept"].item()])
+        game = []  # per rule and magnitude: the best of 8 directions
+        for r in [None] + ramps:  # None: no rule
+            for m in args.game_magnitudes:
+                best = np.inf
+                for a in angles:
+                    const = torch.zeros_like(gt)
+                    const[:, 0], const[:, 1] = m * np.cos(a), m * np.sin(a)
+                    rule = dict(border_penalty=0.0) if r is None else dict(border_penalty=zero, border_ramp=r)
+                    best = min(best, hmc_loss(const, b, **rule, **kw).loss.item() / zero)
+                game.append(best)
+        games.append(game)
     r = np.array(rows)
+    g = np.array(games).reshape(len(r), len(ramps) + 1, len(args.game_magnitudes))
     where = f"{args.crop[0]}x{args.crop[1]} crops" if args.crop else "whole frames"
-    print(f"dt = {args.window_size}, {where}, {len(r)} windows: truth / zero flow without the rule "
-          f"{r[:, 0].mean():.4f} (truth wins {100 * (r[:, 0] < 1).mean():.0f} %), with it {r[:, 1].mean():.4f} "
-          f"(wins {100 * (r[:, 1] < 1).mean():.0f} %); share of the truth's splat weight dropped {r[:, 2].mean():.4f}")
+    print(f"dt = {args.window_size}, {where}, {len(r)} windows; share of the truth's splat weight dropped "
+          f"{r[:, -1].mean():.4f}")
+    print("  best constant action / zero flow (mean over windows), by magnitude: "
+          + " ".join(f"{m:g}" for m in args.game_magnitudes))
+    print(f"  {'no rule':<19} truth / zero {r[:, 0].mean():.4f} (truth wins {100 * (r[:, 0] < 1).mean():.0f} %); "
+          "constant: " + " ".join(f"{v:.3f}" for v in g[:, 0].mean(0)))
+    for j, ramp in enumerate(ramps):
+        name = "rule, no ramp" if ramp == 0 else f"rule, ramp {ramp:g} px"
+        print(f"  {name:<19} truth / zero {r[:, j + 1].mean():.4f} (truth wins {100 * (r[:, j + 1] < 1).mean():.0f} %); "
+              "constant: " + " ".join(f"{v:.3f}" for v in g[:, j + 1].mean(0)))
 
 
 def teacher(args) -> None:
@@ -156,6 +183,10 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=None, help="teacher: Adam steps per level (40); overfit: steps (150)")
     p.add_argument("--lr", type=float, default=0.05)
     p.add_argument("--lambda-2", type=float, default=1e-2)
+    p.add_argument("--ramps", type=float, nargs="*", default=[2.0, 4.0, 8.0, 16.0],
+                   help="border: ramp lengths (pixels) to compare with the plain rule")
+    p.add_argument("--game-magnitudes", type=float, nargs="*", default=[2, 4, 8, 16, 32, 64, 128, 1000],
+                   help="border: constant actions tried (pixels per window, 8 directions each)")
     p.add_argument("--threads", type=int, default=None)
     args = p.parse_args(argv)
     if args.crop == [0, 0]:

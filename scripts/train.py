@@ -97,6 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--alpha", type=float, default=d.alpha)
     g.add_argument("--border-penalty", type=float, default=d.border_penalty,
                    help="border rule weight: x zero-flow loss x share of events pushed out of the image (0: the paper's loss)")
+    g.add_argument("--border-ramp", type=float, default=d.border_ramp,
+                   help="border rule ramp in pixels: an event landing d px beyond the image pays min(1, d / ramp) of "
+                        "its share (0: the whole share however near; default %(default)s)")
     g.add_argument("--flow-scaling", type=float, default=None, help="pixels per network unit (default max(H, W))")
     g.add_argument("--head-init", type=float, default=None, metavar="A",
                    help="re-draw the flow heads' weights from U(-A, A), biases 0 (start near zero flow)")
@@ -130,7 +133,7 @@ def config_from_args(args) -> TrainConfig:
         num_envs=args.num_envs, vector=args.vector, unroll=args.unroll, steps=args.steps, lr=args.lr,
         warmup_steps=args.warmup_steps, decay=args.decay, grad_clip=args.grad_clip, loss=args.loss,
         loss_mode=args.loss_mode, lambda_1=args.lambda_1, lambda_2=args.lambda_2, alpha=args.alpha,
-        border_penalty=args.border_penalty, flow_scaling=args.flow_scaling, head_init=args.head_init,
+        border_penalty=args.border_penalty, border_ramp=args.border_ramp, flow_scaling=args.flow_scaling, head_init=args.head_init,
         teacher_grids=tuple(args.teacher_grids), teacher_steps=args.teacher_steps, teacher_lr=args.teacher_lr,
         teacher_lambda_2=args.teacher_lambda_2, teacher_pixels=args.teacher_pixels,
         teacher_max_events=args.teacher_max_events, seed=args.seed, device=args.device,
@@ -185,7 +188,8 @@ def main(argv=None) -> int:
     if args.resume:
         resume = out / "checkpoint.pt" if args.resume == "auto" else Path(args.resume)
         payload = load_checkpoint(resume)
-        cfg = TrainConfig(**payload["config"])
+        # checkpoints from before the border rule's ramp existed trained with the plain rule
+        cfg = TrainConfig(**{"border_ramp": 0.0, **payload["config"]})
         cfg.steps, cfg.device = args.steps, args.device
     else:
         cfg = config_from_args(args)

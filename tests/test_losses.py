@@ -467,6 +467,82 @@ def test_kept_share_and_border_penalty_expose_the_border_hole(backend):
     assert pen_zero.loss.item() == pytest.approx(out_zero.loss.item())
 
 
+def ref_ramped_charge(flow, x, y, tau, s, H, W, ramp):
+    """Per event: the bilinear corners that land off the image (their weights summed) times
+    min(1, d / ramp), d = L1 distance beyond the image; the mean over events (explicit loops)."""
+    total = 0.0
+    for xi, yi, ti in zip(x, y, tau):
+        u = ref_sample(flow, xi, yi)
+        xw, yw = xi + (s - ti) * u[0], yi + (s - ti) * u[1]
+        x0, y0 = math.floor(xw), math.floor(yw)
+        off = 0.0
+        for cx, wx in ((x0, 1 - (xw - x0)), (x0 + 1, xw - x0)):
+            for cy, wy in ((y0, 1 - (yw - y0)), (y0 + 1, yw - y0)):
+                if not (0 <= cx < W and 0 <= cy < H):
+                    off += wx * wy
+        d = max(0.0, -xw) + max(0.0, xw - (W - 1)) + max(0.0, -yw) + max(0.0, yw - (H - 1))
+        total += off * min(1.0, d / ramp)
+    return total / max(len(x), 1)
+
+
+@pytest.mark.parametrize("ramp", [0.5, 3.0, 16.0])
+def test_border_ramp_matches_slow_reference(ramp, backend):
+    rng = np.random.default_rng(21)
+    H, W = 9, 12
+    wins = [random_window(rng, 60, H, W, integer=False, border=True), random_window(rng, 40, H, W, integer=False),
+            random_window(rng, 0, H, W)]
+    ev = EventBatch.from_windows(wins, dtype=torch.float64)
+    flow = torch.from_numpy(rng.normal(0, 4.0, (3, 2, H, W)))
+    weight = torch.tensor([1.0, 2.5, 3.0], dtype=torch.float64)
+    plain = hmc_loss(flow, ev)
+    ramped = hmc_loss(flow, ev, border_penalty=weight, border_ramp=ramp)
+    for b, w in enumerate(wins):
+        fl = flow[b].numpy()
+        charge = sum(ref_ramped_charge(fl, w["x"], w["y"], taus(w), s, H, W, ramp) for s in (0.0, 1.0))
+        expected = plain.per_sample[b].item() + weight[b].item() * charge
+        assert ramped.per_sample[b].item() == pytest.approx(expected, rel=RTOL, abs=1e-12)
+    assert ramped.per_sample[2].item() == plain.per_sample[2].item()  # empty window: no charge
+    # the ramp only ever lowers the charge, and a vanishing ramp is the plain dropped share
+    full = hmc_loss(flow, ev, border_penalty=weight)
+    assert (ramped.per_sample <= full.per_sample + 1e-12).all()
+    tiny = hmc_loss(flow, ev, border_penalty=weight, border_ramp=1e-9)
+    torch.testing.assert_close(tiny.per_sample, full.per_sample, rtol=1e-6, atol=1e-9)
+
+
+def test_border_ramp_charges_near_motion_little_and_far_pushes_fully():
+    H = W = 32
+    w = random_window(np.random.default_rng(5), 200, H, W, integer=False, border=True)  # on the border columns
+    ev = EventBatch.from_windows([w], dtype=torch.float64)
+    zero = hmc_loss(torch.zeros(1, 2, H, W, dtype=torch.float64), ev).per_sample
+    for v, share in ((1e6, 1.0), (3.0, None)):
+        flow = torch.zeros(1, 2, H, W, dtype=torch.float64)
+        flow[:, 0] = v
+        plain = hmc_loss(flow, ev)
+        full = hmc_loss(flow, ev, border_penalty=zero).loss - plain.loss
+        ramped = hmc_loss(flow, ev, border_penalty=zero, border_ramp=16.0).loss - plain.loss
+        if share:  # pushed 1e6 px out: the ramp changes nothing, the game costs 2 x zero flow's loss
+            assert ramped.item() == pytest.approx(full.item(), rel=1e-4)
+            assert hmc_loss(flow, ev, border_penalty=zero, border_ramp=16.0).loss > 1.9 * zero.item()
+        else:  # 3 px across the border: at most 3/16 of the plain charge
+            assert 0 < ramped.item() <= 3 / 16 * full.item()
+
+
+def test_gradcheck_border_ramp():
+    rng = np.random.default_rng(23)
+    H, W = 6, 7
+    ev = EventBatch.from_windows([random_window(rng, 30, H, W, integer=False, border=True)], dtype=torch.float64)
+    flow = torch.from_numpy(rng.normal(0, 2.0, (1, 2, H, W))).requires_grad_()
+    assert torch.autograd.gradcheck(lambda f: hmc_loss(f, ev, border_penalty=1.3, border_ramp=2.0).loss, (flow,),
+                                    eps=1e-6, atol=1e-5)
+
+
+def test_border_ramp_must_be_a_finite_non_negative_length():
+    ev, flow = EventBatch.from_windows([random_window(np.random.default_rng(0), 5, 4, 4)]), torch.zeros(1, 2, 4, 4)
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="border_ramp"):
+            hmc_loss(flow, ev, border_penalty=1.0, border_ramp=bad)
+
+
 # --------------------------------------------------------------------------------------------
 # Bad input: clear errors, never silent garbage
 # --------------------------------------------------------------------------------------------
