@@ -54,9 +54,10 @@ def demo_summary(metrics: Path) -> None:
     if not steps:
         return
     chunk = max(1, len(steps) // 6)
-    print("[main] demo, on the same training windows (below 1 = better than zero flow):\n"
-          "  teacher ratio = the recipe's loss (distance to the teacher) / zero flow's distance to it;\n"
-          "  L_HMC ratio = the network's L_HMC (with the border rule) / zero flow's L_HMC")
+    print("[main] demo, on the same training windows (below 1 = better than zero flow):")
+    if "zero_flow_teacher" in steps[0]:
+        print("  teacher ratio = the recipe's loss (distance to the teacher) / zero flow's distance to it;")
+    print("  L_HMC ratio = the network's L_HMC (with the border rule) / zero flow's L_HMC")
     for i in range(0, len(steps), chunk):
         part = steps[i : i + chunk]
         line = f"  steps {part[0]['step']:>4}-{part[-1]['step']:<4}"
