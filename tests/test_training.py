@@ -273,13 +273,18 @@ def test_head_init_starts_every_builtin_model_near_zero_flow():
         init_flow_heads(torch.nn.Linear(2, 2), 1e-3)
 
 
-def test_main_job_runs_end_to_end_on_mini_data(tmp_path, capsys):
+@pytest.mark.parametrize("stage", ["hmc", "teacher"])
+def test_main_job_runs_end_to_end_on_mini_data(tmp_path, capsys, stage):
     import main as main_script
 
     out = tmp_path / "main"
-    main_script.main(["--demo-minutes", "0.01", "--eval-data", "synthetic-mini", "--out", str(out), "--",
-                      "--data", "synthetic-mini", "--width", "4", "--num-envs", "2", "--unroll", "2", "--teacher-steps", "2"])
+    # the hmc stage starts from the shipped teacher model (CPU width); the teacher stage from scratch
+    extra = ["--width", "4", "--teacher-steps", "2"] if stage == "teacher" else []
+    main_script.main(["--demo-minutes", "0.01", "--demo-stage", stage, "--eval-data", "synthetic-mini", "--out", str(out),
+                      "--", "--data", "synthetic-mini", "--num-envs", "2", "--unroll", "2", *extra])
     printed = capsys.readouterr().out
+    assert ("teacher ratio" in printed) == (stage == "teacher")
+    assert ("stage-1 model" in printed) == (stage == "hmc")
     assert "| zero flow |" in (out / "eval" / "table.md").read_text()
     assert (out / "demo" / "checkpoint.pt").exists() and "| demo model |" in (out / "demo-eval" / "table.md").read_text()
     assert "L_HMC ratio" in printed and "scripts/train.py --model ev-mgrflownet" in printed
