@@ -71,6 +71,21 @@ def test_resume_reproduces_uninterrupted_run(recording, tmp_path):
     np.testing.assert_allclose(b, a, rtol=1e-6)  # episodes cross a sequence boundary in 6 x 3 windows
 
 
+def test_border_ramp_reaches_the_config_and_old_checkpoints_keep_the_plain_rule(recording, tmp_path):
+    common = ["--data", str(recording), "--model", "convgru-ev-flownet", "--width", "4", "--num-envs", "1",
+              "--unroll", "2", "--val-data", "", "--no-progress"]
+    train_script.main(common + ["--steps", "1", "--border-ramp", "5", "--out", str(tmp_path / "new")])
+    assert load_checkpoint(tmp_path / "new" / "checkpoint.pt")["config"]["border_ramp"] == 5.0
+    train_script.main(common + ["--steps", "1", "--out", str(tmp_path / "old")])
+    path = tmp_path / "old" / "checkpoint.pt"
+    payload = load_checkpoint(path)
+    assert payload["config"]["border_ramp"] == 16.0  # the default
+    del payload["config"]["border_ramp"]  # as written before the ramp existed
+    save_checkpoint(path, payload)
+    train_script.main(["--resume", "--steps", "2", "--out", str(tmp_path / "old"), "--val-data", "", "--no-progress"])
+    assert load_checkpoint(path)["config"]["border_ramp"] == 0.0
+
+
 def test_init_fine_tunes_from_checkpoint_weights_and_names_a_mismatch(recording, tmp_path):
     common = ["--data", str(recording), "--width", "4", "--num-envs", "1", "--unroll", "2", "--val-data", "",
               "--no-progress", "--lr", "1e-3"]
