@@ -11,7 +11,8 @@ One update, read top to bottom (:meth:`Learner.update`):
 
 The envs run with ``compute_reward=False``: the learner recomputes the same loss with
 gradients (including the env's border rule: ``border_penalty`` x the window's zero-flow loss x
-the share of events pushed out of the image, ramped over ``border_ramp`` pixels), so the env need not compute it twice.
+the share of events pushed out of the image, ramped over ``border_ramp`` pixels), so the env
+need not compute it twice.
 
 Distributed: when ``torch.distributed`` is initialised (``torchrun``), each rank rolls out its
 own shard of sequences, gradients are averaged across ranks with an all-reduce after each
@@ -33,9 +34,9 @@ import torch
 import torch.distributed as dist
 from gymnasium.vector import AutoresetMode
 
-from envs.env import BORDER_RAMP, EventFlowEnv
-from losses import (EventBatch, accumulated_hmc_loss, at_loss, contrast_maximisation_flow, event_pixel_mask, hmc_loss,
-                    to_full_resolution)
+from envs.env import EventFlowEnv
+from losses import (BORDER_RAMP, EventBatch, accumulated_hmc_loss, at_loss, check_border_ramp, contrast_maximisation_flow,
+                    event_pixel_mask, hmc_loss, to_full_resolution)
 
 from .checkpoint import rng_state, set_rng_state
 from .policy import RecurrentPolicy
@@ -151,6 +152,7 @@ class Learner:
     """Owns the policy, optimizer and training envs of one process."""
 
     def __init__(self, cfg: TrainConfig) -> None:
+        check_border_ramp(cfg.border_ramp)  # before any env or output exists
         self.cfg = cfg
         self.device = torch.device(cfg.device)
         self.rank = dist.get_rank() if dist.is_initialized() else 0

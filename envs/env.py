@@ -16,7 +16,7 @@ from envs.events import Events
 from envs.representations import count_image, voxel_grid
 from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import WINDOW_MODES, window_bounds
-from losses import EventBatch, at_loss, hmc_loss
+from losses import BORDER_RAMP, EventBatch, at_loss, check_border_ramp, hmc_loss
 
 __all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "WindowEvents", "score_flow", "NoWindowsError"]
 
@@ -28,8 +28,6 @@ class NoWindowsError(ValueError):
 OBSERVATION_KEYS = ("count_image", "voxel_grid", "events")
 # Finite upper bound of the count/voxel boxes: far above any real per-pixel count.
 _MAX_COUNT = float(2**24)
-#: Default ramp of the border rule, pixels (see EventFlowEnv; docs/results.md, fifth round).
-BORDER_RAMP = 16.0
 
 
 @torch.no_grad()
@@ -213,6 +211,7 @@ class EventFlowEnv(gym.Env):
         if loss not in ("hmc", "at"):
             raise ValueError(f"loss must be 'hmc' or 'at', got {loss!r}")
         self.loss_name = loss
+        check_border_ramp(border_ramp)
         self.loss_weights = dict(lambda_1=lambda_1, lambda_2=lambda_2, alpha=alpha, border_penalty=border_penalty,
                                  border_ramp=border_ramp)
         flips = ("h", "v", "p") if flips is True else (() if flips is False else tuple(flips))

@@ -9,7 +9,8 @@ from .average_timestamp import average_timestamp_loss
 from .contrast import contrast_maximisation_flow
 from .event_count import event_count_loss
 from .events import EventBatch
-from .hmc import LossOutput, accumulated_hmc_loss, at_loss, hmc_loss, to_full_resolution
+from .hmc import (BORDER_RAMP, LossOutput, accumulated_hmc_loss, at_loss, check_border_ramp, hmc_loss,
+                  to_full_resolution)
 from .iwe import average_timestamp_images, warped_corners, warped_event_images
 from .metrics import flow_error, flow_error_torch, fwl, fwl_torch, rsat, rsat_torch
 from .sampling import sample_flow

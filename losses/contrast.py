@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from .events import EventBatch
-from .hmc import hmc_loss
+from .hmc import BORDER_RAMP, hmc_loss
 
 __all__ = ["contrast_maximisation_flow"]
 
@@ -39,7 +39,7 @@ def contrast_maximisation_flow(
     lambda_2: float = 1e-2,
     alpha: float = 0.6,
     border_penalty: float | torch.Tensor = 1.0,
-    border_ramp: float = 16.0,
+    border_ramp: float = BORDER_RAMP,
 ) -> torch.Tensor:
     """(B, 2, height, width) flow in pixels per window minimising L_HMC of each window.
 

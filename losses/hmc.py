@@ -28,10 +28,14 @@ from .events import EventBatch
 from .image_terms import event_image_terms
 from .sampling import sample_flow
 from .smoothness import charbonnier_smoothness, event_pixel_mask
-from .warp import outside_distance, warp_events
+from .warp import beyond_image, outside_distance, warp_events
 
 __all__ = ["LossOutput", "hmc_loss", "at_loss", "accumulated_hmc_loss", "to_full_resolution",
-           "ramped_dropped_share"]
+           "ramped_dropped_share", "check_border_ramp", "BORDER_RAMP"]
+
+#: The border rule's ramp (pixels) that the env's reward and the learner use by default
+#: (docs/results.md, fifth round); the loss functions themselves default to 0 (the plain share).
+BORDER_RAMP = 16.0
 
 FlowInput = torch.Tensor | Sequence[torch.Tensor]
 
@@ -91,9 +95,7 @@ def ramped_dropped_share(x, y, t, u, mask, height, width, references, ramp) -> t
         xw, yw = warp_events(x.to(u.dtype), y.to(u.dtype), t.to(u.dtype), u, s)
         kx = torch.minimum(xw + 1, width - xw).clamp(0, 1)  # share of the x-weights on the sensor
         ky = torch.minimum(yw + 1, height - yw).clamp(0, 1)
-        d = (torch.relu(-xw) + torch.relu(xw - (width - 1)) + torch.relu(-yw)
-             + torch.relu(yw - (height - 1)))
-        charge = (1 - kx * ky) * (d / ramp).clamp(max=1)
+        charge = (1 - kx * ky) * (beyond_image(xw, yw, height, width) / ramp).clamp(max=1)
         out.append((charge * m).sum(dim=1) / n)
     return torch.stack(out, dim=1)
 
@@ -143,18 +145,20 @@ def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_pe
     B, _, H, W = flows[0].shape
     check_events(events, batch_size=B)
     scaling = float(max(H, W)) if flow_scaling is None else float(flow_scaling)
+    ramp = check_border_ramp(border_ramp)
     ev_mask = event_pixel_mask(events.x, events.y, events.mask, H, W)
     terms = []
     for f in flows:
         u = sample_flow(f, events.x, events.y, events.mask)
         terms.append(
             _terms(events.x, events.y, events.tau, events.p, events.mask, u, [f], [ev_mask],
-                   H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec, _check_ramp(border_ramp))
+                   H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec, ramp)
         )
     return _combine(terms, lambda_1, lambda_2, border_penalty, use_ec)
 
 
-def _check_ramp(border_ramp) -> float:
+def check_border_ramp(border_ramp) -> float:
+    """The ramp as a float; ValueError unless it is a finite number of pixels >= 0."""
     ramp = float(border_ramp)
     if not ramp >= 0 or ramp == float("inf"):
         raise ValueError(f"border_ramp must be a finite number of pixels >= 0, got {border_ramp!r}")
@@ -255,7 +259,7 @@ def accumulated_hmc_loss(
     u = torch.cat(us, dim=1)
     terms = _terms(cat("x"), cat("y"), t, cat("p"), cat("mask"), u,
                    flows, masks, H, W, (0.0, float(K)), float(K), alpha, scaling, True,
-                   _check_ramp(border_ramp))
+                   check_border_ramp(border_ramp))
     out = _combine([terms], lambda_1, lambda_2, border_penalty, True)
     if isinstance(outside_weight, torch.Tensor) or outside_weight:
         distance = outside_distance(cat("x"), cat("y"), t, u, cat("mask"), H, W, (0.0, float(K)))

@@ -12,7 +12,7 @@ try:  # compiled CPU kernel; without numba the torch path serves CPU too
 except ImportError:  # pragma: no cover
     _kernels = None
 
-__all__ = ["warp_events", "forward_warp_flow", "outside_distance"]
+__all__ = ["warp_events", "forward_warp_flow", "outside_distance", "beyond_image"]
 
 
 def warp_events(
@@ -26,6 +26,11 @@ def warp_events(
     """
     dt = reference - t
     return x + dt * u[..., 0], y + dt * u[..., 1]
+
+
+def beyond_image(xw: torch.Tensor, yw: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """L1 distance (pixels) by which points (xw, yw) lie outside [0, W-1] x [0, H-1]; 0 inside."""
+    return torch.relu(-xw) + torch.relu(xw - (width - 1)) + torch.relu(-yw) + torch.relu(yw - (height - 1))
 
 
 def outside_distance(
@@ -49,7 +54,7 @@ def outside_distance(
     m = mask.to(u.dtype)
     for s in references:
         xw, yw = warp_events(x.to(u.dtype), y.to(u.dtype), t.to(u.dtype), u, s)
-        d = (torch.relu(-xw) + torch.relu(xw - (width - 1)) + torch.relu(-yw) + torch.relu(yw - (height - 1))) * m
+        d = beyond_image(xw, yw, height, width) * m
         total = total + d.sum(dim=1)
     return total / (m.sum(dim=1).clamp_min(1) * len(references))
 

@@ -86,6 +86,15 @@ def test_border_ramp_reaches_the_config_and_old_checkpoints_keep_the_plain_rule(
     assert load_checkpoint(path)["config"]["border_ramp"] == 0.0
 
 
+def test_bad_border_ramp_is_refused_before_anything_is_written(recording, tmp_path):
+    with pytest.raises(ValueError, match="border_ramp"):
+        EventFlowEnv(recording, border_ramp=-1.0)
+    with pytest.raises(ValueError, match="border_ramp"):
+        train_script.main(["--data", str(recording), "--width", "4", "--num-envs", "1", "--unroll", "2", "--steps", "1",
+                           "--val-data", "", "--no-progress", "--border-ramp", "-2", "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad").exists()
+
+
 def test_init_fine_tunes_from_checkpoint_weights_and_names_a_mismatch(recording, tmp_path):
     common = ["--data", str(recording), "--width", "4", "--num-envs", "1", "--unroll", "2", "--val-data", "",
               "--no-progress", "--lr", "1e-3"]
