@@ -22,113 +22,140 @@ import math
 import numba
 import numpy as np
 import torch
+from numba import types
+from numba.extending import overload
 
 __all__ = ["kernels", "smoothness_kernels", "use_threads"]
 
 _OPTIONS = dict(nogil=True, cache=True, fastmath=False, boundscheck=False, error_model="numpy")
+# The image kernels may reassociate sums and contract multiply-adds, so that the pixel passes
+# compile to SIMD loops (row sums are then added in float64); no flag that changes NaN/inf.
+_VECTOR = dict(_OPTIONS, fastmath={"reassoc", "contract", "nsz"})
+
+_LOG2E = np.float32(1.4426950408889634)
+_LN2_HI = np.float32(0.693145751953125)  # ln 2 split in two so that n * ln 2 is exact
+_LN2_LO = np.float32(1.428606765330187e-06)
+_EXP_POLY = tuple(np.float32(c) for c in (  # minimax polynomial of (e^r - 1 - r) / r^2 on |r| <= ln2/2
+    1.9875691500e-4, 1.3981999507e-3, 8.3334519073e-3, 4.1665795894e-2, 1.6666665459e-1, 5.0000001201e-1))
+
+
+def _exp(v):  # pragma: no cover - replaced inside compiled code by the overload below
+    return math.exp(v)
+
+
+@overload(_exp, inline="always")
+def _exp_overload(v):
+    """exp for the compiled kernels: float64 -> math.exp; float32 -> a branch-free polynomial
+    (relative error < 1e-7, arguments clamped to [-87, 88]) that LLVM can vectorize, which the
+    libm call cannot be."""
+    if isinstance(v, types.Float) and v.bitwidth == 32:
+        c0, c1, c2, c3, c4, c5 = _EXP_POLY
+
+        def impl(v):
+            v = min(max(v, np.float32(-87.0)), np.float32(88.0))
+            n = np.floor(v * _LOG2E + np.float32(0.5))
+            r = v - n * _LN2_HI - n * _LN2_LO
+            p = ((((c0 * r + c1) * r + c2) * r + c3) * r + c4) * r + c5
+            p = p * r * r + r + np.float32(1.0)
+            return p * np.int32((np.int32(n) + np.int32(127)) << np.int32(23)).view(np.float32)
+
+        return impl
+    return lambda v: math.exp(v)
 
 
 @numba.njit(inline="always", **_OPTIONS)
-def _corner_gradient(img, c, rr, q, height, width, w, k_at, k_ec):
-    """G = dL/dC + w dL/dA at padded pixel (rr, q) of polarity c; 0 on the ring (dropped).
-    With k_at = 2 dL/dL_AT / Z: dL_AT/dA = k_at T / (C + 1e-9) = k_at P1 and dL_AT/dC = -T dL_AT/dA
-    = -k_at P2; dL_EC/dC = k_ec E with k_ec = alpha HW dL/dL_EC / S^2 (eqs. 13-16)."""
-    if rr == 0 or rr == height + 1 or q == 0 or q == width + 1:
-        return 0.0
-    return k_at * (w * img[1, c, rr, q] - img[0, c, rr, q]) + k_ec * img[2, c, rr, q]
-
-
-@numba.njit(inline="always", **_OPTIONS)
-def _warp_event(x, y, t, u, b, i, s, height, width):
+def _warp_event(x, y, t, u, b, i, s, one, height, width):
     """Event i of window b warped to reference s (eq. 12) in the padded layout: (inside, row,
-    col, fx, fy, dt); ``inside`` False when all 4 corners fall outside the image (or on NaN)."""
+    col, fx, fy, dt), arithmetic in the arrays' dtype; ``inside`` False when all 4 corners fall
+    outside the image (or on NaN)."""
     dt = s - t[b, i]
     xw = x[b, i] + dt * u[b, i, 0]
     yw = y[b, i] + dt * u[b, i, 1]
-    x0f = math.floor(xw)
-    y0f = math.floor(yw)
-    inside = x0f >= -1.0 and x0f <= width - 1.0 and y0f >= -1.0 and y0f <= height - 1.0
+    x0f = np.floor(xw)
+    y0f = np.floor(yw)
+    inside = x0f >= -one and x0f <= width - 1 and y0f >= -one and y0f <= height - 1
     if not inside:
-        return False, 0, 0, 0.0, 0.0, dt
+        return False, 0, 0, xw - xw, yw - yw, dt
     return True, int(y0f) + 1, int(x0f) + 1, xw - x0f, yw - y0f, dt
-
-
-@numba.njit(inline="always", **_OPTIONS)
-def _finish_pixel(img, c, rr, q, neg_alpha):
-    """One polarity of one pixel after splatting: returns (T^2, E) with T = A / (C + 1e-9)
-    (eq. 13) and E = exp(-alpha C), and keeps the backward factors in place of C and A:
-    P1 = T / (C + 1e-9), P2 = T P1 (0 where C = 0), E."""
-    count = img[0, c, rr, q]
-    if count == 0:
-        img[2, c, rr, q] = 1.0
-        return 0.0, 1.0
-    inv = 1.0 / (count + 1e-9)
-    tt = img[1, c, rr, q] * inv
-    e = math.exp(neg_alpha[0] * count)
-    img[1, c, rr, q] = tt * inv
-    img[0, c, rr, q] = tt * tt * inv
-    img[2, c, rr, q] = e
-    return tt * tt, e
 
 
 def _make(parallel: bool):
     loop = numba.prange if parallel else range
 
-    @numba.njit(parallel=parallel, **_OPTIONS)
-    def forward(x, y, t, off, mask, u, refs, span, neg_alpha, height, width, images, stats, at, ec, kept):
-        """images: (B, R, 3, 2, H + 2, W + 2) out, [P2, P1, E] x [ON, OFF] per pixel, for the
-        backward (the count and timestamp images are built in the first two slots, then
-        replaced): P1 = T / (C + 1e-9), P2 = T P1, E = exp(-alpha C); P1 = P2 = 0 where C = 0.
-        neg_alpha: (1,) array of -alpha in the images' dtype (float32 images: float32 exp).
-        stats: (B, R, 3) out: N_nz, S_ON, S_OFF (for the backward). at, ec, kept: (B, R) out."""
+    @numba.njit(parallel=parallel, **_VECTOR)
+    def forward(x, y, t, off, mask, u, refs, consts, height, width, images, stats, at, ec, kept):
+        """images: (B, R, 2 [ON, OFF], 3 [C, A, E], H + 2, W + 2) out: the count image C, the
+        timestamp image A and E = exp(-alpha C) (interior only), kept for the backward.
+        refs: (R,) and consts = [1, 1e-9, -alpha, 1 / span] in the events' dtype, which sets the
+        arithmetic (float32 or float64). stats: (B, R, 3) out: N_nz, S_ON, S_OFF (for the
+        backward). at, ec, kept: (B, R) out (float64)."""
         B, N = x.shape
         R = refs.shape[0]
-        hp, wp = height + 2, width + 2
+        one, tiny, neg_alpha, inv_span = consts[0], consts[1], consts[2], consts[3]
+        zero = one - one
         hw = height * width
         for task in loop(B * R):
             b = task // R
             r = task % R
             s = refs[r]
             img = images[b, r]
-            img[0] = 0.0
-            img[1] = 0.0
+            img[:, 0:2] = zero
             for i in range(N):
                 if not mask[b, i]:
                     continue
-                inside, row, col, fx, fy, dt = _warp_event(x, y, t, u, b, i, s, height, width)
+                inside, row, col, fx, fy, dt = _warp_event(x, y, t, u, b, i, s, one, height, width)
                 if not inside:
                     continue  # all 4 corners outside: dropped
                 c = 1 if off[b, i] else 0
-                w = 1.0 - abs(dt) / span
-                k00 = (1.0 - fy) * (1.0 - fx)
-                k01 = (1.0 - fy) * fx
-                k10 = fy * (1.0 - fx)
-                k11 = fy * fx
-                img[0, c, row, col] += k00
-                img[1, c, row, col] += k00 * w
-                img[0, c, row, col + 1] += k01
-                img[1, c, row, col + 1] += k01 * w
-                img[0, c, row + 1, col] += k10
-                img[1, c, row + 1, col] += k10 * w
-                img[0, c, row + 1, col + 1] += k11
-                img[1, c, row + 1, col + 1] += k11 * w
+                w = one - abs(dt) * inv_span
+                gx = one - fx
+                gy = one - fy
+                count = img[c, 0]
+                stamp = img[c, 1]
+                k = gy * gx
+                count[row, col] += k
+                stamp[row, col] += k * w
+                k = gy * fx
+                count[row, col + 1] += k
+                stamp[row, col + 1] += k * w
+                k = fy * gx
+                count[row + 1, col] += k
+                stamp[row + 1, col] += k * w
+                k = fy * fx
+                count[row + 1, col + 1] += k
+                stamp[row + 1, col + 1] += k * w
             sum_t2 = 0.0
-            nnz = 0
+            nnz = 0.0
             s_on = 0.0
             s_off = 0.0
             total = 0.0
-            for rr in range(1, hp - 1):
-                for q in range(1, wp - 1):
-                    c_on = img[0, 0, rr, q]
-                    c_off = img[0, 1, rr, q]
-                    if c_on + c_off > 0:
-                        nnz += 1
-                    total += c_on + c_off
-                    t2_on, e_on = _finish_pixel(img, 0, rr, q, neg_alpha)
-                    t2_off, e_off = _finish_pixel(img, 1, rr, q, neg_alpha)
-                    sum_t2 += t2_on + t2_off
-                    s_on += e_on
-                    s_off += e_off
+            for rr in range(1, height + 1):  # one SIMD loop per row; ring pixels (dropped) skipped
+                c_on, a_on, e_on = img[0, 0, rr], img[0, 1, rr], img[0, 2, rr]
+                c_off, a_off, e_off = img[1, 0, rr], img[1, 1, rr], img[1, 2, rr]
+                row_t2 = zero
+                row_nz = zero
+                row_on = zero
+                row_off = zero
+                row_total = zero
+                for q in range(1, width + 1):
+                    n_on = c_on[q]
+                    n_off = c_off[q]
+                    t_on = a_on[q] / (n_on + tiny)  # eq. 13 (0 where C = 0)
+                    t_off = a_off[q] / (n_off + tiny)
+                    x_on = _exp(neg_alpha * n_on)
+                    x_off = _exp(neg_alpha * n_off)
+                    e_on[q] = x_on
+                    e_off[q] = x_off
+                    row_t2 += t_on * t_on + t_off * t_off
+                    row_nz += one if n_on + n_off > zero else zero
+                    row_on += x_on
+                    row_off += x_off
+                    row_total += n_on + n_off
+                sum_t2 += row_t2
+                nnz += row_nz
+                s_on += row_on
+                s_off += row_off
+                total += row_total
             at[b, r] = sum_t2 / (nnz + 1e-9)
             ec[b, r] = hw / s_on + hw / s_off - 2.0
             kept[b, r] = total
@@ -136,41 +163,58 @@ def _make(parallel: bool):
             stats[b, r, 1] = s_on
             stats[b, r, 2] = s_off
 
-    @numba.njit(parallel=parallel, **_OPTIONS)
-    def backward(x, y, t, off, mask, u, refs, span, alpha, height, width, images, stats, grad_at, grad_ec, grad_u):
-        """grad_at, grad_ec: (B, R). grad_u: (B, R, N, 2) out (summed over R by the caller)."""
+    @numba.njit(parallel=parallel, **_VECTOR)
+    def backward(x, y, t, off, mask, u, refs, consts, height, width, images, factors, gimages, grad_u):
+        """factors: (B, R, 3) [k_at, k_ON, k_OFF] in the events' dtype, with k_at = 2 dL/dL_AT /
+        N_nz and k_P = alpha HW dL/dL_EC / S_P^2. gimages: (B, R, 2, 2, H + 2, W + 2) scratch:
+        per pixel G = G0 + w G1 with G1 = k_at P1, G0 = k_P E - k_at P2 (P1 = T / (C + 1e-9),
+        P2 = T P1: dL_AT/dA = k_at P1, dL_AT/dC = -k_at P2, dL_EC/dC = k_P E; eqs. 13-16), 0 on
+        the ring (dropped corners). grad_u: (B, R, N, 2) out (summed over R by the caller)."""
         B, N = x.shape
         R = refs.shape[0]
-        hw = height * width
+        one, tiny, inv_span = consts[0], consts[1], consts[3]
+        zero = one - one
         for task in loop(B * R):
             b = task // R
             r = task % R
             s = refs[r]
             img = images[b, r]
-            nnz = stats[b, r, 0]
-            s_on = stats[b, r, 1]
-            s_off = stats[b, r, 2]
-            k_at = 2.0 * grad_at[b, r] / (nnz + 1e-9)
-            k_on = alpha * hw * grad_ec[b, r] / (s_on * s_on)
-            k_off = alpha * hw * grad_ec[b, r] / (s_off * s_off)
+            gimg = gimages[b, r]
+            k_at = factors[b, r, 0]
+            for c in range(2):
+                k_ec = factors[b, r, 1 + c]
+                gimg[c, :, 0] = zero
+                gimg[c, :, height + 1] = zero
+                for rr in range(1, height + 1):
+                    count, stamp, e = img[c, 0, rr], img[c, 1, rr], img[c, 2, rr]
+                    g0, g1 = gimg[c, 0, rr], gimg[c, 1, rr]
+                    g0[0] = zero
+                    g1[0] = zero
+                    g0[width + 1] = zero
+                    g1[width + 1] = zero
+                    for q in range(1, width + 1):
+                        inv = one / (count[q] + tiny)
+                        p1 = stamp[q] * inv * inv
+                        g1[q] = k_at * p1
+                        g0[q] = k_ec * e[q] - k_at * p1 * stamp[q] * inv
             for i in range(N):
-                grad_u[b, r, i, 0] = 0.0
-                grad_u[b, r, i, 1] = 0.0
+                grad_u[b, r, i, 0] = zero
+                grad_u[b, r, i, 1] = zero
                 if not mask[b, i]:
                     continue
-                inside, row, col, fx, fy, dt = _warp_event(x, y, t, u, b, i, s, height, width)
+                inside, row, col, fx, fy, dt = _warp_event(x, y, t, u, b, i, s, one, height, width)
                 if not inside:
                     continue
                 c = 1 if off[b, i] else 0
-                k_ec = k_off if c == 1 else k_on
-                w = 1.0 - abs(dt) / span
-                g0 = _corner_gradient(img, c, row, col, height, width, w, k_at, k_ec)
-                g1 = _corner_gradient(img, c, row, col + 1, height, width, w, k_at, k_ec)
-                g2 = _corner_gradient(img, c, row + 1, col, height, width, w, k_at, k_ec)
-                g3 = _corner_gradient(img, c, row + 1, col + 1, height, width, w, k_at, k_ec)
-                gx = (1.0 - fy) * (g1 - g0) + fy * (g3 - g2)  # sum_c G_c dk_c/dx'
-                gy = (1.0 - fx) * (g2 - g0) + fx * (g3 - g1)  # sum_c G_c dk_c/dy'
-
+                w = one - abs(dt) * inv_span
+                g0 = gimg[c, 0]
+                g1 = gimg[c, 1]
+                G00 = g0[row, col] + w * g1[row, col]
+                G01 = g0[row, col + 1] + w * g1[row, col + 1]
+                G10 = g0[row + 1, col] + w * g1[row + 1, col]
+                G11 = g0[row + 1, col + 1] + w * g1[row + 1, col + 1]
+                gx = (one - fy) * (G01 - G00) + fy * (G11 - G10)  # sum_c G_c dk_c/dx'
+                gy = (one - fx) * (G10 - G00) + fx * (G11 - G01)  # sum_c G_c dk_c/dy'
                 grad_u[b, r, i, 0] = gx * dt
                 grad_u[b, r, i, 1] = gy * dt
 
@@ -194,62 +238,84 @@ def kernels(parallel: bool):
     return _make(parallel)
 
 
-_DIRECTIONS = np.array([[0, 1], [1, 0], [1, 1], [-1, 1]], np.int64)  # as smoothness._DIRECTIONS
+# The 4 directions (d_row, d_col) of smoothness._DIRECTIONS: right (0, 1), down (1, 0),
+# down-right (1, 1), up-right (-1, 1). Each kernel calls an inlined per-direction helper once per
+# direction with literal offsets: with run-time offsets LLVM does not vectorize the row loops
+# (about 10x slower).
 
 
-@numba.njit(inline="always", **_OPTIONS)
-def _pair(event_mask, b, r, c, k):
-    """Neighbour k of pixel (r, c) of window b: (counted, r2, c2); counted when it lies in the
-    image and holds an event (the caller has checked (r, c) itself)."""
-    r2 = r + _DIRECTIONS[k, 0]
-    c2 = c + _DIRECTIONS[k, 1]
-    H, W = event_mask.shape[1], event_mask.shape[2]
-    return not (r2 < 0 or r2 >= H or c2 >= W or not event_mask[b, r2, c2]), r2, c2
+@numba.njit(inline="always", **_VECTOR)
+def _charbonnier_direction(img, has, eps2, zero, dr, dc):
+    """Sum of sqrt(d^2 + eps^2) over counted pairs (r, q) -> (r + dr, q + dc) of one image."""
+    H, W = img.shape
+    acc = 0.0
+    for r in range(max(0, -dr), H - max(0, dr)):
+        a, b = img[r], img[r + dr]
+        ma, mb = has[r], has[r + dr]
+        row = zero
+        for q in range(W - dc):
+            d = b[q + dc] - a[q]
+            row += math.sqrt(d * d + eps2) if ma[q] and mb[q + dc] else zero
+        acc += row
+    return acc
+
+
+@numba.njit(inline="always", **_VECTOR)
+def _charbonnier_direction_grad(img, has, out, g_b, eps2, zero, slope, dr, dc):
+    """Adds g_b d rho / d img of one direction's pairs to out; slope: (W,) scratch."""
+    H, W = img.shape
+    for r in range(max(0, -dr), H - max(0, dr)):
+        a, b = img[r], img[r + dr]
+        ma, mb = has[r], has[r + dr]
+        for q in range(W - dc):
+            d = b[q + dc] - a[q]
+            slope[q] = g_b * d / math.sqrt(d * d + eps2) if ma[q] and mb[q + dc] else zero
+        for q in range(W - dc):
+            out[r + dr, q + dc] += slope[q]
+        for q in range(W - dc):
+            out[r, q] -= slope[q]
 
 
 def _make_smoothness(parallel: bool):
     loop = numba.prange if parallel else range
 
-    @numba.njit(parallel=parallel, **_OPTIONS)
+    @numba.njit(parallel=parallel, **_VECTOR)
     def forward(f, event_mask, eps, total):
-        """f: (B, 2, H, W) flow in network units; event_mask: (B, H, W) bool; total: (B,) out,
-        sum over counted pairs and components of sqrt(d^2 + eps^2)."""
-        B, _, H, W = f.shape
-        for b in loop(B):
-            acc = 0.0
-            for r in range(H):
-                for c in range(W):
-                    if not event_mask[b, r, c]:
-                        continue
-                    for k in range(4):
-                        counted, r2, c2 = _pair(event_mask, b, r, c, k)
-                        if not counted:
-                            continue
-                        for ch in range(2):
-                            d = f[b, ch, r2, c2] - f[b, ch, r, c]
-                            acc += math.sqrt(d * d + eps * eps)
-            total[b] = acc
+        """f: (B, 2, H, W) flow in network units; event_mask: (B, H, W) bool; eps: (1,) array in
+        f's dtype; total: (B, 2) out, per component: the sum over counted pairs of
+        sqrt(d^2 + eps^2). One task per (batch element, component); one SIMD loop per row and
+        direction (uncounted pairs select 0)."""
+        B = f.shape[0]
+        eps2 = eps[0] * eps[0]
+        zero = eps[0] - eps[0]
+        for task in loop(2 * B):
+            b = task // 2
+            img = f[b, task % 2]
+            has = event_mask[b]
+            total[b, task % 2] = (_charbonnier_direction(img, has, eps2, zero, 0, 1)
+                                  + _charbonnier_direction(img, has, eps2, zero, 1, 0)
+                                  + _charbonnier_direction(img, has, eps2, zero, 1, 1)
+                                  + _charbonnier_direction(img, has, eps2, zero, -1, 1))
 
-    @numba.njit(parallel=parallel, **_OPTIONS)
+    @numba.njit(parallel=parallel, **_VECTOR)
     def backward(f, event_mask, eps, grad_total, grad):
-        """grad: (B, 2, H, W) out, d total[b] / d f times grad_total[b]."""
-        B, _, H, W = f.shape
-        for b in loop(B):
+        """grad_total: (B,) in f's dtype; grad: (B, 2, H, W) out, d total[b] / d f times
+        grad_total[b] (d rho / d d = d / rho)."""
+        B, _, _, W = f.shape
+        eps2 = eps[0] * eps[0]
+        zero = eps[0] - eps[0]
+        for task in loop(2 * B):
+            b = task // 2
+            img = f[b, task % 2]
+            has = event_mask[b]
+            out = grad[b, task % 2]
+            out[:] = zero
             g_b = grad_total[b]
-            grad[b] = 0.0
-            for r in range(H):
-                for c in range(W):
-                    if not event_mask[b, r, c]:
-                        continue
-                    for k in range(4):
-                        counted, r2, c2 = _pair(event_mask, b, r, c, k)
-                        if not counted:
-                            continue
-                        for ch in range(2):
-                            d = f[b, ch, r2, c2] - f[b, ch, r, c]
-                            g = g_b * d / math.sqrt(d * d + eps * eps)
-                            grad[b, ch, r2, c2] += g
-                            grad[b, ch, r, c] -= g
+            slope = np.empty(W, f.dtype)
+            _charbonnier_direction_grad(img, has, out, g_b, eps2, zero, slope, 0, 1)
+            _charbonnier_direction_grad(img, has, out, g_b, eps2, zero, slope, 1, 0)
+            _charbonnier_direction_grad(img, has, out, g_b, eps2, zero, slope, 1, 1)
+            _charbonnier_direction_grad(img, has, out, g_b, eps2, zero, slope, -1, 1)
 
     return forward, backward
 
@@ -261,53 +327,66 @@ def smoothness_kernels(parallel: bool):
 
 
 @numba.njit(inline="always", **_OPTIONS)
-def _bilinear_taps(x, y, H, W):
+def _bilinear_taps(x, y, lim, H, W):
     """Corner columns/rows and fractions of a bilinear sample at (x, y), clamped to the image
-    ("border"): (x0, x1, y0, y1, fx, fy)."""
-    xi = min(max(x, 0.0), W - 1.0)
-    yi = min(max(y, 0.0), H - 1.0)
-    x0 = int(math.floor(xi))
-    y0 = int(math.floor(yi))
-    return x0, min(x0 + 1, W - 1), y0, min(y0 + 1, H - 1), xi - x0, yi - y0
+    ("border"), in the coordinates' dtype (lim = [0, W - 1, H - 1] in that dtype):
+    (x0, x1, y0, y1, fx, fy)."""
+    xi = min(max(x, lim[0]), lim[1])
+    yi = min(max(y, lim[0]), lim[2])
+    x0f = np.floor(xi)
+    y0f = np.floor(yi)
+    x0 = int(x0f)
+    y0 = int(y0f)
+    return x0, min(x0 + 1, W - 1), y0, min(y0 + 1, H - 1), xi - x0f, yi - y0f
 
 
 def _make_sampling(parallel: bool):
     loop = numba.prange if parallel else range
 
     @numba.njit(parallel=parallel, **_OPTIONS)
-    def forward(flow, x, y, mask, out):
+    def forward(flow, x, y, mask, lim, out):
         """Bilinear sample of flow (B, 2, H, W) at (x, y) (B, N), coordinates clamped to the
-        image ("border"); out: (B, N, 2); 0 where mask (B, N) is False (padding)."""
+        image ("border"); lim = [0, W - 1, H - 1, 1] in the dtype of x; out: (B, N, 2); 0 where
+        mask (B, N) is False (padding)."""
         B, _, H, W = flow.shape
         N = x.shape[1]
         for b in loop(B):
+            fu, fv = flow[b, 0], flow[b, 1]
             for i in range(N):
                 if not mask[b, i]:
                     out[b, i, 0] = 0.0
                     out[b, i, 1] = 0.0
                     continue
-                x0, x1, y0, y1, fx, fy = _bilinear_taps(x[b, i], y[b, i], H, W)
-                for c in range(2):
-                    out[b, i, c] = ((1.0 - fy) * ((1.0 - fx) * flow[b, c, y0, x0] + fx * flow[b, c, y0, x1])
-                                    + fy * ((1.0 - fx) * flow[b, c, y1, x0] + fx * flow[b, c, y1, x1]))
+                x0, x1, y0, y1, fx, fy = _bilinear_taps(x[b, i], y[b, i], lim, H, W)
+                one = lim[3]
+                gx = one - fx
+                gy = one - fy
+                out[b, i, 0] = gy * (gx * fu[y0, x0] + fx * fu[y0, x1]) + fy * (gx * fu[y1, x0] + fx * fu[y1, x1])
+                out[b, i, 1] = gy * (gx * fv[y0, x0] + fx * fv[y0, x1]) + fy * (gx * fv[y1, x0] + fx * fv[y1, x1])
 
     @numba.njit(parallel=parallel, **_OPTIONS)
-    def backward(grad_out, x, y, mask, grad_flow):
-        """grad_flow (B, 2, H, W) out: the adjoint of ``forward``."""
+    def backward(grad_out, x, y, mask, lim, grad_flow):
+        """grad_flow (B, 2, H, W) out: the adjoint of ``forward``. One task per (batch element,
+        component), so B = 1 still uses two threads."""
         B, _, H, W = grad_flow.shape
         N = x.shape[1]
-        for b in loop(B):
-            grad_flow[b] = 0.0
+        for task in loop(2 * B):
+            b = task // 2
+            ch = task % 2
+            g_img = grad_flow[b, ch]
+            g_img[:] = 0.0
             for i in range(N):
                 if not mask[b, i]:
                     continue
-                x0, x1, y0, y1, fx, fy = _bilinear_taps(x[b, i], y[b, i], H, W)
-                for c in range(2):
-                    g = grad_out[b, i, c]
-                    grad_flow[b, c, y0, x0] += (1.0 - fy) * (1.0 - fx) * g
-                    grad_flow[b, c, y0, x1] += (1.0 - fy) * fx * g
-                    grad_flow[b, c, y1, x0] += fy * (1.0 - fx) * g
-                    grad_flow[b, c, y1, x1] += fy * fx * g
+                x0, x1, y0, y1, fx, fy = _bilinear_taps(x[b, i], y[b, i], lim, H, W)
+                one = lim[3]
+                g = grad_out[b, i, ch]
+                gy = (one - fy) * g
+                g_img[y0, x0] += (one - fx) * gy
+                g_img[y0, x1] += fx * gy
+                gy = fy * g
+                g_img[y1, x0] += (one - fx) * gy
+                g_img[y1, x1] += fx * gy
 
     @numba.njit(parallel=parallel, **_OPTIONS)
     def event_mask(x, y, mask, out):

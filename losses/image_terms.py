@@ -132,33 +132,37 @@ class _EventImageTermsCompiled(torch.autograd.Function):
             np.ascontiguousarray((p <= 0).numpy()),
             np.ascontiguousarray(mask.numpy()),
             np.ascontiguousarray(u.detach().numpy()),
-            np.asarray(references, np.float64),
+            np.asarray(references, np_dtype),
+            np.array([1.0, 1e-9, -alpha, 1.0 / span], np_dtype),
         )
-        images = np.empty((B, R, 3, 2, height + 2, width + 2), np_dtype)
+        images = np.empty((B, R, 2, 3, height + 2, width + 2), np_dtype)
         stats = np.empty((B, R, 3), np.float64)
         at = np.empty((B, R), np.float64)
         ec = np.empty((B, R), np.float64)
         kept = np.empty((B, R), np.float64)
         fwd, _ = _kernels.kernels(_kernels.use_threads())
-        fwd(*arrays, float(span), np.array([-alpha], np_dtype), int(height), int(width), images, stats, at, ec, kept)
+        fwd(*arrays, int(height), int(width), images, stats, at, ec, kept)
         ctx.arrays, ctx.images, ctx.stats = arrays, images, stats
-        ctx.geometry = (height, width, span, alpha)
+        ctx.geometry = (height, width, alpha)
         ctx.mark_non_differentiable(kept_t := torch.from_numpy(kept).to(dtype))
         ctx.set_materialize_grads(False)
         return torch.from_numpy(at).to(dtype), torch.from_numpy(ec).to(dtype), kept_t
 
     @staticmethod
     def backward(ctx, grad_at, grad_ec, _grad_kept):
-        height, width, span, alpha = ctx.geometry
-        x = ctx.arrays[0]
+        height, width, alpha = ctx.geometry
+        x, images, stats = ctx.arrays[0], ctx.images, ctx.stats
         B, N = x.shape
-        R = ctx.stats.shape[1]
+        R = stats.shape[1]
         g_at = np.zeros((B, R)) if grad_at is None else grad_at.detach().double().numpy()
         g_ec = np.zeros((B, R)) if grad_ec is None else grad_ec.detach().double().numpy()
-        grad_u = np.empty((B, R, N, 2), ctx.arrays[5].dtype)
+        factors = np.empty((B, R, 3))  # k_at, k_ON, k_OFF (see the backward kernel)
+        factors[..., 0] = 2.0 * g_at / (stats[..., 0] + 1e-9)
+        factors[..., 1:] = (alpha * height * width) * g_ec[..., None] / (stats[..., 1:] * stats[..., 1:])
+        grad_u = np.empty((B, R, N, 2), images.dtype)
         _, bwd = _kernels.kernels(_kernels.use_threads())
-        bwd(*ctx.arrays, float(span), float(alpha), int(height), int(width), ctx.images, ctx.stats,
-            np.ascontiguousarray(g_at), np.ascontiguousarray(g_ec), grad_u)
+        bwd(*ctx.arrays, int(height), int(width), images, factors.astype(images.dtype),
+            np.empty((B, R, 2, 2, height + 2, width + 2), images.dtype), grad_u)
         grad = torch.from_numpy(grad_u).sum(dim=1)
         return grad, None, None, None, None, None, None, None, None, None, None
 

@@ -21,15 +21,17 @@ class _SampleCompiled(torch.autograd.Function):
         xs = np.ascontiguousarray(x.detach().numpy(), dtype=np_dtype)
         ys = np.ascontiguousarray(y.detach().numpy(), dtype=np_dtype)
         valid = np.ones(x.shape, np.bool_) if mask is None else np.ascontiguousarray(mask.numpy())
+        H, W = flow.shape[2:]
+        lim = np.array([0, W - 1, H - 1, 1], np_dtype)
         out = np.empty((x.shape[0], x.shape[1], 2), np_dtype)
-        _kernels.sampling_kernels(_kernels.use_threads())[0](f, xs, ys, valid, out)
-        ctx.coords, ctx.shape = (xs, ys, valid), flow.shape
+        _kernels.sampling_kernels(_kernels.use_threads())[0](f, xs, ys, valid, lim, out)
+        ctx.coords, ctx.shape = (xs, ys, valid, lim), flow.shape
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
         grad = np.empty(tuple(ctx.shape), ctx.coords[0].dtype)
-        g = np.ascontiguousarray(grad_out.detach().numpy())
+        g = np.ascontiguousarray(grad_out.detach().numpy(), dtype=grad.dtype)
         _kernels.sampling_kernels(_kernels.use_threads())[1](g, *ctx.coords, grad)
         return torch.from_numpy(grad), None, None, None
 

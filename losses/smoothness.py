@@ -108,19 +108,20 @@ class _CharbonnierCompiled(torch.autograd.Function):
     @staticmethod
     def forward(ctx, f, event_mask, eps):
         np_dtype = np.float64 if f.dtype == torch.float64 else np.float32
-        arrays = (np.ascontiguousarray(f.detach().numpy(), dtype=np_dtype), np.ascontiguousarray(event_mask.numpy()))
-        total = np.empty(f.shape[0], np.float64)
+        arrays = (np.ascontiguousarray(f.detach().numpy(), dtype=np_dtype), np.ascontiguousarray(event_mask.numpy()),
+                  np.array([eps], np_dtype))
+        total = np.empty((f.shape[0], 2), np.float64)
         fwd, _ = _kernels.smoothness_kernels(_kernels.use_threads())
-        fwd(*arrays, float(eps), total)
-        ctx.arrays, ctx.eps = arrays, float(eps)
-        return torch.from_numpy(total).to(f.dtype)
+        fwd(*arrays, total)
+        ctx.arrays = arrays
+        return torch.from_numpy(total.sum(axis=1)).to(f.dtype)
 
     @staticmethod
     def backward(ctx, grad_total):
         f = ctx.arrays[0]
         grad = np.empty_like(f)
         _, bwd = _kernels.smoothness_kernels(_kernels.use_threads())
-        bwd(*ctx.arrays, ctx.eps, np.ascontiguousarray(grad_total.detach().double().numpy()), grad)
+        bwd(*ctx.arrays, np.ascontiguousarray(grad_total.detach().numpy(), dtype=f.dtype), grad)
         return torch.from_numpy(grad), None, None
 
 
