@@ -1,17 +1,25 @@
-"""Compiled CPU kernels (numba) for L_AT(s) and L_EC(s) straight from the events.
+"""Compiled CPU kernels (numba) for L_AT(s) and L_EC(s) straight from the events, and for the
+other per-event and per-pixel loops of the losses (flow sampling, Charbonnier smoothness, the
+forward warp of a flow field, input checks).
 
 The same arithmetic as the torch path of ``image_terms.py`` (see its docstring for the
 equations), but fused: one loop over the events splats the count and timestamp images of one
-(batch element, reference time) pair, one loop over the pixels reduces them to L_AT, L_EC and
-the kept weight, and the backward is one more loop over the events that reads the images at
-each event's 4 corners. The work is split into B x R independent tasks (each owns its images),
-so there are no write races and B = 1 still uses two threads for the two reference times.
+(batch element, reference time) pair, one pass over the pixels reduces them to L_AT, L_EC and
+the kept weight, and the backward is one pass over the pixels that turns C and A into the
+per-pixel factors of the gradient, then one loop over the events that reads them at each
+event's 4 corners. The work is split into B x R independent tasks (each owns its images), so
+there are no write races and B = 1 still uses two threads for the two reference times.
+
+Arithmetic runs in the events' dtype (float32 for training, float64 for the checks): constants
+come in as arrays of that dtype, since a Python float would promote every product to float64.
+The pixel passes are written as branch-free row loops that LLVM turns into SIMD code; for that
+the exp of L_EC is a polynomial in float32 (``_exp``), and row sums are added in float64.
 
 Layout as in ``splat.py``: every image is padded by a 1-pixel ring (pixel (r, q) stored at
 (r + 1, q + 1)); corners that fall outside the real image land on the ring and are ignored.
 
-Used on CPU tensors when numba is importable (``image_terms.py`` decides); the torch path is
-the reference the tests compare against and the path for CUDA.
+Used on CPU tensors when numba is importable (the callers decide); the torch paths are the
+reference the tests compare against and the path for CUDA.
 """
 
 from __future__ import annotations
@@ -84,8 +92,8 @@ def _make(parallel: bool):
 
     @numba.njit(parallel=parallel, **_VECTOR)
     def forward(x, y, t, off, mask, u, refs, consts, height, width, images, stats, at, ec, kept):
-        """images: (B, R, 2 [ON, OFF], 3 [C, A, E], H + 2, W + 2) out: the count image C, the
-        timestamp image A and E = exp(-alpha C) (interior only), kept for the backward.
+        """images: (B, R, 2 [ON, OFF], 2 [C, A], H + 2, W + 2) out: the count image C and the
+        timestamp image A, kept for the backward.
         refs: (R,) and consts = [1, 1e-9, -alpha, 1 / span] in the events' dtype, which sets the
         arithmetic (float32 or float64). stats: (B, R, 3) out: N_nz, S_ON, S_OFF (for the
         backward). at, ec, kept: (B, R) out (float64)."""
@@ -99,7 +107,7 @@ def _make(parallel: bool):
             r = task % R
             s = refs[r]
             img = images[b, r]
-            img[:, 0:2] = zero
+            img[:] = zero
             for i in range(N):
                 if not mask[b, i]:
                     continue
@@ -130,8 +138,8 @@ def _make(parallel: bool):
             s_off = 0.0
             total = 0.0
             for rr in range(1, height + 1):  # one SIMD loop per row; ring pixels (dropped) skipped
-                c_on, a_on, e_on = img[0, 0, rr], img[0, 1, rr], img[0, 2, rr]
-                c_off, a_off, e_off = img[1, 0, rr], img[1, 1, rr], img[1, 2, rr]
+                c_on, a_on = img[0, 0, rr], img[0, 1, rr]
+                c_off, a_off = img[1, 0, rr], img[1, 1, rr]
                 row_t2 = zero
                 row_nz = zero
                 row_on = zero
@@ -144,8 +152,6 @@ def _make(parallel: bool):
                     t_off = a_off[q] / (n_off + tiny)
                     x_on = _exp(neg_alpha * n_on)
                     x_off = _exp(neg_alpha * n_off)
-                    e_on[q] = x_on
-                    e_off[q] = x_off
                     row_t2 += t_on * t_on + t_off * t_off
                     row_nz += one if n_on + n_off > zero else zero
                     row_on += x_on
@@ -164,39 +170,38 @@ def _make(parallel: bool):
             stats[b, r, 2] = s_off
 
     @numba.njit(parallel=parallel, **_VECTOR)
-    def backward(x, y, t, off, mask, u, refs, consts, height, width, images, factors, gimages, grad_u):
+    def backward(x, y, t, off, mask, u, refs, consts, height, width, images, factors, grad_u):
         """factors: (B, R, 3) [k_at, k_ON, k_OFF] in the events' dtype, with k_at = 2 dL/dL_AT /
-        N_nz and k_P = alpha HW dL/dL_EC / S_P^2. gimages: (B, R, 2, 2, H + 2, W + 2) scratch:
-        per pixel G = G0 + w G1 with G1 = k_at P1, G0 = k_P E - k_at P2 (P1 = T / (C + 1e-9),
-        P2 = T P1: dL_AT/dA = k_at P1, dL_AT/dC = -k_at P2, dL_EC/dC = k_P E; eqs. 13-16), 0 on
-        the ring (dropped corners). grad_u: (B, R, N, 2) out (summed over R by the caller)."""
+        N_nz and k_P = alpha HW dL/dL_EC / S_P^2. Each task first fills a scratch
+        (2, H + 2, W + 2, 2): per pixel [G0, G1] side by side (one cache line serves a corner pair), G = G0 + w G1
+        with G1 = k_at P1, G0 = k_P E - k_at P2 (P1 = T / (C + 1e-9), P2 = T P1:
+        dL_AT/dA = k_at P1, dL_AT/dC = -k_at P2, dL_EC/dC = k_P E; eqs. 13-16), 0 on the ring
+        (dropped corners). grad_u: (B, R, N, 2) out (summed over R by the caller)."""
         B, N = x.shape
         R = refs.shape[0]
-        one, tiny, inv_span = consts[0], consts[1], consts[3]
+        one, tiny, neg_alpha, inv_span = consts[0], consts[1], consts[2], consts[3]
         zero = one - one
         for task in loop(B * R):
             b = task // R
             r = task % R
             s = refs[r]
             img = images[b, r]
-            gimg = gimages[b, r]
+            gimg = np.empty((2, height + 2, width + 2, 2), images.dtype)
             k_at = factors[b, r, 0]
             for c in range(2):
                 k_ec = factors[b, r, 1 + c]
-                gimg[c, :, 0] = zero
-                gimg[c, :, height + 1] = zero
+                gimg[c, 0] = zero
+                gimg[c, height + 1] = zero
                 for rr in range(1, height + 1):
-                    count, stamp, e = img[c, 0, rr], img[c, 1, rr], img[c, 2, rr]
-                    g0, g1 = gimg[c, 0, rr], gimg[c, 1, rr]
-                    g0[0] = zero
-                    g1[0] = zero
-                    g0[width + 1] = zero
-                    g1[width + 1] = zero
+                    count, stamp = img[c, 0, rr], img[c, 1, rr]
+                    g = gimg[c, rr]
+                    g[0] = zero
+                    g[width + 1] = zero
                     for q in range(1, width + 1):
                         inv = one / (count[q] + tiny)
                         p1 = stamp[q] * inv * inv
-                        g1[q] = k_at * p1
-                        g0[q] = k_ec * e[q] - k_at * p1 * stamp[q] * inv
+                        g[q, 0] = k_ec * _exp(neg_alpha * count[q]) - k_at * p1 * stamp[q] * inv
+                        g[q, 1] = k_at * p1
             for i in range(N):
                 grad_u[b, r, i, 0] = zero
                 grad_u[b, r, i, 1] = zero
@@ -205,14 +210,12 @@ def _make(parallel: bool):
                 inside, row, col, fx, fy, dt = _warp_event(x, y, t, u, b, i, s, one, height, width)
                 if not inside:
                     continue
-                c = 1 if off[b, i] else 0
                 w = one - abs(dt) * inv_span
-                g0 = gimg[c, 0]
-                g1 = gimg[c, 1]
-                G00 = g0[row, col] + w * g1[row, col]
-                G01 = g0[row, col + 1] + w * g1[row, col + 1]
-                G10 = g0[row + 1, col] + w * g1[row + 1, col]
-                G11 = g0[row + 1, col + 1] + w * g1[row + 1, col + 1]
+                g = gimg[1 if off[b, i] else 0]
+                G00 = g[row, col, 0] + w * g[row, col, 1]
+                G01 = g[row, col + 1, 0] + w * g[row, col + 1, 1]
+                G10 = g[row + 1, col, 0] + w * g[row + 1, col, 1]
+                G11 = g[row + 1, col + 1, 0] + w * g[row + 1, col + 1, 1]
                 gx = (one - fy) * (G01 - G00) + fy * (G11 - G10)  # sum_c G_c dk_c/dx'
                 gy = (one - fx) * (G10 - G00) + fx * (G11 - G01)  # sum_c G_c dk_c/dy'
                 grad_u[b, r, i, 0] = gx * dt
@@ -350,14 +353,19 @@ def _make_sampling(parallel: bool):
         mask (B, N) is False (padding)."""
         B, _, H, W = flow.shape
         N = x.shape[1]
-        for b in loop(B):
+        for task in loop(2 * B):  # each batch element in two halves, so B = 1 uses two threads
+            b = task // 2
             fu, fv = flow[b, 0], flow[b, 1]
-            for i in range(N):
+            for i in range((task % 2) * N // 2, (task % 2 + 1) * N // 2):
                 if not mask[b, i]:
                     out[b, i, 0] = 0.0
                     out[b, i, 1] = 0.0
                     continue
                 x0, x1, y0, y1, fx, fy = _bilinear_taps(x[b, i], y[b, i], lim, H, W)
+                if fx == 0 and fy == 0:  # an integer pixel (raw sensor events): one tap
+                    out[b, i, 0] = fu[y0, x0]
+                    out[b, i, 1] = fv[y0, x0]
+                    continue
                 one = lim[3]
                 gx = one - fx
                 gy = one - fy
@@ -379,8 +387,11 @@ def _make_sampling(parallel: bool):
                 if not mask[b, i]:
                     continue
                 x0, x1, y0, y1, fx, fy = _bilinear_taps(x[b, i], y[b, i], lim, H, W)
-                one = lim[3]
                 g = grad_out[b, i, ch]
+                if fx == 0 and fy == 0:  # an integer pixel: one tap
+                    g_img[y0, x0] += g
+                    continue
+                one = lim[3]
                 gy = (one - fy) * g
                 g_img[y0, x0] += (one - fx) * gy
                 g_img[y0, x1] += fx * gy
@@ -404,6 +415,22 @@ def _make_sampling(parallel: bool):
                     out[b, int(yi), int(xi)] = True
 
     return forward, backward, event_mask
+
+
+@numba.njit(**_OPTIONS)
+def first_bad_event(x, y, tau, mask):
+    """(kind, b, i) of the first valid event with tau outside [0, 1] or NaN (kind 1), or with a
+    NaN/inf coordinate (kind 2; checked after every tau); (0, -1, -1) when all are good."""
+    B, N = x.shape
+    for b in range(B):
+        for i in range(N):
+            if mask[b, i] and not (tau[b, i] >= 0 and tau[b, i] <= 1):
+                return 1, b, i
+    for b in range(B):
+        for i in range(N):
+            if mask[b, i] and not (math.isfinite(x[b, i]) and math.isfinite(y[b, i])):
+                return 2, b, i
+    return 0, -1, -1
 
 
 @functools.cache

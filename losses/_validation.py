@@ -6,6 +6,11 @@ import torch
 
 from .events import EventBatch
 
+try:  # compiled CPU check (one pass, no temporaries); without numba the torch path
+    from . import _kernels
+except ImportError:  # pragma: no cover
+    _kernels = None
+
 
 def check_flow(flow: torch.Tensor, name: str = "flow") -> None:
     """flow: (B, 2, H, W) floating tensor, finite, B > 0."""
@@ -46,15 +51,21 @@ def check_events(events: EventBatch, batch_size: int | None = None, name: str = 
         raise ValueError(f"batch size mismatch: flow has B = {batch_size}, {name} has B = {shape[0]}")
     if shape[1] == 0:
         return
-    m = events.mask
-    bad_tau = m & ~((events.tau >= 0) & (events.tau <= 1))  # also catches NaN
-    if bool(bad_tau.any()):
-        b, i = (int(v) for v in bad_tau.nonzero()[0])
+    if _kernels is not None and events.x.device.type == "cpu":
+        kind, b, i = _kernels.first_bad_event(events.x.detach().numpy(), events.y.detach().numpy(),
+                                              events.tau.detach().numpy(), events.mask.numpy())
+    else:
+        m = events.mask
+        kind, b, i = 0, -1, -1
+        for code, bad in ((1, m & ~((events.tau >= 0) & (events.tau <= 1))),  # also catches NaN
+                          (2, m & ~(torch.isfinite(events.x) & torch.isfinite(events.y)))):
+            if bool(bad.any()):
+                kind, (b, i) = code, (int(v) for v in bad.nonzero()[0])
+                break
+    if kind == 1:
         raise ValueError(
             f"{name}: tau[{b}, {i}] = {float(events.tau[b, i])} is outside [0, 1] "
             "(event time outside its window)"
         )
-    bad_xy = m & ~(torch.isfinite(events.x) & torch.isfinite(events.y))
-    if bool(bad_xy.any()):
-        b, i = (int(v) for v in bad_xy.nonzero()[0])
+    if kind == 2:
         raise ValueError(f"{name}: x or y at [{b}, {i}] is NaN or inf")

@@ -135,7 +135,7 @@ class _EventImageTermsCompiled(torch.autograd.Function):
             np.asarray(references, np_dtype),
             np.array([1.0, 1e-9, -alpha, 1.0 / span], np_dtype),
         )
-        images = np.empty((B, R, 2, 3, height + 2, width + 2), np_dtype)
+        images = np.empty((B, R, 2, 2, height + 2, width + 2), np_dtype)
         stats = np.empty((B, R, 3), np.float64)
         at = np.empty((B, R), np.float64)
         ec = np.empty((B, R), np.float64)
@@ -161,8 +161,7 @@ class _EventImageTermsCompiled(torch.autograd.Function):
         factors[..., 1:] = (alpha * height * width) * g_ec[..., None] / (stats[..., 1:] * stats[..., 1:])
         grad_u = np.empty((B, R, N, 2), images.dtype)
         _, bwd = _kernels.kernels(_kernels.use_threads())
-        bwd(*ctx.arrays, int(height), int(width), images, factors.astype(images.dtype),
-            np.empty((B, R, 2, 2, height + 2, width + 2), images.dtype), grad_u)
+        bwd(*ctx.arrays, int(height), int(width), images, factors.astype(images.dtype), grad_u)
         grad = torch.from_numpy(grad_u).sum(dim=1)
         return grad, None, None, None, None, None, None, None, None, None, None
 

@@ -138,7 +138,7 @@ def _time_interleaved(fns: dict, repeats: int) -> dict:
 def run(report, quick: bool = False, device: str = "cpu", repeats: int | None = None) -> dict:
     """Measure every config; report rows in events/s and the fast/naive ratio. Returns the rows."""
     results = {}
-    repeats = repeats or (2 if quick else 5)
+    repeats = repeats or (2 if quick else 10)
     for name, B, N, H, W in CONFIGS:
         if quick:
             N = N // 10

@@ -720,3 +720,20 @@ def test_compiled_kernels_equal_torch_path(scale, monkeypatch):
     np.testing.assert_allclose(l32.numpy(), l64.numpy(), rtol=1e-3)  # float32: REFERENCE numerics note
     np.testing.assert_allclose(k32.numpy(), k64.numpy(), rtol=1e-5)
     assert float((g32 - g64).norm() / g64.norm()) < 1e-2  # a few events sit on a kernel kink
+
+
+@pytest.mark.skipif(not image_terms.compiled_available(), reason="numba not installed")
+def test_compiled_float32_exp_matches_exp():
+    """The SIMD-friendly exp of the float32 kernels against float64 exp, over the range that
+    -alpha C takes (C from 0 to far beyond any pixel count) and a little above 0."""
+    import numba
+
+    from losses import _kernels
+
+    exp32 = numba.njit(lambda v: _kernels._exp(v))
+    v = np.concatenate([np.linspace(-87.0, 2.0, 20001), [0.0, -0.6, -1e-8]]).astype(np.float32)
+    got = np.array([exp32(np.float32(q)) for q in v], np.float64)
+    want = np.exp(v.astype(np.float64))
+    assert exp32(np.float32(0.0)) == 1.0  # an empty pixel contributes exactly 1 to S_P
+    np.testing.assert_allclose(got, want, rtol=2e-7)
+    assert exp32(1.5) == pytest.approx(np.exp(1.5), rel=1e-15)  # float64: the libm exp
