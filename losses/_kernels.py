@@ -248,7 +248,7 @@ def kernels(parallel: bool):
 
 
 @numba.njit(inline="always", **_VECTOR)
-def _charbonnier_direction(img, has, eps2, zero, dr, dc):
+def _charbonnier_direction(img, has, scale, eps2, zero, dr, dc):
     """Sum of sqrt(d^2 + eps^2) over counted pairs (r, q) -> (r + dr, q + dc) of one image."""
     H, W = img.shape
     acc = 0.0
@@ -257,21 +257,22 @@ def _charbonnier_direction(img, has, eps2, zero, dr, dc):
         ma, mb = has[r], has[r + dr]
         row = zero
         for q in range(W - dc):
-            d = b[q + dc] - a[q]
+            d = (b[q + dc] - a[q]) * scale
             row += math.sqrt(d * d + eps2) if ma[q] and mb[q + dc] else zero
         acc += row
     return acc
 
 
 @numba.njit(inline="always", **_VECTOR)
-def _charbonnier_direction_grad(img, has, out, g_b, eps2, zero, slope, dr, dc):
-    """Adds g_b d rho / d img of one direction's pairs to out; slope: (W,) scratch."""
+def _charbonnier_direction_grad(img, has, scale, out, g_b, eps2, zero, slope, dr, dc):
+    """Adds g_b d rho / d d of one direction's pairs to out (g_b includes the 1 / flow_scaling
+    of d's derivative); slope: (W,) scratch."""
     H, W = img.shape
     for r in range(max(0, -dr), H - max(0, dr)):
         a, b = img[r], img[r + dr]
         ma, mb = has[r], has[r + dr]
         for q in range(W - dc):
-            d = b[q + dc] - a[q]
+            d = (b[q + dc] - a[q]) * scale
             slope[q] = g_b * d / math.sqrt(d * d + eps2) if ma[q] and mb[q + dc] else zero
         for q in range(W - dc):
             out[r + dr, q + dc] += slope[q]
@@ -283,42 +284,44 @@ def _make_smoothness(parallel: bool):
     loop = numba.prange if parallel else range
 
     @numba.njit(parallel=parallel, **_VECTOR)
-    def forward(f, event_mask, eps, total):
-        """f: (B, 2, H, W) flow in network units; event_mask: (B, H, W) bool; eps: (1,) array in
-        f's dtype; total: (B, 2) out, per component: the sum over counted pairs of
-        sqrt(d^2 + eps^2). One task per (batch element, component); one SIMD loop per row and
+    def forward(f, event_mask, consts, total):
+        """f: (B, 2, H, W) flow in pixels; event_mask: (B, H, W) bool; consts = [eps,
+        1 / flow_scaling] in f's dtype; total: (B, 2) out, per component: the sum over counted
+        pairs of sqrt(d^2 + eps^2), d the difference in network units (pixels / flow_scaling). One task per (batch element, component); one SIMD loop per row and
         direction (uncounted pairs select 0)."""
         B = f.shape[0]
-        eps2 = eps[0] * eps[0]
-        zero = eps[0] - eps[0]
+        eps2 = consts[0] * consts[0]
+        zero = consts[0] - consts[0]
+        scale = consts[1]
         for task in loop(2 * B):
             b = task // 2
             img = f[b, task % 2]
             has = event_mask[b]
-            total[b, task % 2] = (_charbonnier_direction(img, has, eps2, zero, 0, 1)
-                                  + _charbonnier_direction(img, has, eps2, zero, 1, 0)
-                                  + _charbonnier_direction(img, has, eps2, zero, 1, 1)
-                                  + _charbonnier_direction(img, has, eps2, zero, -1, 1))
+            total[b, task % 2] = (_charbonnier_direction(img, has, scale, eps2, zero, 0, 1)
+                                  + _charbonnier_direction(img, has, scale, eps2, zero, 1, 0)
+                                  + _charbonnier_direction(img, has, scale, eps2, zero, 1, 1)
+                                  + _charbonnier_direction(img, has, scale, eps2, zero, -1, 1))
 
     @numba.njit(parallel=parallel, **_VECTOR)
-    def backward(f, event_mask, eps, grad_total, grad):
+    def backward(f, event_mask, consts, grad_total, grad):
         """grad_total: (B,) in f's dtype; grad: (B, 2, H, W) out, d total[b] / d f times
-        grad_total[b] (d rho / d d = d / rho)."""
+        grad_total[b] (d rho / d d = d / rho, times 1 / flow_scaling)."""
         B, _, _, W = f.shape
-        eps2 = eps[0] * eps[0]
-        zero = eps[0] - eps[0]
+        eps2 = consts[0] * consts[0]
+        zero = consts[0] - consts[0]
+        scale = consts[1]
         for task in loop(2 * B):
             b = task // 2
             img = f[b, task % 2]
             has = event_mask[b]
             out = grad[b, task % 2]
             out[:] = zero
-            g_b = grad_total[b]
+            g_b = grad_total[b] * scale
             slope = np.empty(W, f.dtype)
-            _charbonnier_direction_grad(img, has, out, g_b, eps2, zero, slope, 0, 1)
-            _charbonnier_direction_grad(img, has, out, g_b, eps2, zero, slope, 1, 0)
-            _charbonnier_direction_grad(img, has, out, g_b, eps2, zero, slope, 1, 1)
-            _charbonnier_direction_grad(img, has, out, g_b, eps2, zero, slope, -1, 1)
+            _charbonnier_direction_grad(img, has, scale, out, g_b, eps2, zero, slope, 0, 1)
+            _charbonnier_direction_grad(img, has, scale, out, g_b, eps2, zero, slope, 1, 0)
+            _charbonnier_direction_grad(img, has, scale, out, g_b, eps2, zero, slope, 1, 1)
+            _charbonnier_direction_grad(img, has, scale, out, g_b, eps2, zero, slope, -1, 1)
 
     return forward, backward
 

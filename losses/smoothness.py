@@ -106,10 +106,10 @@ class _CharbonnierCompiled(torch.autograd.Function):
     """The same sum as ``_Charbonnier`` through one fused loop per batch element (numba, CPU)."""
 
     @staticmethod
-    def forward(ctx, f, event_mask, eps):
+    def forward(ctx, f, event_mask, eps, flow_scaling):
         np_dtype = np.float64 if f.dtype == torch.float64 else np.float32
         arrays = (np.ascontiguousarray(f.detach().numpy(), dtype=np_dtype), np.ascontiguousarray(event_mask.numpy()),
-                  np.array([eps], np_dtype))
+                  np.array([eps, 1.0 / flow_scaling], np_dtype))
         total = np.empty((f.shape[0], 2), np.float64)
         fwd, _ = _kernels.smoothness_kernels(_kernels.use_threads())
         fwd(*arrays, total)
@@ -122,7 +122,7 @@ class _CharbonnierCompiled(torch.autograd.Function):
         grad = np.empty_like(f)
         _, bwd = _kernels.smoothness_kernels(_kernels.use_threads())
         bwd(*ctx.arrays, np.ascontiguousarray(grad_total.detach().numpy(), dtype=f.dtype), grad)
-        return torch.from_numpy(grad), None, None
+        return torch.from_numpy(grad), None, None, None
 
 
 def charbonnier_smoothness(
@@ -138,6 +138,6 @@ def charbonnier_smoothness(
     Cost is proportional to the number of counted pairs, not to the image size.
     """
     if _kernels is not None and flow.device.type == "cpu" and flow.dtype in (torch.float32, torch.float64):
-        return _CharbonnierCompiled.apply(flow / flow_scaling, event_mask, float(eps)) / 4
+        return _CharbonnierCompiled.apply(flow, event_mask, float(eps), float(flow_scaling)) / 4
     first, second, batch = neighbour_pairs(event_mask)
     return _Charbonnier.apply(flow / flow_scaling, first, second, batch, float(eps)) / 4

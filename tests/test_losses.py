@@ -598,6 +598,36 @@ def test_time_outside_window():
     hmc_loss(torch.zeros(1, 2, 4, 4), ev)
 
 
+@pytest.mark.parametrize("path", ["compiled", "torch"])
+def test_bad_event_fields_are_named(path, monkeypatch):
+    """tau outside [0, 1] or NaN, and NaN/inf coordinates, in a valid slot: a ValueError that
+    names the field and the slot, through the compiled check and through the torch check
+    (CUDA's); tau is checked before the coordinates; padding slots may hold anything."""
+    from losses import _validation
+
+    if path == "torch":
+        monkeypatch.setattr(_validation, "_kernels", None)
+    elif _validation._kernels is None:
+        pytest.skip("numba not installed")
+    ev, (H, W) = _small_batch(B=2)
+    flow = torch.zeros(2, 2, H, W)
+    n = ev.x.shape[1]
+    cases = [("tau", float("nan"), r"tau\[1, 2\] = nan"), ("tau", -0.25, r"tau\[1, 2\] = -0.25"),
+             ("x", float("nan"), r"x or y at \[1, 2\] is NaN or inf"), ("y", float("inf"), r"x or y at \[1, 2\]")]
+    for field, value, message in cases:
+        bad = getattr(ev, field).clone()
+        bad[1, 2] = value
+        with pytest.raises(ValueError, match=message):
+            hmc_loss(flow, ev._replace(**{field: bad}))
+        padded = ev._replace(**{field: bad}, mask=ev.mask.clone().index_put_((torch.tensor([1]), torch.tensor([2])),
+                                                                              torch.tensor(False)))
+        hmc_loss(flow, padded)  # the same value in a padding slot is ignored
+    both = ev._replace(x=ev.x.clone().index_fill_(1, torch.tensor([0]), float("nan")),
+                       tau=ev.tau.clone().index_fill_(1, torch.tensor([n - 1]), 2.0))
+    with pytest.raises(ValueError, match="tau"):
+        hmc_loss(flow, both)
+
+
 def test_empty_batch_and_other_malformed_input():
     with pytest.raises(ValueError, match="empty batch"):
         EventBatch.from_windows([])
