@@ -767,3 +767,35 @@ def test_compiled_float32_exp_matches_exp():
     assert exp32(np.float32(0.0)) == 1.0  # an empty pixel contributes exactly 1 to S_P
     np.testing.assert_allclose(got, want, rtol=2e-7)
     assert exp32(1.5) == pytest.approx(np.exp(1.5), rel=1e-15)  # float64: the libm exp
+
+
+@pytest.mark.skipif(not image_terms.compiled_available(), reason="numba not installed")
+def test_parallel_kernels_equal_serial_kernels():
+    """The suite runs torch (and so the kernels) on one thread; users run the parallel kernels.
+    Both give the same losses and gradients (float64), for several batch sizes, also when a
+    batch has fewer tasks than threads, and twice in a row (buffers reused from the pool)."""
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("numba has a single thread here")
+    rng = np.random.default_rng(5)
+    H, W = 19, 26
+    before = torch.get_num_threads()
+    for B in (1, 3):
+        wins = [random_window(rng, int(n), H, W, integer=b % 2 == 0, border=b == 1)
+                for b, n in enumerate(rng.integers(50, 400, B))]
+        ev = EventBatch.from_windows(wins, dtype=torch.float64)
+        flow = torch.from_numpy(rng.normal(0, 2.5, (B, 2, H, W)))
+        results = []
+        try:
+            for threads in (1, 2, 2):
+                torch.set_num_threads(threads)
+                f = flow.clone().requires_grad_()
+                out = hmc_loss(f, ev, border_penalty=0.3)
+                (out.per_sample * torch.arange(1, B + 1)).sum().backward()
+                results.append((out.per_sample.detach(), f.grad))
+        finally:
+            torch.set_num_threads(before)
+        for loss, grad in results[1:]:
+            np.testing.assert_allclose(loss.numpy(), results[0][0].numpy(), rtol=1e-12)
+            np.testing.assert_allclose(grad.numpy(), results[0][1].numpy(), rtol=1e-9, atol=1e-14)
