@@ -173,8 +173,8 @@ def _make(parallel: bool):
     def backward(x, y, t, off, mask, u, refs, consts, height, width, images, factors, grad_u):
         """factors: (B, R, 3) [k_at, k_ON, k_OFF] in the events' dtype, with k_at = 2 dL/dL_AT /
         N_nz and k_P = alpha HW dL/dL_EC / S_P^2. Each task first fills a scratch
-        (2, H + 2, W + 2, 2): per pixel [G0, G1] side by side (one cache line serves a corner pair), G = G0 + w G1
-        with G1 = k_at P1, G0 = k_P E - k_at P2 (P1 = T / (C + 1e-9), P2 = T P1:
+        (2, H + 2, W + 2, 2): per pixel [G0, G1] side by side (one cache line serves a corner
+        pair), G = G0 + w G1 with G1 = k_at P1, G0 = k_P E - k_at P2 (P1 = T / (C + 1e-9), P2 = T P1:
         dL_AT/dA = k_at P1, dL_AT/dC = -k_at P2, dL_EC/dC = k_P E; eqs. 13-16), 0 on the ring
         (dropped corners). grad_u: (B, R, N, 2) out (summed over R by the caller)."""
         B, N = x.shape
@@ -287,8 +287,9 @@ def _make_smoothness(parallel: bool):
     def forward(f, event_mask, consts, total):
         """f: (B, 2, H, W) flow in pixels; event_mask: (B, H, W) bool; consts = [eps,
         1 / flow_scaling] in f's dtype; total: (B, 2) out, per component: the sum over counted
-        pairs of sqrt(d^2 + eps^2), d the difference in network units (pixels / flow_scaling). One task per (batch element, component); one SIMD loop per row and
-        direction (uncounted pairs select 0)."""
+        pairs of sqrt(d^2 + eps^2), d the difference in network units (pixels / flow_scaling).
+        One task per (batch element, component); one SIMD loop per row and direction
+        (uncounted pairs select 0)."""
         B = f.shape[0]
         eps2 = consts[0] * consts[0]
         zero = consts[0] - consts[0]
