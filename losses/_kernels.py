@@ -91,9 +91,9 @@ def _make(parallel: bool):
     loop = numba.prange if parallel else range
 
     @numba.njit(parallel=parallel, **_VECTOR)
-    def forward(x, y, t, off, mask, u, refs, consts, height, width, images, stats, at, ec, kept):
-        """images: (B, R, 2 [ON, OFF], 2 [C, A], H + 2, W + 2) out: the count image C and the
-        timestamp image A, kept for the backward.
+    def forward(x, y, t, p, mask, u, refs, consts, height, width, images, stats, at, ec, kept):
+        """p: (B, N) polarities (OFF where p <= 0). images: (B, R, 2 [ON, OFF], 2 [C, A], H + 2,
+        W + 2) out: the count image C and the timestamp image A, kept for the backward.
         refs: (R,) and consts = [1, 1e-9, -alpha, 1 / span] in the events' dtype, which sets the
         arithmetic (float32 or float64). stats: (B, R, 3) out: N_nz, S_ON, S_OFF (for the
         backward). at, ec, kept: (B, R) out (float64)."""
@@ -114,7 +114,7 @@ def _make(parallel: bool):
                 inside, row, col, fx, fy, dt = _warp_event(x, y, t, u, b, i, s, one, height, width)
                 if not inside:
                     continue  # all 4 corners outside: dropped
-                c = 1 if off[b, i] else 0
+                c = 1 if p[b, i] <= zero else 0  # OFF: p <= 0
                 w = one - abs(dt) * inv_span
                 gx = one - fx
                 gy = one - fy
@@ -170,7 +170,7 @@ def _make(parallel: bool):
             stats[b, r, 2] = s_off
 
     @numba.njit(parallel=parallel, **_VECTOR)
-    def backward(x, y, t, off, mask, u, refs, consts, height, width, images, factors, grad_u):
+    def backward(x, y, t, p, mask, u, refs, consts, height, width, images, factors, grad_u):
         """factors: (B, R, 3) [k_at, k_ON, k_OFF] in the events' dtype, with k_at = 2 dL/dL_AT /
         N_nz and k_P = alpha HW dL/dL_EC / S_P^2. Each task first fills a scratch
         (2, H + 2, W + 2, 2): per pixel [G0, G1] side by side (one cache line serves a corner
@@ -211,7 +211,7 @@ def _make(parallel: bool):
                 if not inside:
                     continue
                 w = one - abs(dt) * inv_span
-                g = gimg[1 if off[b, i] else 0]
+                g = gimg[1 if p[b, i] <= zero else 0]
                 G00 = g[row, col, 0] + w * g[row, col, 1]
                 G01 = g[row, col + 1, 0] + w * g[row, col + 1, 1]
                 G10 = g[row + 1, col, 0] + w * g[row + 1, col, 1]
@@ -405,12 +405,14 @@ def _make_sampling(parallel: bool):
 
     @numba.njit(parallel=parallel, **_OPTIONS)
     def event_mask(x, y, mask, out):
-        """out (B, H, W) bool: pixels holding a valid event, coordinates rounded half to even."""
+        """out (B, H, W) bool, all False on entry: set True at pixels holding a valid event,
+        coordinates rounded half to even. Each batch element in two halves of its events (so
+        B = 1 uses two threads); both halves only ever store True, so they may share a pixel."""
         B, H, W = out.shape
         N = x.shape[1]
-        for b in loop(B):
-            out[b] = False
-            for i in range(N):
+        for task in loop(2 * B):
+            b = task // 2
+            for i in range((task % 2) * N // 2, (task % 2 + 1) * N // 2):
                 if not mask[b, i]:
                     continue
                 xi = np.round(x[b, i])
@@ -423,17 +425,20 @@ def _make_sampling(parallel: bool):
 
 @numba.njit(**_OPTIONS)
 def first_bad_event(x, y, tau, mask):
-    """(kind, b, i) of the first valid event with tau outside [0, 1] or NaN (kind 1), or with a
-    NaN/inf coordinate (kind 2; checked after every tau); (0, -1, -1) when all are good."""
+    """(kind, b, i) of the first valid event with tau outside [0, 1] or NaN (kind 1), else of
+    the first with a NaN/inf coordinate (kind 2); (0, -1, -1) when all are good. One pass."""
     B, N = x.shape
+    bad_coord = (-1, -1)
     for b in range(B):
         for i in range(N):
-            if mask[b, i] and not (tau[b, i] >= 0 and tau[b, i] <= 1):
+            if not mask[b, i]:
+                continue
+            if not (tau[b, i] >= 0 and tau[b, i] <= 1):
                 return 1, b, i
-    for b in range(B):
-        for i in range(N):
-            if mask[b, i] and not (math.isfinite(x[b, i]) and math.isfinite(y[b, i])):
-                return 2, b, i
+            if bad_coord[0] < 0 and not (math.isfinite(x[b, i]) and math.isfinite(y[b, i])):
+                bad_coord = (b, i)
+    if bad_coord[0] >= 0:
+        return 2, bad_coord[0], bad_coord[1]
     return 0, -1, -1
 
 

@@ -129,7 +129,7 @@ class _EventImageTermsCompiled(torch.autograd.Function):
             np.ascontiguousarray(x.detach().numpy(), dtype=np_dtype),
             np.ascontiguousarray(y.detach().numpy(), dtype=np_dtype),
             np.ascontiguousarray(t.detach().numpy(), dtype=np_dtype),
-            np.ascontiguousarray((p <= 0).numpy()),
+            np.ascontiguousarray(p.detach().numpy(), dtype=np_dtype),  # OFF where p <= 0
             np.ascontiguousarray(mask.numpy()),
             np.ascontiguousarray(u.detach().numpy()),
             np.asarray(references, np_dtype),

@@ -31,7 +31,7 @@ def event_pixel_mask(
     round outside the image are ignored.
     """
     if _kernels is not None and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64):
-        out = np.empty((x.shape[0], height, width), np.bool_)
+        out = np.zeros((x.shape[0], height, width), np.bool_)
         _kernels.sampling_kernels(_kernels.use_threads())[2](
             np.ascontiguousarray(x.numpy()), np.ascontiguousarray(y.numpy(), dtype=x.numpy().dtype),
             np.ascontiguousarray(mask.numpy()), out)

@@ -773,7 +773,7 @@ def test_compiled_float32_exp_matches_exp():
 def test_parallel_kernels_equal_serial_kernels():
     """The suite runs torch (and so the kernels) on one thread; users run the parallel kernels.
     Both give the same losses and gradients (float64), for several batch sizes, also when a
-    batch has fewer tasks than threads, and twice in a row (buffers reused from the pool)."""
+    batch has fewer tasks than threads, and twice in a row."""
     import numba
 
     if numba.config.NUMBA_NUM_THREADS < 2:
