@@ -4,7 +4,8 @@ Rows, per width (paper c = 32, cpu c = 8) and input (256x256 batch 1, 128x128 ba
 forward latency per window (no grad, carrying the recurrent state) and forward + backward per
 window (state from the previous window, detached; loss = mean of every scale's flow), in ms,
 best of ``reps`` after one warm-up window; then EV-MGRFlowNet's latency as a ratio to
-ConvGRU-EV-FlowNet's at the same width (target <= 1.3).
+ConvGRU-EV-FlowNet's at the same width (target <= 1.3): the median over repetitions of the
+ratio of the two models' times in that repetition (they run back to back).
 
 ``run(report)`` is called by scripts/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_agents.py [--reps N] [--widths paper cpu]
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
 import time
 
@@ -46,9 +48,10 @@ def _sync(device: torch.device) -> None:
 
 
 def time_models(names: list[str], width: str, batch: int, height: int, size_w: int, reps: int, device) -> dict:
-    """{name: (forward ms, forward+backward ms)} per window, best of ``reps`` after a warm-up
-    window. The models take turns within each repetition, so load from other processes hits
-    them alike and the ratios stay meaningful on a shared machine."""
+    """{name: (forward ms, forward+backward ms, forward times s, forward+backward times s)} per
+    window: the best of ``reps`` after a warm-up window, and every repetition's time. The models
+    take turns within each repetition, so load from other processes hits them alike and the
+    ratios stay meaningful on a shared machine."""
     device = torch.device(device)
     models, states = {}, {}
     for name in names:
@@ -81,7 +84,15 @@ def time_models(names: list[str], width: str, batch: int, height: int, size_w: i
             if i > 0:
                 backward[name].append(time.perf_counter() - start)
             states[name] = {key: value.detach() for key, value in state.items()}
-    return {name: (1e3 * min(forward[name]), 1e3 * min(backward[name])) for name in names}
+    return {name: (1e3 * min(forward[name]), 1e3 * min(backward[name]), forward[name], backward[name])
+            for name in names}
+
+
+def turn_ratio(times: list[float], base: list[float]) -> float:
+    """Median over repetitions of ``times[i] / base[i]``: the two models ran back to back in
+    each repetition, so each ratio compares them under the same load, and the median drops the
+    repetitions that a burst of load hit in between."""
+    return statistics.median(a / b for a, b in zip(times, base))
 
 
 def run(report, reps: int = 2, widths=("paper", "cpu"), device: str = "cpu") -> dict:
@@ -92,17 +103,18 @@ def run(report, reps: int = 2, widths=("paper", "cpu"), device: str = "cpu") -> 
     for width in widths:
         for input_label, batch, height, size_w in INPUTS:
             timings = time_models(list(names), width, batch, height, size_w, reps, device)
-            for name, (fwd, fwd_bwd) in timings.items():
+            for name, (fwd, fwd_bwd, _, _) in timings.items():
                 label = names[name]
                 results[(width, input_label, label)] = (fwd, fwd_bwd)
                 row = f"{label} {width} {input_label} ({where})"
                 report(SECTION, f"{row} forward", fwd, "ms/window")
                 report(SECTION, f"{row} forward+backward", fwd_bwd, "ms/window")
-            mgr = results[(width, input_label, "EV-MGRFlowNet")]
-            base = results[(width, input_label, "ConvGRU-EV-FlowNet")]
+            mgr = timings["ev-mgrflownet"]
+            base = timings["convgru-ev-flownet"]
             row = f"EV-MGRFlowNet / ConvGRU-EV-FlowNet {width} {input_label}"
-            report(SECTION, f"{row} forward", mgr[0] / base[0], "x (target <= 1.3)")
-            report(SECTION, f"{row} forward+backward", mgr[1] / base[1], "x")
+            ratio = turn_ratio(mgr[2], base[2])
+            report(SECTION, f"{row} forward", ratio, "x (median per turn; target <= 1.3)")
+            report(SECTION, f"{row} forward+backward", turn_ratio(mgr[3], base[3]), "x (median per turn)")
     return results
 
 
