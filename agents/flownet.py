@@ -19,7 +19,7 @@ from torch import Tensor, nn
 
 from losses import forward_warp_flow
 
-from .layers import ConvGRU, ConvUp, ResidualBlock, conv3x3, tanh
+from .layers import ConvGRU, ConvUp, ResidualBlock, conv3x3
 
 #: Named base widths: the paper's size and a size that trains on a laptop CPU.
 WIDTHS: dict[str, int] = {"paper": 32, "cpu": 8}
@@ -94,7 +94,7 @@ class FlowDecoder(nn.Module):
             if flows:
                 parts.append(flows[-1])  # u_{l-1}, before the upsampling conv
             x = self.upsamples[level](torch.cat(parts, dim=1))  # eq. 10, D_l
-            flow = tanh(self.heads[level](x))  # eq. 10, uhat_l
+            flow = torch.tanh(self.heads[level](x))  # eq. 10, uhat_l
             if self.refiners is not None:
                 prior_here = None if prior is None else priors[NUM_SCALES - 1 - level]  # ubar_l
                 flow = self.refiners[level](flow, prior_here)  # eq. 11, u_l

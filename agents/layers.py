@@ -13,15 +13,6 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 
-def tanh(x: Tensor) -> Tensor:
-    """``tanh(x)``, computed on CPU as ``2 sigmoid(2x) - 1``: the same function (within 2e-7 in
-    float32; the derivative is still 1 - tanh^2), but torch's CPU sigmoid is vectorized where its
-    tanh is several times slower (``scripts/bench_agents.py``). Other devices: ``torch.tanh``."""
-    if x.device.type != "cpu":
-        return torch.tanh(x)
-    return torch.sigmoid(2 * x).mul(2).sub_(1)
-
-
 def conv3x3(in_channels: int, out_channels: int, stride: int = 1, bias: bool = True) -> nn.Conv2d:
     return nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1, bias=bias)
 
@@ -103,7 +94,7 @@ class ConvGRU(nn.Module):
             h_proj = self.h_convs(hidden)
         gates = torch.sigmoid(x_proj[:, : 2 * n] + h_proj[:, : 2 * n])  # eq. 4, r and z
         r, z = gates[:, :n], gates[:, n:]
-        candidate = tanh(torch.addcmul(x_proj[:, 2 * n :], r, h_proj[:, 2 * n :]))  # eq. 4, Hhat
+        candidate = torch.tanh(torch.addcmul(x_proj[:, 2 * n :], r, h_proj[:, 2 * n :]))  # eq. 4, Hhat
         return torch.addcmul(hidden, z, candidate - hidden)  # eq. 4, (1 - z) . H + z . Hhat
 
 
@@ -149,5 +140,5 @@ class STConvGRU(nn.Module):
         deep = self.gru_deep.step(projections[:, n : 2 * n], deep_memory)  # eq. 5, Mbar_k
         memories = torch.cat([deep, own], dim=1)
         gate = torch.sigmoid(self.gate_input(x) + self.gate_hidden(memories))  # eq. 6, o_k
-        out = gate * tanh(self.fusion(memories))  # eq. 6, F_k
+        out = gate * torch.tanh(self.fusion(memories))  # eq. 6, F_k
         return out, own
