@@ -3,7 +3,9 @@
 Rows: the fast ``losses.hmc_loss`` and, as the comparison, a straightforward implementation in
 the style of the TU Delft event_flow code (per-corner index tensors concatenated and repeated,
 one scatter per image into a (B, H*W, 1) buffer), written here, measured in the same run on the
-same data; plus the ratio, and the floor of one scatter-add + one gather of 4N floats.
+same data (each the best of ``repeats`` calls, the two taking turns); the ratio of the best
+times and the median over turns of the ratio within a turn (robust to bursts of load on a
+shared machine); and the floor of one scatter-add + one gather of 4N floats.
 
 ``run(report)`` is called by scripts/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_losses.py [--quick]``.
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
 import time
 
@@ -122,17 +125,18 @@ def naive_hmc_loss(flow, ev, lambda_1=1.0, lambda_2=1e-3, alpha=0.6):
 
 
 def _time_interleaved(fns: dict, repeats: int) -> dict:
-    """Min wall time of each function; the functions take turns within each repetition, so a
-    busy shared machine slows them alike and the ratios stay fair."""
+    """Every wall time of each function, {name: [seconds per repetition]}; the functions take
+    turns within each repetition, so a busy shared machine slows them alike and the ratios of
+    one repetition stay fair."""
     for fn in fns.values():
         fn()  # warm-up
-    best = {name: float("inf") for name in fns}
+    times = {name: [] for name in fns}
     for _ in range(repeats):
         for name, fn in fns.items():
             t0 = time.perf_counter()
             fn()
-            best[name] = min(best[name], time.perf_counter() - t0)
-    return best
+            times[name].append(time.perf_counter() - t0)
+    return times
 
 
 def run(report, quick: bool = False, device: str = "cpu", repeats: int | None = None) -> dict:
@@ -164,11 +168,14 @@ def run(report, quick: bool = False, device: str = "cpu", repeats: int | None = 
 
         with torch.no_grad():  # the two implementations agree on the value
             diff = abs(hmc_loss(flow0, ev).loss.item() - naive_hmc_loss(flow0, ev).item())
-        t = _time_interleaved({"fast": fast, "naive": naive, "floor": floor}, repeats)
+        times = _time_interleaved({"fast": fast, "naive": naive, "floor": floor}, repeats)
+        t = {key: min(values) for key, values in times.items()}
+        per_turn = statistics.median(n / f for n, f in zip(times["naive"], times["fast"]))
         rows = {
             f"{name}: hmc_loss fwd+bwd": (n_events / t["fast"], "events/s"),
             f"{name}: straightforward fwd+bwd": (n_events / t["naive"], "events/s"),
-            f"{name}: speed-up": (t["naive"] / t["fast"], "x"),
+            f"{name}: speed-up (best / best)": (t["naive"] / t["fast"], "x"),
+            f"{name}: speed-up (median per turn)": (per_turn, "x"),
             f"{name}: floor (1 scatter + 1 gather of 4N)": (n_events / t["floor"], "events/s"),
             f"{name}: |fast - straightforward| loss": (diff, "abs"),
         }
