@@ -41,6 +41,7 @@ from losses import (BORDER_RAMP, EventBatch, accumulated_hmc_loss, at_loss, chec
 from .checkpoint import rng_state, set_rng_state
 from .policy import RecurrentPolicy
 from .registry import make_model
+from .teacher import TeacherTargets
 
 __all__ = ["TrainConfig", "Learner", "make_vector_env"]
 
@@ -83,6 +84,7 @@ class TrainConfig:
     teacher_lambda_2: float = 1e-2  # the teacher's smoothness weight
     teacher_pixels: str = "events"  # where the network is regressed onto the teacher: "events" or "all"
     teacher_max_events: int | None = None  # the teacher solves on at most this many events per window (evenly subsampled)
+    teacher_cache: str | None = None  # precomputed targets (agents/teacher.py) instead of solving every update
     head_init: float | None = None  # re-draw the flow heads' weights from U(-a, a), biases 0: start near zero flow
     seed: int = 0
     device: str = "cpu"
@@ -153,6 +155,9 @@ class Learner:
 
     def __init__(self, cfg: TrainConfig) -> None:
         check_border_ramp(cfg.border_ramp)  # before any env or output exists
+        if cfg.teacher_cache and cfg.loss != "teacher":
+            raise ValueError(f"teacher_cache is for loss 'teacher', not {cfg.loss!r}")
+        self.teacher = TeacherTargets(cfg.teacher_cache) if cfg.teacher_cache else None
         self.cfg = cfg
         self.device = torch.device(cfg.device)
         self.rank = dist.get_rank() if dist.is_initialized() else 0
@@ -199,20 +204,24 @@ class Learner:
         errors = [((f - gt).norm(dim=1, keepdim=True) * valid).sum() / valid.sum().clamp_min(1) for f in to_full_resolution(flows)]
         return torch.stack(errors).mean()
 
-    def _teacher_loss(self, all_flows: list, windows: list[dict]) -> torch.Tensor:
+    def _teacher_loss(self, all_flows: list, windows: list[dict], cached: list | None = None) -> torch.Tensor:
         """Mean endpoint error, on pixels holding events (or all pixels), between every scale of the network's
         flows and the per-window contrast-maximisation flow of L_HMC (all L x B windows of the
-        unroll solved together; the teacher sees only the events)."""
+        unroll solved together, or ``cached``: their precomputed targets; the teacher sees only the events)."""
         cfg = self.cfg
         batch = EventBatch.from_windows(windows, device=self.device)
-        solved = batch
-        if cfg.teacher_max_events:
-            solved = EventBatch.from_windows([_subsample_window(w, cfg.teacher_max_events) for w in windows], device=self.device)
-        target = contrast_maximisation_flow(
-            solved, self.height, self.width, grids=cfg.teacher_grids, steps=cfg.teacher_steps, lr=cfg.teacher_lr,
-            flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1, lambda_2=cfg.teacher_lambda_2, alpha=cfg.alpha,
-            border_penalty=cfg.border_penalty, border_ramp=cfg.border_ramp,
-        )
+        if cached is not None:
+            target = torch.cat(cached).to(self.device)
+        else:
+            solved = batch
+            if cfg.teacher_max_events:
+                solved = EventBatch.from_windows([_subsample_window(w, cfg.teacher_max_events) for w in windows],
+                                                 device=self.device)
+            target = contrast_maximisation_flow(
+                solved, self.height, self.width, grids=cfg.teacher_grids, steps=cfg.teacher_steps, lr=cfg.teacher_lr,
+                flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1, lambda_2=cfg.teacher_lambda_2, alpha=cfg.alpha,
+                border_penalty=cfg.border_penalty, border_ramp=cfg.border_ramp,
+            )
         if cfg.teacher_pixels == "all":  # the coarse-grid flow, interpolated between cells with events
             weight = torch.ones_like(target[:, :1])
         else:
@@ -249,7 +258,7 @@ class Learner:
         cfg = self.cfg
         n = cfg.num_envs
         losses, zero_losses, finest, batches, events_seen = [], [], [], [], 0
-        all_flows, windows, model_losses = [], [], []
+        all_flows, windows, model_losses, cached = [], [], [], []
         for _ in range(cfg.unroll):
             x = torch.as_tensor(self.obs[cfg.input], device=self.device)
             flows = self.policy(x)  # multi-scale, finest last, pixels per window
@@ -264,6 +273,8 @@ class Learner:
             if cfg.loss == "teacher":
                 all_flows.append(flows)
                 windows += _windows_from_info(self.info, n)
+                if self.teacher is not None:
+                    cached.append(self.teacher.targets_from_info(self.info, n))
             elif cfg.loss == "supervised":
                 losses.append(self._supervised(flows))
             elif cfg.loss_mode == "window":
@@ -277,7 +288,7 @@ class Learner:
                 self.policy.reset(mask=done)  # new sequences start from a fresh state
         extra = {}
         if cfg.loss == "teacher":
-            loss, extra["zero_flow_teacher"] = self._teacher_loss(all_flows, windows)
+            loss, extra["zero_flow_teacher"] = self._teacher_loss(all_flows, windows, cached if self.teacher else None)
         elif cfg.loss == "supervised" or cfg.loss_mode == "window":
             loss = torch.stack(losses).mean()
         else:

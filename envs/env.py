@@ -114,6 +114,9 @@ class EventFlowEnv(gym.Env):
       Gymnasium's stacking of info arrays cannot hold): ``info["events"][i]["x"]``;
     - ``"t_start"``, ``"t_end"``: int µs, the window ``[t_start, t_end)``;
     - ``"sequence"`` (name), ``"sequence_index"``, ``"step"`` (window index in the episode);
+    - ``"crop"``: int64 ``(top, left, height, width)`` of the env's frame in the recording's
+      sensor frame, and ``"flips"``: bool ``(h, v, p)``, the flips applied this episode (with
+      them, anything computed on the whole sensor frame maps into the env's frame);
     - ``"flow_gt"`` (2, H, W) float32 pixels over the window and ``"flow_gt_valid"`` (H, W)
       bool, when the recording has ground truth for this window;
     - after ``step`` only: ``"reward_components"``: dict of ``at``, ``ec``, ``smooth`` (floats,
@@ -472,6 +475,8 @@ class EventFlowEnv(gym.Env):
             "sequence": self.sequence_names[self._seq_index],
             "sequence_index": self._seq_index,
             "step": self._step,
+            "crop": np.array(self._crop_for(self._reader(self._seq_index)), np.int64),
+            "flips": np.array([self._flips.get(k, False) for k in ("h", "v", "p")], bool),
         }
         for key in ("flow_gt", "flow_gt_valid"):
             if key in window:

@@ -40,6 +40,7 @@ def contrast_maximisation_flow(
     alpha: float = 0.6,
     border_penalty: float | torch.Tensor = 1.0,
     border_ramp: float = BORDER_RAMP,
+    return_coarse: bool = False,
 ) -> torch.Tensor:
     """(B, 2, height, width) flow in pixels per window minimising L_HMC of each window.
 
@@ -47,7 +48,9 @@ def contrast_maximisation_flow(
     number of cells along the longer image side (the other side in proportion, at least 1).
     steps: Adam steps per level, lr: its step size in pixels. The loss is ``hmc_loss`` with the
     given weights; ``border_penalty`` as there, a float multiplies each window's zero-flow loss
-    (the env's border rule), ``border_ramp`` its ramp in pixels. Returns a detached tensor on the events' device, float32.
+    (the env's border rule), ``border_ramp`` its ramp in pixels. Returns a detached tensor on the events' device, float32;
+    with ``return_coarse`` the last level's (B, 2, gh, gw) grid instead (the flow is its bilinear upsampling,
+    align_corners=False).
     """
     device = events.x.device
     B = events.x.shape[0]
@@ -76,4 +79,6 @@ def contrast_maximisation_flow(
                 loss.backward()
                 optimizer.step()
             coarse = param.detach()
+    if return_coarse:
+        return coarse
     return F.interpolate(coarse, size=(height, width), mode="bilinear", align_corners=False)

@@ -89,6 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--teacher-lambda-2", type=float, default=d.teacher_lambda_2, help="teacher: smoothness weight")
     g.add_argument("--teacher-pixels", default=d.teacher_pixels, choices=["events", "all"],
                    help="teacher: regress on pixels holding events (default) or on every pixel")
+    g.add_argument("--teacher-cache", default=d.teacher_cache,
+                   help="teacher: precomputed targets (scripts/teacher_targets.py) instead of solving every update")
     g.add_argument("--teacher-max-events", type=int, default=d.teacher_max_events,
                    help="teacher: solve on at most this many events per window, evenly subsampled (default: all)")
     g.add_argument("--loss-mode", default=d.loss_mode, choices=["window", "accumulated"])
@@ -136,7 +138,7 @@ def config_from_args(args) -> TrainConfig:
         border_penalty=args.border_penalty, border_ramp=args.border_ramp, flow_scaling=args.flow_scaling, head_init=args.head_init,
         teacher_grids=tuple(args.teacher_grids), teacher_steps=args.teacher_steps, teacher_lr=args.teacher_lr,
         teacher_lambda_2=args.teacher_lambda_2, teacher_pixels=args.teacher_pixels,
-        teacher_max_events=args.teacher_max_events, seed=args.seed, device=args.device,
+        teacher_max_events=args.teacher_max_events, teacher_cache=args.teacher_cache, seed=args.seed, device=args.device,
     )
 
 

@@ -1,0 +1,219 @@
+"""Precomputed teacher targets: per-window contrast-maximisation flows of a whole dataset,
+solved once on the recordings' full sensor frames and stored, so that a teacher run
+(``TrainConfig.loss="teacher"``) regresses onto them instead of solving every unroll again.
+
+Why: solving the teacher inside every update costs most of the update (on the project's
+2-core CPU about 3x the network's forward and backward at 64x64 crops, 8 envs, 4 windows,
+capped at 8,000 events per window), so a run makes ~0.6 steps/s against ~1.4 for the
+supervised reference. Solved once, the teacher can also afford what is too slow per update:
+all events, the full frame (no crop borders), a finer last grid (16 cells) and a step size that
+grows with the window's length (a 4-frame window moves up to ~4x as far as a 1-frame one, and
+Adam's steps are bounded by ``lr``).
+
+File (h5), one group per recording, named by the recording::
+
+    /<name>/bounds  (K, 2) int64 µs: the windows [t_start, t_end)
+    /<name>/grid    (K, 2, gh, gw) float32 pixels per window: the solved coarse flow; the
+                    target is its bilinear upsampling to the sensor frame (align_corners=False)
+    attrs: "config" (JSON: data, window sizes, solver settings, sensor size), "complete" (bool)
+
+A run's windows are looked up by (recording, t_start, t_end); the env's crop and flips
+(``info["crop"]``, ``info["flips"]``) map the full-frame target into the env's frame. The
+teacher sees only events, so a run on these targets stays unsupervised.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Sequence
+
+import h5py
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from envs.env import EventFlowEnv
+from envs.windows import window_bounds
+from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
+
+__all__ = ["TeacherSettings", "TeacherTargets", "compute_teacher_targets", "count_windows", "TeacherCacheError"]
+
+FORMAT = "evflow-teacher-targets"
+
+
+class TeacherCacheError(ValueError):
+    """A teacher-target file that is missing, of another kind, incomplete or lacks a window (the
+    message names the file)."""
+
+
+@dataclass
+class TeacherSettings:
+    """The contrast-maximisation solve (``losses.contrast_maximisation_flow``) of every window."""
+
+    grids: tuple = (4, 8, 16)  # coarse-to-fine cells along the longer side (16: finer than the per-update default)
+    steps: int = 40  # Adam steps per level
+    lr_per_frame: float = 0.05  # Adam step size in pixels, times the window's length in frames
+    lambda_1: float = 1.0
+    lambda_2: float = 1e-2
+    alpha: float = 0.6
+    border_penalty: float = 1.0
+    border_ramp: float = BORDER_RAMP
+    flow_scaling: float = 32.0  # the loss's smoothness normalisation (the training runs' value)
+
+
+def _windows_of(env: EventFlowEnv, sequence: int) -> list[dict]:
+    """Every window of one recording at the env's window size (no crop, no flips)."""
+    _, info = env.reset(options={"sequence": sequence})
+    out = []
+    while True:
+        out.append({**info["events"], "t_start": int(info["t_start"]), "t_end": int(info["t_end"])})
+        _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
+        if truncated:
+            return out
+
+
+def count_windows(data, window_sizes: Sequence[int]) -> int:
+    """How many ``frames`` windows ``compute_teacher_targets`` solves for ``data``."""
+    env = EventFlowEnv(data, window="frames", compute_reward=False)
+    try:
+        return sum(len(window_bounds(source.reader(), "frames", int(k))) for source in env.sources for k in set(window_sizes))
+    finally:
+        env.close()
+
+
+def compute_teacher_targets(
+    data,
+    out: str | os.PathLike,
+    *,
+    window_sizes: Sequence[int] = (1, 2, 3, 4),
+    settings: TeacherSettings | None = None,
+    batch_size: int = 16,
+    device: str = "cpu",
+    progress=None,
+) -> Path:
+    """Solve every ``frames`` window of ``data`` (each size in ``window_sizes``) and write ``out``.
+
+    Resumable: recordings are written one at a time to ``out + ".partial"``; a rerun with the
+    same data and settings skips those already there; ``out`` appears (renamed) only when every
+    recording is done. ``progress``: optional callable(done_windows, recording_name), e.g. a
+    tqdm bar's update. Returns ``out``.
+    """
+    settings = settings or TeacherSettings()
+    out = Path(out)
+    sizes = sorted({int(k) for k in window_sizes})
+    if not sizes or sizes[0] < 1:
+        raise ValueError(f"window_sizes must be positive frame counts, got {list(window_sizes)}")
+    envs = {k: EventFlowEnv(data, window="frames", window_size=k, compute_reward=False) for k in sizes}
+    first = envs[sizes[0]]
+    config = {"format": FORMAT, "data": data if isinstance(data, str) else [str(d) for d in np.atleast_1d(data)],
+              "window_sizes": sizes, "sensor_size": list(first.sensor_size), **asdict(settings)}
+    config["grids"] = list(config["grids"])
+    partial = out.with_name(out.name + ".partial")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with h5py.File(partial, "a") as f:
+        if "config" in f.attrs and json.loads(f.attrs["config"]) != config:
+            raise TeacherCacheError(f"{partial}: an unfinished run with other settings is there; delete it or pass "
+                                    f"the same settings ({json.loads(f.attrs['config'])})")
+        f.attrs["config"] = json.dumps(config)
+        f.attrs["complete"] = False
+        H, W = first.sensor_size
+        for index, name in enumerate(first.sequence_names):
+            if name in f:  # done by an earlier, interrupted run
+                if progress is not None:
+                    progress(len(f[name]["bounds"]), name)
+                continue
+            windows = [(k, w) for k in sizes for w in _windows_of(envs[k], index)]
+            grids = []
+            for start in range(0, len(windows), batch_size):
+                chunk = windows[start : start + batch_size]
+                by_size: dict[int, list[int]] = {}
+                for j, (k, _) in enumerate(chunk):
+                    by_size.setdefault(k, []).append(j)
+                solved: list = [None] * len(chunk)
+                for k, members in by_size.items():  # one solve per window length (its own step size)
+                    batch = EventBatch.from_windows([chunk[j][1] for j in members], device=device)
+                    coarse = _solve_coarse(batch, H, W, settings, lr=settings.lr_per_frame * k)
+                    for j, c in zip(members, coarse):
+                        solved[j] = c
+                grids.extend(solved)
+                if progress is not None:
+                    progress(len(chunk), name)
+            group = f.create_group(name)
+            group["bounds"] = np.array([[w["t_start"], w["t_end"]] for _, w in windows], np.int64).reshape(-1, 2)
+            group["grid"] = torch.stack(grids).numpy().astype(np.float32)
+            f.flush()
+        f.attrs["complete"] = True
+    for env in envs.values():
+        env.close()
+    os.replace(partial, out)
+    return out
+
+
+def _solve_coarse(batch: EventBatch, height: int, width: int, s: TeacherSettings, *, lr: float) -> torch.Tensor:
+    """(B, 2, gh, gw) the last level's coarse flow (its upsampling is the target)."""
+    flow = contrast_maximisation_flow(
+        batch, height, width, grids=s.grids, steps=s.steps, lr=lr, flow_scaling=s.flow_scaling, lambda_1=s.lambda_1,
+        lambda_2=s.lambda_2, alpha=s.alpha, border_penalty=s.border_penalty, border_ramp=s.border_ramp,
+        return_coarse=True,
+    )
+    return flow.cpu()
+
+
+class TeacherTargets:
+    """Look-up of precomputed targets (see the module docstring), in the env's frame."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise TeacherCacheError(f"teacher targets {self.path}: no such file (make it with scripts/teacher_targets.py)")
+        try:
+            f = h5py.File(self.path, "r")
+        except OSError as err:
+            raise TeacherCacheError(f"teacher targets {self.path}: not an h5 file ({err})") from None
+        with f:
+            config = json.loads(f.attrs.get("config", "{}"))
+            if config.get("format") != FORMAT:
+                raise TeacherCacheError(f"teacher targets {self.path}: not a teacher-target file (no '{FORMAT}' config)")
+            if not bool(f.attrs.get("complete", False)):
+                raise TeacherCacheError(f"teacher targets {self.path}: incomplete (its run did not finish)")
+            self.config = config
+            self.sensor_size = tuple(config["sensor_size"])
+            self._index: dict[tuple[str, int, int], torch.Tensor] = {}
+            for name, group in f.items():
+                grid = torch.from_numpy(group["grid"][()])
+                for (t0, t1), g in zip(group["bounds"][()].tolist(), grid):
+                    self._index[(name, int(t0), int(t1))] = g
+
+    def __len__(self) -> int:
+        return len(self._index)
+
+    def target(self, sequence: str, t_start: int, t_end: int, crop=None, flips=(False, False, False)) -> torch.Tensor:
+        """(2, h, w) float32 pixels per window: the target of one window in the env's frame.
+
+        crop: ``(top, left, h, w)`` in the sensor frame (default: the whole frame); flips:
+        ``(h, v, p)`` as the env applied them (a polarity flip leaves the flow unchanged)."""
+        key = (str(sequence), int(t_start), int(t_end))
+        if key not in self._index:
+            raise TeacherCacheError(
+                f"teacher targets {self.path}: no window [{t_start}, {t_end}) of recording {sequence!r} (the file "
+                f"holds data {self.config['data']!r} at window sizes {self.config['window_sizes']} frames); "
+                "make targets for the run's data and window sizes")
+        H, W = self.sensor_size
+        top, left, h, w = (0, 0, H, W) if crop is None else (int(v) for v in crop)
+        flow = F.interpolate(self._index[key][None], size=(H, W), mode="bilinear", align_corners=False)[0]
+        flow = flow[:, top : top + h, left : left + w]
+        if flips[0]:  # the env mirrors x -> w - 1 - x: the field mirrors and its x component flips sign
+            flow = flow.flip(-1) * torch.tensor([-1.0, 1.0]).view(2, 1, 1)
+        if flips[1]:
+            flow = flow.flip(-2) * torch.tensor([1.0, -1.0]).view(2, 1, 1)
+        return flow.contiguous()
+
+    def targets_from_info(self, info: dict, num_envs: int) -> torch.Tensor:
+        """(num_envs, 2, h, w): the targets of a vector env's current windows (its stacked info)."""
+        return torch.stack([
+            self.target(info["sequence"][i], info["t_start"][i], info["t_end"][i], info["crop"][i], info["flips"][i])
+            for i in range(num_envs)
+        ])

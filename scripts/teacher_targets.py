@@ -1,0 +1,75 @@
+"""Precompute the teacher's targets of a dataset (per-window contrast maximisation, solved once
+on full frames) for ``scripts/train.py --loss teacher --teacher-cache FILE``.
+
+    python scripts/teacher_targets.py --data synthetic-train --out runs/teacher-targets/train.h5
+    python scripts/train.py --loss teacher --teacher-cache runs/teacher-targets/train.h5 --window-size 1 2 3 4 ...
+
+Every window of every recording at each ``--window-size`` (frames) is solved; the file is
+written recording by recording to OUT.partial (an interrupted run resumes there) and renamed to
+OUT when complete. On the project's 2-core CPU synthetic-train (32 recordings, sizes 1-4,
+~3,900 windows) takes about 15-25 minutes. See agents/teacher.py for the file layout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from agents.teacher import TeacherSettings, compute_teacher_targets, count_windows  # noqa: E402
+
+
+def build_parser() -> argparse.ArgumentParser:
+    d = TeacherSettings()
+    p = argparse.ArgumentParser(description="Precompute per-window contrast-maximisation flows (teacher targets) "
+                                "of a dataset, for training with --loss teacher --teacher-cache.")
+    p.add_argument("--data", nargs="+", default=["synthetic-train"], help="synthetic split name, recording files or folders")
+    p.add_argument("--out", required=True, type=Path, help="output h5 file")
+    p.add_argument("--window-size", type=int, nargs="+", default=[1, 2, 3, 4], help="window lengths in frames (default 1 2 3 4)")
+    p.add_argument("--grids", type=int, nargs="+", default=list(d.grids),
+                   help="coarse-to-fine grid cells along the longer side (default 4 8 16)")
+    p.add_argument("--steps", type=int, default=d.steps, help="Adam steps per level (default 40)")
+    p.add_argument("--lr-per-frame", type=float, default=d.lr_per_frame,
+                   help="Adam step size in pixels per frame of window length (default 0.05)")
+    p.add_argument("--lambda-2", type=float, default=d.lambda_2, help="smoothness weight (default 0.01)")
+    p.add_argument("--flow-scaling", type=float, default=d.flow_scaling, help="the loss's flow scaling (default 32)")
+    p.add_argument("--batch-size", type=int, default=16, help="windows solved together")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.out.exists():
+        print(f"{args.out} exists; delete it to recompute", file=sys.stderr)
+        return 1
+    data = args.data[0] if len(args.data) == 1 else args.data
+    settings = TeacherSettings(grids=tuple(args.grids), steps=args.steps, lr_per_frame=args.lr_per_frame,
+                               lambda_2=args.lambda_2, flow_scaling=args.flow_scaling)
+    total = count_windows(data, args.window_size)
+    bar = tqdm(total=total, unit="win", disable=args.no_progress)
+    start = time.perf_counter()
+
+    def progress(n: int, name: str) -> None:
+        bar.set_postfix_str(name)
+        bar.update(n)
+
+    compute_teacher_targets(data, args.out, window_sizes=args.window_size, settings=settings,
+                            batch_size=args.batch_size, device=args.device, progress=progress)
+    bar.close()
+    print(f"{args.out}: {total} windows in {time.perf_counter() - start:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

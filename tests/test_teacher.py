@@ -1,0 +1,147 @@
+"""Precomputed teacher targets (agents/teacher.py): they land in the env's frame exactly as the
+env's own ground truth does (crop, flips), they are the solver's output, an interrupted run
+resumes, bad files are named, and a teacher run trains on them."""
+
+import json
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from agents.teacher import FORMAT, TeacherCacheError, TeacherSettings, TeacherTargets, compute_teacher_targets, count_windows
+from envs.env import EventFlowEnv
+from losses import EventBatch, contrast_maximisation_flow
+from tests.recordings import write_translating_recording
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+import train as train_script  # noqa: E402
+
+TINY = TeacherSettings(grids=(2, 4), steps=3)
+
+
+def _write_ground_truth_targets(path: Path, data, sizes=(1, 2)) -> Path:
+    """A target file in the documented layout whose "grid" is each window's full-resolution
+    ground truth (upsampling to the same size is the identity): its targets must equal the
+    env's flow_gt whatever the crop and flips."""
+    env = EventFlowEnv(data, compute_reward=False)
+    with h5py.File(path, "w") as f:
+        f.attrs["config"] = json.dumps({"format": FORMAT, "data": data, "window_sizes": list(sizes),
+                                        "sensor_size": list(env.sensor_size)})
+        f.attrs["complete"] = True
+        for index, name in enumerate(env.sequence_names):
+            reader = env.sources[index].reader()
+            bounds, grids = [], []
+            for k in sizes:
+                grid = np.asarray(reader.flow_timestamps(), np.int64)[::k]
+                for t0, t1 in zip(grid[:-1], grid[1:]):
+                    bounds.append((t0, t1))
+                    grids.append(reader.flow_between(int(t0), int(t1))[0])
+            f[f"{name}/bounds"] = np.array(bounds, np.int64)
+            f[f"{name}/grid"] = np.stack(grids).astype(np.float32)
+    env.close()
+    return path
+
+
+def test_targets_land_in_the_env_frame_like_its_ground_truth(tmp_path):
+    path = _write_ground_truth_targets(tmp_path / "gt.h5", "synthetic-mini")
+    targets = TeacherTargets(path)
+    env = EventFlowEnv("synthetic-mini", window_size=[1, 2], crop=(40, 48), random_crop=True, flips=True,
+                       compute_reward=False)
+    seen_flips, seen_crops = set(), set()
+    for seed in range(8):
+        _, info = env.reset(seed=seed)
+        for _ in range(2):
+            target = targets.target(info["sequence"], info["t_start"], info["t_end"], info["crop"], info["flips"])
+            assert target.shape == (2, 40, 48)
+            np.testing.assert_allclose(target.numpy(), info["flow_gt"], rtol=0, atol=1e-5)
+            seen_flips.add(tuple(bool(v) for v in info["flips"][:2]))
+            seen_crops.add(tuple(int(v) for v in info["crop"][:2]))
+            _, _, _, _, info = env.step(np.zeros((2, 40, 48), np.float32))
+    assert len(seen_flips) >= 3 and len(seen_crops) >= 3  # the mapping was exercised, not just the identity
+
+
+def test_computed_targets_are_the_solvers_flow_and_an_interrupted_run_resumes(tmp_path):
+    recs = [write_translating_recording(tmp_path / f"dots{i}.h5", np.random.default_rng(i), sensor_size=(24, 32))
+            for i in range(2)]
+    out = tmp_path / "targets.h5"
+    partial = out.with_name(out.name + ".partial")
+
+    def interrupt(n, name):  # stop inside the second recording: the first is on disk
+        if name == "dots1":
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        compute_teacher_targets(recs, out, window_sizes=(1, 2), settings=TINY, batch_size=4, progress=interrupt)
+    assert not out.exists()
+    with h5py.File(partial, "r") as f:
+        assert list(f) == ["dots0"]
+        first = f["dots0/grid"][()]
+    with pytest.raises(TeacherCacheError, match="unfinished run with other settings"):
+        compute_teacher_targets(recs, out, window_sizes=(1,), settings=TINY)
+    done = []
+    compute_teacher_targets(recs, out, window_sizes=(1, 2), settings=TINY, batch_size=4,
+                            progress=lambda n, name: done.append((name, n)))
+    assert out.exists() and not partial.exists()
+    assert done[0] == ("dots0", 15)  # skipped, counted once
+    targets = TeacherTargets(out)
+    assert len(targets) == count_windows(recs, (1, 2)) == sum(n for _, n in done) == 2 * (10 + 5)
+    with h5py.File(out, "r") as f:
+        np.testing.assert_array_equal(f["dots0/grid"][()], first)
+    rec = recs[1]
+    # one window, solved alone here: the stored grid upsampled is the solver's flow
+    env = EventFlowEnv(rec, window_size=2, compute_reward=False)
+    _, info = env.reset(options={"sequence": 0})
+    _, _, _, _, info = env.step(np.zeros((2, 24, 32), np.float32))
+    batch = EventBatch.from_windows([{**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}])
+    direct = contrast_maximisation_flow(batch, 24, 32, grids=TINY.grids, steps=TINY.steps, lr=2 * TINY.lr_per_frame,
+                                        flow_scaling=TINY.flow_scaling, lambda_2=TINY.lambda_2)[0]
+    stored = targets.target(info["sequence"], info["t_start"], info["t_end"])
+    assert direct.abs().max() > 0.01  # the solver moved: the comparison is not zero against zero
+    torch.testing.assert_close(stored, direct, rtol=1e-4, atol=1e-4)
+
+
+def test_bad_target_files_are_named(tmp_path):
+    with pytest.raises(TeacherCacheError, match="no such file"):
+        TeacherTargets(tmp_path / "missing.h5")
+    (tmp_path / "text.h5").write_text("not h5")
+    with pytest.raises(TeacherCacheError, match="text.h5: not an h5 file"):
+        TeacherTargets(tmp_path / "text.h5")
+    path = _write_ground_truth_targets(tmp_path / "gt.h5", "synthetic-mini", sizes=(1,))
+    targets = TeacherTargets(path)
+    with pytest.raises(TeacherCacheError, match=r"gt.h5: no window \[0, 5\) of recording 'synthetic-mini-0'.*sizes \[1\]"):
+        targets.target("synthetic-mini-0", 0, 5)
+    with h5py.File(path, "a") as f:
+        f.attrs["complete"] = False
+    with pytest.raises(TeacherCacheError, match="incomplete"):
+        TeacherTargets(path)
+    with pytest.raises(ValueError, match="teacher_cache is for loss 'teacher'"):
+        train_script.main(["--data", "synthetic-mini", "--loss", "hmc", "--teacher-cache", str(path), "--steps", "0",
+                           "--out", str(tmp_path / "run"), "--no-progress"])
+
+
+def test_a_teacher_run_regresses_onto_the_cached_targets(tmp_path):
+    """With ground-truth grids as the 'teacher' and a network held at zero flow, the logged
+    loss is the mean ground-truth magnitude over the unroll's windows (all pixels)."""
+    path = _write_ground_truth_targets(tmp_path / "gt.h5", "synthetic-mini")
+    out = tmp_path / "run"
+    train_script.main(["--data", "synthetic-mini", "--model", "ev-flownet", "--width", "4", "--num-envs", "2",
+                       "--unroll", "2", "--steps", "2", "--lr", "0", "--head-init", "0", "--loss", "teacher",
+                       "--teacher-pixels", "all", "--teacher-cache", str(path), "--crop", "32", "32", "--random-crop",
+                       "--val-data", "", "--out", str(out), "--no-progress"])
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines() if "loss" in json.loads(line)]
+    assert len(rows) == 2
+    for row in rows:
+        assert row["zero_flow_teacher"] > 0.1  # synthetic-mini moves 1-8 px per frame
+        assert row["loss"] == pytest.approx(row["zero_flow_teacher"], rel=1e-6)
+    assert json.loads((out / "config.json").read_text())["teacher_cache"] == str(path)
+
+
+def test_upsampling_a_same_size_grid_is_the_identity():
+    """The ground-truth files above rely on it."""
+    grid = torch.randn(1, 2, 7, 9)
+    torch.testing.assert_close(F.interpolate(grid, size=(7, 9), mode="bilinear", align_corners=False), grid)
