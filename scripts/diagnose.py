@@ -5,6 +5,7 @@
   python scripts/diagnose.py teacher --window-size 1      # per-window contrast maximisation vs truth
   python scripts/diagnose.py overfit --window-size 3      # can a network fit the loss on one fixed batch?
   python scripts/diagnose.py border  --window-size 1      # what the border rule costs the true flow
+  python scripts/diagnose.py targets --cache runs/tt/train.h5   # precomputed teacher targets vs truth
 
 border: for windows of the training split, the true flow's loss divided by zero flow's without
 and with the border rule (weight 1 x zero flow's loss x share of splat weight dropped, summed
@@ -16,6 +17,9 @@ flow divided by zero flow's, for c in 0.5, 0.75, 1, 1.25, 1.5, 2: the mean ratio
 of windows where the truth beats zero flow, and how often each c is the best.
 teacher: ``losses.contrast_maximisation_flow`` on a batch of windows: AEE against the truth
 (pixels with events and valid truth) and the cosine, beside zero flow's AEE.
+targets: every window of a precomputed teacher-target file (scripts/teacher_targets.py) against
+the truth, per window size: AEE and cosine on pixels with events and valid truth, beside zero
+flow's AEE (whole frames, no flips).
 overfit: a CPU-width EV-FlowNet (voxel input, near-zero heads) trained with L_HMC on one fixed
 batch of windows (the second window of every --sequences-th sequence): loss / zero flow's, AEE
 and cosine every 30 steps.
@@ -131,6 +135,32 @@ def teacher(args) -> None:
           f"AEE {aee:.3f} vs zero flow {zero:.3f} ({aee / zero:.2f}x), cos {cos:.2f}, {seconds:.1f} s")
 
 
+def targets(args) -> None:
+    from agents.teacher import TeacherTargets
+
+    if not args.cache:
+        raise SystemExit("targets: pass --cache FILE (made by scripts/teacher_targets.py)")
+    cache = TeacherTargets(args.cache)
+    for k in cache.config["window_sizes"]:
+        env = EventFlowEnv(args.data, window_size=k, compute_reward=False)
+        err = zero = cos = count = 0.0
+        for seq in range(len(env.sources)):
+            _, info = env.reset(options={"sequence": seq})
+            while True:
+                b, gt, valid = batch_of([info])
+                mask = (valid & event_pixel_mask(b.x, b.y, b.mask, *gt.shape[-2:]))[0]
+                flow = cache.target(info["sequence"], info["t_start"], info["t_end"])
+                err += (flow - gt[0]).norm(dim=0)[mask].sum().item()
+                zero += gt[0].norm(dim=0)[mask].sum().item()
+                cos += F.cosine_similarity(flow, gt[0], dim=0)[mask].sum().item()
+                count += mask.sum().item()
+                _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
+                if truncated:
+                    break
+        print(f"dt = {k}: {len(env.sources)} recordings, AEE {err / count:.3f} vs zero flow {zero / count:.3f} "
+              f"({err / zero:.2f}x), cos {cos / count:.2f} (pixel-weighted over all windows)")
+
+
 def overfit(args) -> None:
     args.steps = 150 if args.steps is None else args.steps
     from agents import make_model
@@ -172,7 +202,7 @@ def overfit(args) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("what", choices=["scale", "border", "teacher", "overfit"])
+    p.add_argument("what", choices=["scale", "border", "teacher", "overfit", "targets"])
     p.add_argument("--data", default="synthetic-train")
     p.add_argument("--window-size", type=int, default=1, help="frames per window")
     p.add_argument("--crop", type=int, nargs=2, default=[64, 64], help="random crop H W ('0 0': whole frames)")
@@ -187,13 +217,14 @@ def main(argv=None) -> int:
                    help="border: ramp lengths (pixels) to compare with the plain rule")
     p.add_argument("--game-magnitudes", type=float, nargs="*", default=[2, 4, 8, 16, 32, 64, 128, 1000],
                    help="border: constant actions tried (pixels per window, 8 directions each)")
+    p.add_argument("--cache", default=None, help="targets: the teacher-target file")
     p.add_argument("--threads", type=int, default=None)
     args = p.parse_args(argv)
     if args.crop == [0, 0]:
         args.crop = None
     if args.threads:
         torch.set_num_threads(args.threads)
-    {"scale": scale, "border": border, "teacher": teacher, "overfit": overfit}[args.what](args)
+    {"scale": scale, "border": border, "teacher": teacher, "overfit": overfit, "targets": targets}[args.what](args)
     return 0
 
 

@@ -349,11 +349,13 @@ def test_forward_warp_flow_compiled_equals_torch_path(monkeypatch):
         results = []
         for kernels in (warp._kernels, None):
             monkeypatch.setattr(warp, "_kernels", kernels)
-            f = flow.to(dtype).requires_grad_()
+            f = flow.detach().clone().to(dtype).requires_grad_()  # a fresh leaf per run: its own .grad
             out = forward_warp_flow(f)
             (out * weights.to(dtype)).sum().backward()
             results.append((out.detach(), f.grad))
         (out_c, grad_c), (out_t, grad_t) = results
+        assert grad_c is not None and grad_t is not None and grad_c is not grad_t
+        assert grad_c.abs().max() > 0.1  # the gradient comparison is not zero against zero
         torch.testing.assert_close(out_c, out_t, rtol=tol, atol=tol)
         torch.testing.assert_close(grad_c, grad_t, rtol=tol, atol=tol)
 

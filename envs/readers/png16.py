@@ -27,7 +27,8 @@ class PNGError(ValueError):
 
 def read_png(path: str | os.PathLike) -> np.ndarray:
     """Read a PNG: (H, W) or (H, W, C) uint8 or uint16 (16-bit samples stay 16-bit)."""
-    data = open(path, "rb").read()
+    with open(path, "rb") as f:
+        data = f.read()
     if data[:8] != _SIGNATURE:
         raise PNGError(f"{path}: not a PNG file")
     pos, idat, header = 8, [], None
