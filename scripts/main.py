@@ -8,7 +8,7 @@
    CPU-size EV-MGRFlowNet, (2) the paper's per-window L_HMC (with the ramped border rule) on
    4-frame windows. The default demo (--demo-stage hmc) runs stage 2 from the shipped stage-1
    model (the default model) and prints the network's L_HMC as a ratio to zero flow's on the
-   same training windows: it starts below 1 (about 0.86) and falls further within a few
+   same training windows: it starts below 1 and falls further within a few
    minutes (docs/results.md, seventh round). --demo-stage teacher runs stage 1 from scratch
    instead, solving the teacher inside every update (a few minutes do not yet leave zero flow
    there). Then a quick evaluation of the demo model on the test split;
