@@ -209,7 +209,8 @@ class Learner:
         flows and the per-window contrast-maximisation flow of L_HMC (all L x B windows of the
         unroll solved together, or ``cached``: their precomputed targets; the teacher sees only the events)."""
         cfg = self.cfg
-        batch = EventBatch.from_windows(windows, device=self.device)
+        needs_events = cached is None or cfg.teacher_pixels != "all"  # to solve, or to weight by event pixels
+        batch = EventBatch.from_windows(windows, device=self.device) if needs_events else None
         if cached is not None:
             target = torch.cat(cached).to(self.device)
         else:

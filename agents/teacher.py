@@ -125,24 +125,18 @@ def compute_teacher_targets(
                 if progress is not None:
                     progress(len(f[name]["bounds"]), name)
                 continue
-            windows = [(k, w) for k in sizes for w in _windows_of(envs[k], index)]
-            grids = []
-            for start in range(0, len(windows), batch_size):
-                chunk = windows[start : start + batch_size]
-                by_size: dict[int, list[int]] = {}
-                for j, (k, _) in enumerate(chunk):
-                    by_size.setdefault(k, []).append(j)
-                solved: list = [None] * len(chunk)
-                for k, members in by_size.items():  # one solve per window length (its own step size)
-                    batch = EventBatch.from_windows([chunk[j][1] for j in members], device=device)
-                    coarse = _solve_coarse(batch, H, W, settings, lr=settings.lr_per_frame * k)
-                    for j, c in zip(members, coarse):
-                        solved[j] = c
-                grids.extend(solved)
-                if progress is not None:
-                    progress(len(chunk), name)
+            bounds, grids = [], []
+            for k in sizes:  # one solve per window length: each has its own step size
+                windows = _windows_of(envs[k], index)
+                for start in range(0, len(windows), batch_size):
+                    chunk = windows[start : start + batch_size]
+                    batch = EventBatch.from_windows(chunk, device=device)
+                    grids.extend(_solve_coarse(batch, H, W, settings, lr=settings.lr_per_frame * k))
+                    if progress is not None:
+                        progress(len(chunk), name)
+                bounds += [[w["t_start"], w["t_end"]] for w in windows]
             group = f.create_group(name)
-            group["bounds"] = np.array([[w["t_start"], w["t_end"]] for _, w in windows], np.int64).reshape(-1, 2)
+            group["bounds"] = np.array(bounds, np.int64).reshape(-1, 2)
             group["grid"] = torch.stack(grids).numpy().astype(np.float32)
             f.flush()
         f.attrs["complete"] = True
