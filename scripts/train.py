@@ -254,6 +254,8 @@ def main(argv=None) -> int:
             log.close()
         learner.close()
         if dist.is_initialized():
+            if sys.exc_info()[0] is None:  # tear down together: a rank whose peer already left can abort in gloo
+                dist.barrier()
             dist.destroy_process_group()
     return 0
 
