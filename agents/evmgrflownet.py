@@ -51,7 +51,12 @@ class DeepMemoryUp(nn.Module):
         self.conv = conv3x3(in_channels, out_channels, bias=False)
 
     def forward(self, deepest_hidden: Tensor, size: tuple[int, int]) -> Tensor:
+        """deepest_hidden: (B, C4, h, w) S4_{k-1}; returns (B, C1, *size) M_{k-1}, in the layout
+        of ``deepest_hidden`` (channels-last or NCHW)."""
         batch, channels, height, width = deepest_hidden.shape
+        channels_last = not deepest_hidden.is_contiguous() and deepest_hidden.is_contiguous(
+            memory_format=torch.channels_last
+        )
         weight = self.conv.weight  # (O, C, 3, 3)
         out_channels = weight.shape[0]
         tap_weights = weight.permute(2, 3, 0, 1).reshape(9 * out_channels, channels, 1, 1)
@@ -60,7 +65,8 @@ class DeepMemoryUp(nn.Module):
         rows = _shifted_upsampling_matrices(height, size[0], deepest_hidden)  # (3, H, h)
         cols = _shifted_upsampling_matrices(width, size[1], deepest_hidden)  # (3, W, w)
         half = torch.einsum("bijoyx,jXx->bioyX", taps, cols)
-        return F.relu(torch.einsum("bioyX,iYy->boYX", half, rows))
+        memory = F.relu(torch.einsum("bioyX,iYy->boYX", half, rows))
+        return memory.contiguous(memory_format=torch.channels_last) if channels_last else memory
 
 
 class EVMGRFlowNet(FlowNetBase):

@@ -12,9 +12,151 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+try:  # compiled CPU kernels of the gate arithmetic; without numba the torch expressions serve
+    from . import _kernels
+except ImportError:  # pragma: no cover
+    _kernels = None
+
+_CHANNELS_LAST = torch.channels_last
+
 
 def conv3x3(in_channels: int, out_channels: int, stride: int = 1, bias: bool = True) -> nn.Conv2d:
     return nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1, bias=bias)
+
+
+def _has_rows(tensor: Tensor) -> bool:
+    """Whether (B, C, h, w) ``tensor`` is stored channels-last without gaps, i.e. its memory is
+    a C-contiguous (B * h * w, C) matrix of pixel rows."""
+    return tensor.permute(0, 2, 3, 1).is_contiguous()
+
+
+def _pixel_rows(tensor: Tensor):
+    """The (B * h * w, C) numpy view of a tensor that :func:`_has_rows`."""
+    return tensor.detach().permute(0, 2, 3, 1).numpy().reshape(-1, tensor.shape[1])
+
+
+def _with_rows(tensor: Tensor) -> Tensor:
+    """``tensor`` itself when it :func:`_has_rows`, else a channels-last copy."""
+    return tensor if _has_rows(tensor) else tensor.contiguous(memory_format=_CHANNELS_LAST)
+
+
+def _new_channels_last(like: Tensor, channels: int) -> Tensor:
+    return torch.empty(
+        (like.shape[0], channels, *like.shape[2:]), dtype=like.dtype, memory_format=_CHANNELS_LAST
+    )
+
+
+def use_gate_kernels(tensor: Tensor) -> bool:
+    """Whether the gate arithmetic on ``tensor`` (a convolution's output) runs in the compiled
+    kernels: CPU, float32/float64, channels-last layout (what the networks use on CPU). Anything
+    else takes the torch expressions, which are the reference."""
+    return (
+        _kernels is not None
+        and tensor.device.type == "cpu"
+        and tensor.dtype in (torch.float32, torch.float64)
+        and tensor.dim() == 4
+        and not tensor.is_contiguous()  # NCHW (or a layout where both views agree): torch
+        and _has_rows(tensor)
+    )
+
+
+class _GRUUpdates(torch.autograd.Function):
+    """ConvGRU updates (eq. 4) of G GRUs of hidden size n whose input-side convolutions sit side
+    by side in one tensor (``x_proj``: (B, 3nG, h, w), GRU g at channels 3ng .. 3n(g + 1)), each
+    given its hidden-side convolution and hidden state (both None = a fresh sequence), in one
+    compiled pass per GRU (see ``agents/_kernels.py``). Returns the G new hidden states."""
+
+    @staticmethod
+    def forward(ctx, x_proj, *memories):  # type: ignore[override]
+        # memories: h_proj_1, hidden_1, ..., h_proj_G, hidden_G
+        x_proj = _with_rows(x_proj)
+        pairs = [
+            (None, None) if hidden is None else (_with_rows(h_proj), _with_rows(hidden))
+            for h_proj, hidden in zip(memories[0::2], memories[1::2])
+        ]
+        n = x_proj.shape[1] // (3 * len(pairs))
+        forward, _, forward_fresh, _ = _kernels.gru_kernels(_kernels.use_threads(), n)
+        x_rows = _pixel_rows(x_proj)
+        outs = []
+        for g, (h_proj, hidden) in enumerate(pairs):
+            out = _new_channels_last(x_proj, n)
+            if hidden is None:
+                forward_fresh(x_rows, 3 * n * g, _pixel_rows(out))
+            else:
+                forward(x_rows, 3 * n * g, _pixel_rows(h_proj), _pixel_rows(hidden), _pixel_rows(out))
+            outs.append(out)
+        ctx.fresh = [hidden is None for _, hidden in pairs]
+        ctx.save_for_backward(x_proj, *(t for pair in pairs if pair[1] is not None for t in pair))
+        return tuple(outs)
+
+    @staticmethod
+    def backward(ctx, *grad_outs):  # type: ignore[override]
+        x_proj, *saved = ctx.saved_tensors
+        n = x_proj.shape[1] // (3 * len(ctx.fresh))
+        _, backward, _, backward_fresh = _kernels.gru_kernels(_kernels.use_threads(), n)
+        # Every GRU writes its own 3n columns of grad_x, so none is left unwritten.
+        grad_x = _new_channels_last(x_proj, x_proj.shape[1])
+        x_rows, gx_rows = _pixel_rows(x_proj), _pixel_rows(grad_x)
+        grads = [grad_x]
+        for g, (fresh, grad_out) in enumerate(zip(ctx.fresh, grad_outs)):
+            grad_out = _with_rows(torch.zeros_like(x_proj[:, :n]) if grad_out is None else grad_out)
+            if fresh:
+                backward_fresh(x_rows, 3 * n * g, _pixel_rows(grad_out), gx_rows)
+                grads += [None, None]
+                continue
+            h_proj, hidden = saved.pop(0), saved.pop(0)
+            grad_h = _new_channels_last(h_proj, h_proj.shape[1])
+            grad_hidden = _new_channels_last(hidden, hidden.shape[1])
+            backward(
+                x_rows, 3 * n * g, _pixel_rows(h_proj), _pixel_rows(hidden), _pixel_rows(grad_out),
+                gx_rows, _pixel_rows(grad_h), _pixel_rows(grad_hidden),
+            )
+            grads += [grad_h, grad_hidden]
+        return tuple(grads)
+
+
+def gru_updates(convgrus, x_proj: Tensor, hidden_states) -> list[Tensor]:
+    """The compiled eq. 4 of several :class:`ConvGRU` sharing one input-side tensor ``x_proj``
+    (their ``x_convs`` outputs concatenated in order); ``hidden_states``: one previous state (or
+    None) each. Only for tensors that pass :func:`use_gate_kernels`."""
+    memories = []
+    for gru, hidden in zip(convgrus, hidden_states):
+        memories += [None, None] if hidden is None else [gru.h_convs(hidden), hidden]
+    return list(_GRUUpdates.apply(x_proj, *memories))
+
+
+class _OutputGate(torch.autograd.Function):
+    """``sig(gate_x + gate_h) . tanh(fusion)`` (eq. 6) in one compiled pass."""
+
+    @staticmethod
+    def forward(ctx, gate_x, gate_h, fusion):  # type: ignore[override]
+        gate_x, gate_h, fusion = (_with_rows(t) for t in (gate_x, gate_h, fusion))
+        out = _new_channels_last(fusion, fusion.shape[1])
+        _kernels.output_gate_kernels(_kernels.use_threads())[0](
+            _pixel_rows(gate_x), _pixel_rows(gate_h), _pixel_rows(fusion), _pixel_rows(out)
+        )
+        ctx.save_for_backward(gate_x, gate_h, fusion)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        gate_x, gate_h, fusion = ctx.saved_tensors
+        grad_out = _with_rows(grad_out)
+        grad_gate = _new_channels_last(fusion, fusion.shape[1])
+        grad_fusion = _new_channels_last(fusion, fusion.shape[1])
+        _kernels.output_gate_kernels(_kernels.use_threads())[1](
+            _pixel_rows(gate_x), _pixel_rows(gate_h), _pixel_rows(fusion), _pixel_rows(grad_out),
+            _pixel_rows(grad_gate), _pixel_rows(grad_fusion),
+        )
+        return grad_gate, grad_gate, grad_fusion
+
+
+def output_gate(gate_x: Tensor, gate_h: Tensor, fusion: Tensor) -> Tensor:
+    """ST-ConvGRU output (eq. 6): ``o . tanh(fusion)`` with ``o = sig(gate_x + gate_h)``; all
+    (B, C, h, w). Compiled on channels-last CPU tensors, torch expressions otherwise."""
+    if use_gate_kernels(fusion):
+        return _OutputGate.apply(gate_x, gate_h, fusion)
+    return torch.sigmoid(gate_x + gate_h) * torch.tanh(fusion)
 
 
 class ConvDown(nn.Module):
@@ -85,6 +227,8 @@ class ConvGRU(nn.Module):
         """The update given the input side already convolved: ``x_proj = x_convs(x)``,
         (B, 3 * C_hidden, h, w) = [Wxr*X, Wxz*X, Wxh*X]."""
         n = self.hidden_size
+        if use_gate_kernels(x_proj):
+            return gru_updates([self], x_proj, [hidden])[0]  # eq. 4, compiled
         if hidden is None:
             # Zero state: Whh*0 = 0 (no hidden-side bias), so skip the conv but run the same
             # arithmetic as for a zeroed state: results are bitwise identical.
@@ -135,10 +279,13 @@ class STConvGRU(nn.Module):
         weight = torch.cat([conv.weight for conv in input_convs])
         bias = torch.cat([conv.bias for conv in input_convs])
         projections = F.conv2d(x, weight, bias, padding=1)
-        n = 3 * self.gru_own.hidden_size
-        own = self.gru_own.step(projections[:, :n], own_memory)  # eq. 5, S_k
-        deep = self.gru_deep.step(projections[:, n : 2 * n], deep_memory)  # eq. 5, Mbar_k
+        if use_gate_kernels(projections):  # eq. 5, S_k and Mbar_k, compiled
+            own, deep = gru_updates([self.gru_own, self.gru_deep], projections, [own_memory, deep_memory])
+        else:
+            n = 3 * self.gru_own.hidden_size
+            own = self.gru_own.step(projections[:, :n], own_memory)  # eq. 5, S_k
+            deep = self.gru_deep.step(projections[:, n : 2 * n], deep_memory)  # eq. 5, Mbar_k
         memories = torch.cat([deep, own], dim=1)
-        gate = torch.sigmoid(self.gate_input(x) + self.gate_hidden(memories))  # eq. 6, o_k
-        out = gate * torch.tanh(self.fusion(memories))  # eq. 6, F_k
+        # eq. 6: o_k = sig(Wfo*X + [Wmo, Wso]*[Mbar_k, S_k]), F_k = o_k . tanh(W_1x1*[Mbar_k, S_k])
+        out = output_gate(self.gate_input(x), self.gate_hidden(memories), self.fusion(memories))
         return out, own
