@@ -64,9 +64,15 @@ class DeepMemoryUp(nn.Module):
         taps = taps.view(batch, 3, 3, out_channels, height, width)
         rows = _shifted_upsampling_matrices(height, size[0], deepest_hidden)  # (3, H, h)
         cols = _shifted_upsampling_matrices(width, size[1], deepest_hidden)  # (3, W, w)
+        if channels_last:
+            # The row pass as one matrix product whose result is (B, H, W, O) in memory, i.e. the
+            # channels-last (B, O, H, W) tensor itself, with no copy afterwards.
+            half = torch.einsum("bijoyx,jXx->biyXo", taps, cols).contiguous()  # (B, 3, h, W, O)
+            row_taps = rows.permute(1, 0, 2).reshape(size[0], 3 * height)  # (H, 3h)
+            memory = torch.matmul(row_taps, half.view(batch, 3 * height, size[1] * out_channels))
+            return F.relu(memory).view(batch, size[0], size[1], out_channels).permute(0, 3, 1, 2)
         half = torch.einsum("bijoyx,jXx->bioyX", taps, cols)
-        memory = F.relu(torch.einsum("bioyX,iYy->boYX", half, rows))
-        return memory.contiguous(memory_format=torch.channels_last) if channels_last else memory
+        return F.relu(torch.einsum("bioyX,iYy->boYX", half, rows))
 
 
 class EVMGRFlowNet(FlowNetBase):

@@ -84,11 +84,14 @@ class FlowDecoder(nn.Module):
 
     def forward(self, residual: Tensor, skips: list[Tensor], prior: Tensor | None) -> list[Tensor]:
         flows: list[Tensor] = []
+        channels_last = not residual.is_contiguous() and residual.is_contiguous(memory_format=torch.channels_last)
         x = residual
         if self.refiners is not None and prior is not None:
             priors = [prior]  # full, 1/2, 1/4, 1/8: 2x2 means of 2x2 means = block means
             for _ in range(NUM_SCALES - 1):
                 priors.append(F.avg_pool2d(priors[-1], 2))
+            # In the activations' layout (pooled first: a 2-channel pool is faster in NCHW).
+            priors = [p.contiguous(memory_format=torch.channels_last) if channels_last else p for p in priors]
         for level in range(NUM_SCALES):
             parts = [x, skips[NUM_SCALES - 1 - level]]  # skip F_{5-l}
             if flows:
@@ -116,10 +119,10 @@ class FlowNetBase(nn.Module):
 
     Memory layout: on CPU the activations (and so the flows and the state) are channels-last
     tensors, which oneDNN's convolutions run about 1.5x faster than NCHW at these widths and in
-    which the recurrent layers' gate arithmetic runs in compiled kernels (``agents/_kernels.py``).
-    ``channels_last = False`` keeps NCHW (the torch reference path); ``True`` forces channels-last
-    on any device; ``None`` (default) means channels-last on CPU only. Values do not depend on it
-    beyond float rounding.
+    which the recurrent layers' gate arithmetic runs in compiled kernels (``agents/_kernels.py``);
+    the returned flows are always contiguous NCHW. ``channels_last = False`` keeps NCHW inside (the
+    torch reference path); ``True`` forces channels-last on any device; ``None`` (default) means
+    channels-last on CPU only. Values do not depend on it beyond float rounding.
     """
 
     channels_last: bool | None = None
@@ -170,13 +173,12 @@ class FlowNetBase(nn.Module):
         if previous_flow is not None:
             aligned = forward_warp_flow(previous_flow)  # eq. 9, ubar_k in pixels
             prior = pad_to_multiple(aligned / self.flow_scaling)  # back to network units
-            prior = prior.contiguous(memory_format=layout)
 
         flows = []
         for scale_flow in self.decoder(residual, skips, prior):
             stride = padded.shape[-1] // scale_flow.shape[-1]
             cropped = scale_flow[..., : math.ceil(height / stride), : math.ceil(width / stride)]
-            flows.append(cropped * self.flow_scaling)
+            flows.append((cropped * self.flow_scaling).contiguous())  # NCHW, whatever the layout inside
         if self.use_prior_flow:
             new_state["prior_flow"] = flows[-1]
         return flows, new_state

@@ -407,3 +407,163 @@ def test_parameter_counts_at_paper_width():
     # Without both switches EV-MGRFlowNet is ConvGRU-EV-FlowNet.
     plain = make_model("ev-mgrflownet", use_st_convgru=False, use_prior_flow=False)
     assert count_parameters(plain) == counts["ConvGRU-EV-FlowNet"]
+
+
+# ---------------------------------------------------------------- channels-last and compiled gates
+
+from agents import layers as agent_layers  # noqa: E402
+
+CHANNELS_LAST = torch.channels_last
+
+
+def _cl(t: torch.Tensor) -> torch.Tensor:
+    return t.contiguous(memory_format=CHANNELS_LAST)
+
+
+def _at_threads(threads: int, fn):
+    """Run ``fn`` with torch (and so the compiled kernels) on ``threads`` threads."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        return fn()
+    finally:
+        torch.set_num_threads(before)
+
+
+def _count_gate_kernel_calls(monkeypatch) -> dict:
+    calls = {"gru": 0, "gate": 0}
+    gru_apply, gate_apply = agent_layers._GRUUpdates.apply, agent_layers._OutputGate.apply
+
+    def gru(*args):
+        calls["gru"] += 1
+        return gru_apply(*args)
+
+    def gate(*args):
+        calls["gate"] += 1
+        return gate_apply(*args)
+
+    monkeypatch.setattr(agent_layers._GRUUpdates, "apply", gru)
+    monkeypatch.setattr(agent_layers._OutputGate, "apply", gate)
+    return calls
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("fresh", [False, True])
+@pytest.mark.parametrize("hidden", [2, 5, 16])
+def test_compiled_convgru_matches_equation_4(monkeypatch, hidden, fresh, threads):
+    """Channels-last CPU tensors take the compiled update (both loop shapes: flat for small
+    hidden sizes, per pixel row from 8 on); values and every gradient equal eq. 4 written out
+    with one convolution per weight matrix (NCHW, torch)."""
+    calls = _count_gate_kernel_calls(monkeypatch)
+    torch.manual_seed(hidden)
+    gru = ConvGRU(3, hidden).double()
+    x = torch.randn(2, 3, 9, 11, dtype=torch.float64, requires_grad=True)
+    h = torch.randn(2, hidden, 9, 11, dtype=torch.float64, requires_grad=True)
+    weights = [gru.x_convs.weight, gru.x_convs.bias] + ([] if fresh else [gru.h_convs.weight])
+    grad_out = torch.randn(2, hidden, 9, 11, dtype=torch.float64)
+    inputs = [x] if fresh else [x, h]
+
+    def compiled():
+        out = gru(_cl(x), None if fresh else _cl(h))
+        return out, torch.autograd.grad(out, inputs + weights, grad_out)
+
+    out, grads = _at_threads(threads, compiled)
+    assert calls["gru"] == 1
+    expected = _gru_reference(gru, x, torch.zeros_like(h) if fresh else h)
+    expected_grads = torch.autograd.grad(expected, inputs + weights, grad_out)
+    torch.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
+    for got, want in zip(grads, expected_grads):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("memories", ["both", "none", "own only"])
+@pytest.mark.parametrize("channels", [3, 8])
+def test_compiled_st_convgru_matches_equations_5_and_6(monkeypatch, channels, memories, threads):
+    """The ST-ConvGRU on channels-last tensors (both GRUs from one input-side tensor, at column
+    offsets 0 and 3C; the output gate in one pass) against its torch path, which
+    test_st_convgru_matches_equations_5_and_6 ties to the equations."""
+    calls = _count_gate_kernel_calls(monkeypatch)
+    torch.manual_seed(channels)
+    layer = STConvGRU(channels).double()
+    x, own, deep = (torch.randn(2, channels, 7, 10, dtype=torch.float64, requires_grad=True) for _ in range(3))
+    own_in = None if memories == "none" else own
+    deep_in = deep if memories == "both" else None
+    leaves = [x] + [t for t in (own_in, deep_in) if t is not None] + list(layer.parameters())
+    grad_out = torch.randn(2, channels, 7, 10, dtype=torch.float64)
+    grad_own = torch.randn(2, channels, 7, 10, dtype=torch.float64)
+
+    def run(layout):
+        out, carried = layer(*(None if t is None else layout(t) for t in (x, own_in, deep_in)))
+        grads = torch.autograd.grad([out, carried], leaves, [grad_out, grad_own], allow_unused=True)
+        return out, carried, grads
+
+    out, carried, grads = _at_threads(threads, lambda: run(_cl))
+    assert calls == {"gru": 1, "gate": 1}
+    want_out, want_carried, want_grads = run(lambda t: t.contiguous())
+    assert calls == {"gru": 1, "gate": 1}  # NCHW: the torch expressions
+    torch.testing.assert_close(out, want_out, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(carried, want_carried, rtol=1e-12, atol=1e-12)
+    for got, want in zip(grads, want_grads):
+        if want is None:
+            assert got is None or not got.abs().any()
+        else:
+            torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+
+
+def test_compiled_gates_pass_gradcheck():
+    """Finite differences against the compiled backward passes (float64)."""
+    torch.manual_seed(0)
+    shape = (2, 4, 3, 5)
+    make = lambda c: _cl(torch.randn(shape[0], c, *shape[2:], dtype=torch.float64)).requires_grad_()  # noqa: E731
+    for n in (2, 8):
+        x_proj, h_proj, hidden = make(6 * n), make(3 * n), make(n)
+        h_proj2, hidden2 = make(3 * n), make(n)
+        assert torch.autograd.gradcheck(
+            lambda a, b, c, d, e: agent_layers._GRUUpdates.apply(a, b, c, d, e), (x_proj, h_proj, hidden, h_proj2, hidden2)
+        )
+        assert torch.autograd.gradcheck(lambda a: agent_layers._GRUUpdates.apply(a[:, : 3 * n].contiguous(memory_format=CHANNELS_LAST), None, None), (x_proj,))
+    gate_x, gate_h, fusion = make(4), make(4), make(4)
+    assert torch.autograd.gradcheck(agent_layers._OutputGate.apply, (gate_x, gate_h, fusion))
+
+
+@pytest.mark.parametrize("name", BUILT_IN)
+def test_models_agree_across_memory_layouts(name):
+    """Channels-last (CPU default, compiled gates) and NCHW (torch path) give the same flows,
+    states and parameter gradients over three windows, at a size that needs padding; the
+    flows come back contiguous NCHW either way."""
+    models = {}
+    for layout in (True, False):
+        models[layout] = build(name).double()
+        models[layout].channels_last = layout
+    results = {}
+    for layout, model in models.items():
+        state, loss = None, 0
+        for seed in range(3):
+            flows, state = model(count_images(2, 37, 50, seed=seed).double(), state)
+            loss = loss + sum((flow * torch.linspace(0, 1, flow.shape[-1], dtype=torch.float64)).sum() for flow in flows)
+        loss.backward()
+        assert all(flow.is_contiguous() for flow in flows)
+        results[layout] = (flows, state, [p.grad for p in model.parameters()])
+    (flows_a, state_a, grads_a), (flows_b, state_b, grads_b) = results[True], results[False]
+    for a, b in zip(flows_a, flows_b):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)
+    assert state_a.keys() == state_b.keys()
+    for key in state_a:
+        torch.testing.assert_close(state_a[key], state_b[key], rtol=1e-10, atol=1e-10)
+    for a, b in zip(grads_a, grads_b):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
+
+
+def test_cpu_default_is_channels_last_with_compiled_gates(monkeypatch):
+    calls = _count_gate_kernel_calls(monkeypatch)
+    model = build("ev-mgrflownet")
+    assert model.channels_last is None
+    with torch.no_grad():
+        _, state = model(count_images(1, 32, 32), None)
+        _, state = model(count_images(1, 32, 32, seed=1), state)
+    assert state["encoder1"].is_contiguous(memory_format=CHANNELS_LAST)
+    # per window: the ST pair, encoders 2-4, four refiners; one output gate
+    assert calls == {"gru": 2 * 8, "gate": 2}
