@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import torch
 from torch import nn
+from torch.utils.flop_counter import FlopCounterMode
 
 from .registry import make_model
 
@@ -25,5 +27,27 @@ def parameter_table(width: str = "paper") -> list[tuple[str, int]]:
     """(label, trainable parameter count) of every variant at the named width preset."""
     return [
         (label, count_parameters(make_model(name, width=width, **kwargs)))
+        for label, name, kwargs in MODEL_VARIANTS
+    ]
+
+
+def forward_flops(model: nn.Module, batch: int = 1, height: int = 256, width: int = 256) -> int:
+    """Floating-point operations of the convolutions and matrix products (2 per multiply-add)
+    in one forward window of ``model`` with a carried state (the second window of a sequence,
+    so that every recurrent path runs); elementwise arithmetic is not counted."""
+    x = torch.zeros(batch, getattr(model, "in_channels", 2), height, width)
+    x[:, :, ::3, ::5] = 1.0
+    with torch.no_grad():
+        _, state = model(x, None)
+        counter = FlopCounterMode(display=False)
+        with counter:
+            model(x, state)
+    return int(counter.get_total_flops())
+
+
+def flops_table(width: str = "paper", batch: int = 1, height: int = 256, size_w: int = 256) -> list[tuple[str, int]]:
+    """(label, :func:`forward_flops`) of every variant at the named width preset."""
+    return [
+        (label, forward_flops(make_model(name, width=width, **kwargs), batch, height, size_w))
         for label, name, kwargs in MODEL_VARIANTS
     ]

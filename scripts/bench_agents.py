@@ -5,7 +5,9 @@ forward latency per window (no grad, carrying the recurrent state) and forward +
 window (state from the previous window, detached; loss = mean of every scale's flow), in ms,
 best of ``reps`` after one warm-up window; then EV-MGRFlowNet's latency as a ratio to
 ConvGRU-EV-FlowNet's at the same width (target <= 1.3): the median over repetitions of the
-ratio of the two models' times in that repetition (they run back to back).
+ratio of the two models' times in that repetition (they run back to back). For reference, each
+width also reports the ratio of the two models' convolution and matrix-product arithmetic
+(``agents.summary.forward_flops``), the part of the latency ratio that no implementation removes.
 
 ``run(report)`` is called by scripts/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_agents.py [--reps N] [--widths paper cpu]
@@ -25,6 +27,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from agents import make_model  # noqa: E402
+from agents.summary import forward_flops  # noqa: E402
 
 SECTION = "agents"
 MODELS = [  # (row label, registry name)
@@ -101,6 +104,10 @@ def run(report, reps: int = 2, widths=("paper", "cpu"), device: str = "cpu") -> 
     where = f"{device}, {torch.get_num_threads()} threads" if device == "cpu" else device
     names = dict((name, label) for label, name in MODELS)
     for width in widths:
+        arithmetic = forward_flops(make_model("ev-mgrflownet", width=width), 1, 128, 128) / forward_flops(
+            make_model("convgru-ev-flownet", width=width), 1, 128, 128
+        )
+        report(SECTION, f"EV-MGRFlowNet / ConvGRU-EV-FlowNet {width} arithmetic (GFLOP)", arithmetic, "x")
         for input_label, batch, height, size_w in INPUTS:
             timings = time_models(list(names), width, batch, height, size_w, reps, device)
             for name, (fwd, fwd_bwd, _, _) in timings.items():

@@ -25,7 +25,7 @@ from agents import (
 from agents.evmgrflownet import DeepMemoryUp
 from agents.layers import ConvGRU, STConvGRU
 from agents.spiking import arctan_spike
-from agents.summary import MODEL_VARIANTS, count_parameters, parameter_table
+from agents.summary import MODEL_VARIANTS, count_parameters, forward_flops, parameter_table
 
 BUILT_IN = ["ev-mgrflownet", "ev-flownet", "convgru-ev-flownet", "xlif-ev-flownet"]
 RECURRENT = ["ev-mgrflownet", "convgru-ev-flownet", "xlif-ev-flownet"]
@@ -407,6 +407,29 @@ def test_parameter_counts_at_paper_width():
     # Without both switches EV-MGRFlowNet is ConvGRU-EV-FlowNet.
     plain = make_model("ev-mgrflownet", use_st_convgru=False, use_prior_flow=False)
     assert count_parameters(plain) == counts["ConvGRU-EV-FlowNet"]
+
+
+@pytest.mark.parametrize("name", ["ev-flownet", "convgru-ev-flownet"])
+def test_forward_flops_equal_the_sum_over_convolutions(name):
+    """forward_flops against 2 x (output elements) x (input channels) x 9 summed over every conv
+    layer the window ran (these models call their convolutions only as modules)."""
+    model = build(name)
+    total = []
+
+    def hook(module, inputs, output):
+        weight = module.weight
+        total.append(2 * output.numel() * weight.shape[1] * weight.shape[2] * weight.shape[3])
+
+    flops = forward_flops(model, 2, 48, 64)  # before the hooks: its own two windows
+    x = torch.zeros(2, 2, 48, 64)
+    x[:, :, ::3, ::5] = 1.0
+    with torch.no_grad():
+        _, state = model(x, None)
+        handles = [m.register_forward_hook(hook) for m in model.modules() if isinstance(m, torch.nn.Conv2d)]
+        model(x, state)
+    for handle in handles:
+        handle.remove()
+    assert flops == sum(total) > 0
 
 
 # ---------------------------------------------------------------- channels-last and compiled gates
