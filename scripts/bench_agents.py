@@ -5,13 +5,17 @@ forward latency per window (no grad, carrying the recurrent state) and forward +
 window (state from the previous window, detached; loss = mean of every scale's flow), in ms,
 best of ``reps`` after one warm-up window; then EV-MGRFlowNet's latency as a ratio to
 ConvGRU-EV-FlowNet's at the same width (target <= 1.3): the median over repetitions of the
-ratio of the two models' times in that repetition (they run back to back). For reference, each
-width also reports the ratio of the two models' convolution and matrix-product arithmetic
-(``agents.summary.forward_flops``), the part of the latency ratio that no implementation removes.
+ratio of the two models' times in that repetition (all models take turns in each repetition).
+For reference, each width also reports the ratio of the two models' convolution and
+matrix-product arithmetic (``agents.summary.forward_flops``), the part of the latency ratio that
+no implementation removes, and, with ``--variants``, EV-MGRFlowNet's two ablations (what the
+ST-ConvGRU and the prior-flow path each add) and, with ``--nchw``, every model in the NCHW
+layout with torch's gate arithmetic (``model.channels_last = False``) and the speed-up of the
+default layout over it.
 
 ``run(report)`` is called by scripts/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_agents.py [--reps N] [--widths paper cpu]
-[--device cpu|cuda] [--threads N]``.
+[--variants] [--nchw] [--device cpu|cuda] [--threads N]``.
 """
 
 from __future__ import annotations
@@ -30,12 +34,17 @@ from agents import make_model  # noqa: E402
 from agents.summary import forward_flops  # noqa: E402
 
 SECTION = "agents"
-MODELS = [  # (row label, registry name)
-    ("EV-MGRFlowNet", "ev-mgrflownet"),
-    ("ConvGRU-EV-FlowNet", "convgru-ev-flownet"),
-    ("EV-FlowNet", "ev-flownet"),
-    ("XLIF-EV-FlowNet", "xlif-ev-flownet"),
+MODELS = [  # (row label, registry name, keyword arguments)
+    ("EV-MGRFlowNet", "ev-mgrflownet", {}),
+    ("ConvGRU-EV-FlowNet", "convgru-ev-flownet", {}),
+    ("EV-FlowNet", "ev-flownet", {}),
+    ("XLIF-EV-FlowNet", "xlif-ev-flownet", {}),
 ]
+VARIANTS = [
+    ("EV-MGRFlowNet w/o ST-ConvGRU", "ev-mgrflownet", {"use_st_convgru": False}),
+    ("EV-MGRFlowNet w/o prior flows", "ev-mgrflownet", {"use_prior_flow": False}),
+]
+NCHW = " (NCHW)"
 INPUTS = [("256x256 B=1", 1, 256, 256), ("128x128 B=8", 8, 128, 128)]
 
 
@@ -50,16 +59,19 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def time_models(names: list[str], width: str, batch: int, height: int, size_w: int, reps: int, device) -> dict:
-    """{name: (forward ms, forward+backward ms, forward times s, forward+backward times s)} per
-    window: the best of ``reps`` after a warm-up window, and every repetition's time. The models
-    take turns within each repetition, so load from other processes hits them alike and the
-    ratios stay meaningful on a shared machine."""
+def time_models(entries, width: str, batch: int, height: int, size_w: int, reps: int, device) -> dict:
+    """{label: (forward ms, forward+backward ms, forward times s, forward+backward times s)} per
+    window for ``entries`` [(label, registry name, kwargs, channels_last)]: the best of ``reps``
+    after a warm-up window, and every repetition's time. The models take turns within each
+    repetition, so load from other processes hits them alike and the ratios stay meaningful on
+    a shared machine."""
     device = torch.device(device)
     models, states = {}, {}
-    for name in names:
+    names = [label for label, _, _, _ in entries]
+    for label, name, kwargs, channels_last in entries:
         torch.manual_seed(0)
-        models[name] = make_model(name, width=width).to(device)
+        models[label] = make_model(name, width=width, **kwargs).to(device)
+        models[label].channels_last = channels_last
     inputs = [_count_images(batch, height, size_w, seed).to(device) for seed in range(reps + 1)]
     forward = {name: [] for name in names}
     backward = {name: [] for name in names}
@@ -98,30 +110,40 @@ def turn_ratio(times: list[float], base: list[float]) -> float:
     return statistics.median(a / b for a, b in zip(times, base))
 
 
-def run(report, reps: int = 2, widths=("paper", "cpu"), device: str = "cpu") -> dict:
+def run(report, reps: int = 2, widths=("paper", "cpu"), device: str = "cpu", variants: bool = False,
+        nchw: bool = False) -> dict:
     """Report every row; return {(width, input, model label): (forward ms, fwd+bwd ms)}."""
     results = {}
     where = f"{device}, {torch.get_num_threads()} threads" if device == "cpu" else device
-    names = dict((name, label) for label, name in MODELS)
+    entries = [(label, name, kwargs, None) for label, name, kwargs in MODELS + (VARIANTS if variants else [])]
+    if nchw:
+        entries += [(label + NCHW, name, kwargs, False) for label, name, kwargs, _ in entries]
     for width in widths:
         arithmetic = forward_flops(make_model("ev-mgrflownet", width=width), 1, 128, 128) / forward_flops(
             make_model("convgru-ev-flownet", width=width), 1, 128, 128
         )
         report(SECTION, f"EV-MGRFlowNet / ConvGRU-EV-FlowNet {width} arithmetic (GFLOP)", arithmetic, "x")
         for input_label, batch, height, size_w in INPUTS:
-            timings = time_models(list(names), width, batch, height, size_w, reps, device)
-            for name, (fwd, fwd_bwd, _, _) in timings.items():
-                label = names[name]
+            timings = time_models(entries, width, batch, height, size_w, reps, device)
+            for label, (fwd, fwd_bwd, _, _) in timings.items():
                 results[(width, input_label, label)] = (fwd, fwd_bwd)
                 row = f"{label} {width} {input_label} ({where})"
                 report(SECTION, f"{row} forward", fwd, "ms/window")
                 report(SECTION, f"{row} forward+backward", fwd_bwd, "ms/window")
-            mgr = timings["ev-mgrflownet"]
-            base = timings["convgru-ev-flownet"]
-            row = f"EV-MGRFlowNet / ConvGRU-EV-FlowNet {width} {input_label}"
-            ratio = turn_ratio(mgr[2], base[2])
-            report(SECTION, f"{row} forward", ratio, "x (median per turn; target <= 1.3)")
-            report(SECTION, f"{row} forward+backward", turn_ratio(mgr[3], base[3]), "x (median per turn)")
+            for suffix in ["", NCHW] if nchw else [""]:
+                mgr = timings["EV-MGRFlowNet" + suffix]
+                base = timings["ConvGRU-EV-FlowNet" + suffix]
+                row = f"EV-MGRFlowNet / ConvGRU-EV-FlowNet{suffix} {width} {input_label}"
+                target = "; target <= 1.3" if not suffix else ""
+                report(SECTION, f"{row} forward", turn_ratio(mgr[2], base[2]), f"x (median per turn{target})")
+                report(SECTION, f"{row} forward+backward", turn_ratio(mgr[3], base[3]), "x (median per turn)")
+            if nchw:
+                for label, _, _, layout in entries:
+                    if layout is None:
+                        ref, new = timings[label + NCHW], timings[label]
+                        row = f"{label} {width} {input_label} NCHW / default layout"
+                        report(SECTION, f"{row} forward", turn_ratio(ref[2], new[2]), "x (median per turn)")
+                        report(SECTION, f"{row} forward+backward", turn_ratio(ref[3], new[3]), "x (median per turn)")
     return results
 
 
@@ -133,9 +155,11 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reps", type=int, default=2, help="timed windows per row (best is reported)")
     parser.add_argument("--widths", nargs="+", default=["paper", "cpu"], choices=["paper", "cpu"])
+    parser.add_argument("--variants", action="store_true", help="also EV-MGRFlowNet's two ablations")
+    parser.add_argument("--nchw", action="store_true", help="also every model in NCHW with torch's gate arithmetic")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    run(_print_row, reps=args.reps, widths=args.widths, device=args.device)
+    run(_print_row, reps=args.reps, widths=args.widths, device=args.device, variants=args.variants, nchw=args.nchw)
