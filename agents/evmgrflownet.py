@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .flownet import FlowNetBase, State, resolve_base_width
-from .layers import ConvDown, ConvGRU, STConvGRU, conv3x3
+from .layers import ConvDown, ConvGRU, STConvGRU, conv3x3, is_channels_last
 
 
 def _shifted_upsampling_matrices(n_in: int, n_out: int, like: Tensor) -> Tensor:
@@ -54,9 +54,7 @@ class DeepMemoryUp(nn.Module):
         """deepest_hidden: (B, C4, h, w) S4_{k-1}; returns (B, C1, *size) M_{k-1}, in the layout
         of ``deepest_hidden`` (channels-last or NCHW)."""
         batch, channels, height, width = deepest_hidden.shape
-        channels_last = not deepest_hidden.is_contiguous() and deepest_hidden.is_contiguous(
-            memory_format=torch.channels_last
-        )
+        channels_last = is_channels_last(deepest_hidden)
         weight = self.conv.weight  # (O, C, 3, 3)
         out_channels = weight.shape[0]
         tap_weights = weight.permute(2, 3, 0, 1).reshape(9 * out_channels, channels, 1, 1)

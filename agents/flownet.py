@@ -19,7 +19,7 @@ from torch import Tensor, nn
 
 from losses import forward_warp_flow
 
-from .layers import ConvGRU, ConvUp, ResidualBlock, conv3x3
+from .layers import ConvGRU, ConvUp, ResidualBlock, conv3x3, is_channels_last
 
 #: Named base widths: the paper's size and a size that trains on a laptop CPU.
 WIDTHS: dict[str, int] = {"paper": 32, "cpu": 8}
@@ -84,13 +84,13 @@ class FlowDecoder(nn.Module):
 
     def forward(self, residual: Tensor, skips: list[Tensor], prior: Tensor | None) -> list[Tensor]:
         flows: list[Tensor] = []
-        channels_last = not residual.is_contiguous() and residual.is_contiguous(memory_format=torch.channels_last)
+        channels_last = is_channels_last(residual)
         x = residual
         if self.refiners is not None and prior is not None:
             priors = [prior]  # full, 1/2, 1/4, 1/8: 2x2 means of 2x2 means = block means
             for _ in range(NUM_SCALES - 1):
                 priors.append(F.avg_pool2d(priors[-1], 2))
-            # In the activations' layout (pooled first: a 2-channel pool is faster in NCHW).
+            # Pooled in the forward warp's NCHW output, then put in the activations' layout.
             priors = [p.contiguous(memory_format=torch.channels_last) if channels_last else p for p in priors]
         for level in range(NUM_SCALES):
             parts = [x, skips[NUM_SCALES - 1 - level]]  # skip F_{5-l}
@@ -117,10 +117,10 @@ class FlowNetBase(nn.Module):
     - flows: 4 tensors (B, 2, ceil(H/s), ceil(W/s)) for s = 8, 4, 2, 1 (finest last), pixels of
       displacement over the window in full-resolution units, within +-flow_scaling.
 
-    Memory layout: on CPU the activations (and so the flows and the state) are channels-last
-    tensors, which oneDNN's convolutions run about 1.5x faster than NCHW at these widths and in
-    which the recurrent layers' gate arithmetic runs in compiled kernels (``agents/_kernels.py``);
-    the returned flows are always contiguous NCHW. ``channels_last = False`` keeps NCHW inside (the
+    Memory layout: on CPU the activations (and so the recurrent state) are channels-last tensors,
+    in which oneDNN's convolutions run faster than in NCHW at these widths (the whole network
+    1.4-2.2x at CPU width, README benchmarks) and the recurrent layers' gate arithmetic runs in
+    compiled kernels (``agents/_kernels.py``); the returned flows are always contiguous NCHW. ``channels_last = False`` keeps NCHW inside (the
     torch reference path); ``True`` forces channels-last on any device; ``None`` (default) means
     channels-last on CPU only. Values do not depend on it beyond float rounding.
     """

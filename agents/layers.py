@@ -4,6 +4,11 @@ All convolutions are 3x3 with "same" padding unless stated. Every recurrent laye
 previous hidden state as a tensor or ``None``; ``None`` and an all-zeros tensor mean the same
 thing, a fresh sequence ("zero state at sequence start"), which is what lets the policy wrapper
 reset single batch elements by zeroing their state.
+
+On channels-last CPU tensors (the networks' layout on CPU, see ``agents/flownet.py``) the gate
+arithmetic of :class:`ConvGRU` (eq. 4) and of :class:`STConvGRU`'s output (eq. 6) runs in the
+compiled kernels of ``agents/_kernels.py`` (autograd Functions below); on anything else in the
+torch expressions, which are the reference the tests hold the kernels to.
 """
 
 from __future__ import annotations
@@ -22,6 +27,11 @@ _CHANNELS_LAST = torch.channels_last
 
 def conv3x3(in_channels: int, out_channels: int, stride: int = 1, bias: bool = True) -> nn.Conv2d:
     return nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1, bias=bias)
+
+
+def is_channels_last(tensor: Tensor) -> bool:
+    """Whether a 4-D tensor is stored channels-last (and not also NCHW-contiguous)."""
+    return not tensor.is_contiguous() and tensor.is_contiguous(memory_format=_CHANNELS_LAST)
 
 
 def _has_rows(tensor: Tensor) -> bool:
@@ -55,8 +65,7 @@ def use_gate_kernels(tensor: Tensor) -> bool:
         and tensor.device.type == "cpu"
         and tensor.dtype in (torch.float32, torch.float64)
         and tensor.dim() == 4
-        and not tensor.is_contiguous()  # NCHW (or a layout where both views agree): torch
-        and _has_rows(tensor)
+        and is_channels_last(tensor)
     )
 
 
