@@ -78,9 +78,11 @@ def _make_gru(parallel: bool, n: int):
     vectorized (indexing x_proj[p, xo + j] directly, with xo known only at run time, keeps LLVM
     from vectorizing it: about 9x slower); for small n (the hidden size 2 of the flow refiners)
     the loop runs over the flat index e = p * n + j, which vectorizes across pixels. Each kernel
-    holds a single parallel loop, and each flat view is its own statement: numba 0.6x parfors
-    gave wrong results for two parallel loops in one kernel and for `a, b = x.reshape(-1),
-    y.reshape(-1)` (the tests compare every kernel with the torch expressions).
+    holds a single parallel loop, and each flat view is its own statement: with numba 0.68 the
+    parallel (not the serial) compile of the flat kernels gave wrong results while they held
+    tuple assignments of several views (`a, b = x.reshape(-1), y.reshape(-1)`), in a first
+    version also two parallel loops; which of the two was at fault was not separated (the tests
+    compare every kernel, serial and parallel, with the torch expressions).
     """
     loop = numba.prange if parallel else range
 
