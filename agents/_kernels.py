@@ -61,6 +61,15 @@ def _gru_backward(xr, xz, xh, hr, hz, hh, h, g, one):
     return d_h * hh * r * (one - r), g * (c - h) * z * (one - z), d_h, d_h * r, g * (one - z)
 
 
+@numba.njit(inline="always", **_OPTIONS)
+def _flat_offsets(e, n, width, xo):
+    """Flat element e = p * n + q (pixel row p, channel q) -> (b, k): the offsets of channel q's
+    r-gate entry in x_proj (rows of ``width``, columns from xo) and in h_proj (rows of 3n)."""
+    p = e // n
+    q = e - p * n
+    return width * p + xo + q, 3 * n * p + q
+
+
 def _make_gru(parallel: bool, n: int):
     """The ConvGRU update for hidden size ``n``, a compile-time constant here: one
     specialization per n (cached on disk like the rest). With n known, LLVM sees that the gate
@@ -155,10 +164,7 @@ def _make_gru(parallel: bool, n: int):
         of = out.reshape(-1)
         one = out.dtype.type(1.0)
         for e in loop(of.shape[0]):
-            p = e // n
-            q = e - p * n  # channel
-            b = width * p + xo + q
-            k = 3 * n * p + q
+            b, k = _flat_offsets(e, n, width, xo)
             of[e] = _gru_forward(xf[b], xf[b + n], xf[b + 2 * n], hf[k], hf[k + n], hf[k + 2 * n], hid[e], one)
 
     @numba.njit(parallel=parallel, **_OPTIONS)
@@ -169,8 +175,7 @@ def _make_gru(parallel: bool, n: int):
         one = out.dtype.type(1.0)
         zero = one - one
         for e in loop(of.shape[0]):
-            p = e // n
-            b = width * p + xo + e - p * n
+            b, _ = _flat_offsets(e, n, width, xo)
             of[e] = _gru_forward(xf[b], xf[b + n], xf[b + 2 * n], zero, zero, zero, zero, one)
 
     @numba.njit(parallel=parallel, **_OPTIONS)
@@ -185,10 +190,7 @@ def _make_gru(parallel: bool, n: int):
         ghidf = grad_hidden.reshape(-1)
         one = grad_out.dtype.type(1.0)
         for e in loop(gf.shape[0]):
-            p = e // n
-            q = e - p * n
-            b = width * p + xo + q
-            k = 3 * n * p + q
+            b, k = _flat_offsets(e, n, width, xo)
             d_r, d_z, d_c, d_hh, d_h = _gru_backward(
                 xf[b], xf[b + n], xf[b + 2 * n], hf[k], hf[k + n], hf[k + 2 * n], hid[e], gf[e], one
             )
@@ -209,8 +211,7 @@ def _make_gru(parallel: bool, n: int):
         one = grad_out.dtype.type(1.0)
         zero = one - one
         for e in loop(gf.shape[0]):
-            p = e // n
-            b = width * p + xo + e - p * n
+            b, _ = _flat_offsets(e, n, width, xo)
             d_r, d_z, d_c, _, _ = _gru_backward(
                 xf[b], xf[b + n], xf[b + 2 * n], zero, zero, zero, zero, gf[e], one
             )
