@@ -23,6 +23,8 @@ def main() -> None:
     parser.add_argument("--flops", nargs=2, type=int, metavar=("H", "W"), default=None,
                         help="also print the GFLOP of one window at this input size")
     args = parser.parse_args()
+    if args.flops and min(args.flops) < 1:
+        parser.error(f"--flops: H and W must be positive, got {args.flops[0]} {args.flops[1]}")
     tables = {width: dict(parameter_table(width)) for width in args.widths}
     labels = list(next(iter(tables.values())))
     header = " | ".join(f"{w} (c={WIDTHS[w]})" for w in args.widths)
