@@ -19,7 +19,7 @@ from torch import Tensor, nn
 
 from losses import forward_warp_flow
 
-from .layers import ConvGRU, ConvUp, ResidualBlock, conv3x3, is_channels_last
+from .layers import ConvGRU, ConvUp, ResidualBlock, conv3x3, is_channels_last, refine_flow
 
 #: Named base widths: the paper's size and a size that trains on a laptop CPU.
 WIDTHS: dict[str, int] = {"paper": 32, "cpu": 8}
@@ -90,17 +90,18 @@ class FlowDecoder(nn.Module):
             priors = [prior]  # full, 1/2, 1/4, 1/8: 2x2 means of 2x2 means = block means
             for _ in range(NUM_SCALES - 1):
                 priors.append(F.avg_pool2d(priors[-1], 2))
-            # Pooled in the forward warp's NCHW output, then put in the activations' layout.
-            priors = [p.contiguous(memory_format=torch.channels_last) if channels_last else p for p in priors]
         for level in range(NUM_SCALES):
             parts = [x, skips[NUM_SCALES - 1 - level]]  # skip F_{5-l}
             if flows:
-                parts.append(flows[-1])  # u_{l-1}, before the upsampling conv
+                # u_{l-1}, before the upsampling conv (the refiner's output may be NCHW)
+                parts.append(flows[-1].contiguous(memory_format=torch.channels_last) if channels_last else flows[-1])
             x = self.upsamples[level](torch.cat(parts, dim=1))  # eq. 10, D_l
-            flow = torch.tanh(self.heads[level](x))  # eq. 10, uhat_l
-            if self.refiners is not None:
+            head = self.heads[level](x)
+            if self.refiners is None:
+                flow = torch.tanh(head)  # eq. 10, u_l = uhat_l
+            else:
                 prior_here = None if prior is None else priors[NUM_SCALES - 1 - level]  # ubar_l
-                flow = self.refiners[level](flow, prior_here)  # eq. 11, u_l
+                flow = refine_flow(self.refiners[level], head, prior_here)  # eqs. 10-11, u_l
             flows.append(flow)
         return flows
 

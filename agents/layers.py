@@ -168,6 +168,102 @@ def output_gate(gate_x: Tensor, gate_h: Tensor, fusion: Tensor) -> Tensor:
     return torch.sigmoid(gate_x + gate_h) * torch.tanh(fusion)
 
 
+def _planes(tensor: Tensor):
+    """The (B, C, h * w) numpy view of an NCHW-contiguous (B, C, h, w) tensor."""
+    return tensor.detach().numpy().reshape(tensor.shape[0], tensor.shape[1], -1)
+
+
+def _image_rows(tensor: Tensor):
+    """The (B, h * w, C) numpy view of a (B, C, h, w) tensor that :func:`_has_rows`."""
+    return tensor.detach().permute(0, 2, 3, 1).numpy().reshape(tensor.shape[0], -1, tensor.shape[1])
+
+
+class _PackRefinerInput(torch.autograd.Function):
+    """``[tanh(a), hidden]``: the flow refiner's input and hidden state as one NCHW tensor
+    (``a``: the channels-last head output; ``hidden``: NCHW)."""
+
+    @staticmethod
+    def forward(ctx, head, hidden):  # type: ignore[override]
+        head, hidden = _with_rows(head), hidden.contiguous()
+        n = head.shape[1]
+        packed = head.new_empty((head.shape[0], 2 * n, *head.shape[2:]))
+        _kernels.refiner_kernels(_kernels.use_threads(), n)[0](
+            _image_rows(head), _planes(hidden), _planes(packed)
+        )
+        ctx.save_for_backward(packed)
+        return packed
+
+    @staticmethod
+    def backward(ctx, grad_packed):  # type: ignore[override]
+        (packed,) = ctx.saved_tensors
+        n = packed.shape[1] // 2
+        grad_packed = grad_packed.contiguous()
+        grad_head = _new_channels_last(packed, n)
+        _kernels.refiner_kernels(_kernels.use_threads(), n)[1](
+            _planes(packed), _planes(grad_packed), _image_rows(grad_head)
+        )
+        return grad_head, grad_packed[:, n:]
+
+
+class _RefinerUpdate(torch.autograd.Function):
+    """Eq. 4 from the merged convolution ``q`` = [r, z, Wxh*X, Whh*H] (pre-activations) and the
+    hidden state, all NCHW (see ``agents/_kernels.py``, ``_make_refiner``)."""
+
+    @staticmethod
+    def forward(ctx, q, hidden):  # type: ignore[override]
+        q, hidden = q.contiguous(), hidden.contiguous()
+        out = torch.empty_like(hidden)
+        _kernels.refiner_kernels(_kernels.use_threads(), hidden.shape[1])[2](
+            _planes(q), _planes(hidden), _planes(out)
+        )
+        ctx.save_for_backward(q, hidden)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        q, hidden = ctx.saved_tensors
+        grad_out = grad_out.contiguous()
+        grad_q, grad_hidden = torch.empty_like(q), torch.empty_like(hidden)
+        _kernels.refiner_kernels(_kernels.use_threads(), hidden.shape[1])[3](
+            _planes(q), _planes(hidden), _planes(grad_out), _planes(grad_q), _planes(grad_hidden)
+        )
+        return grad_q, grad_hidden
+
+
+def _merged_refiner_conv(gru: "ConvGRU") -> tuple[Tensor, Tensor]:
+    """The weight and bias of one convolution of ``[X, H]`` giving [Wxr*X + Whr*H + b_r,
+    Wxz*X + Whz*H + b_z, Wxh*X + b_h, Whh*H] from ``gru``'s two convolutions (differentiable:
+    the gradients reach ``x_convs`` and ``h_convs``)."""
+    n = gru.hidden_size
+    wx, wh = gru.x_convs.weight, gru.h_convs.weight  # (3n, C_in, k, k), (3n, n, k, k)
+    gates = torch.cat([wx[: 2 * n], wh[: 2 * n]], dim=1)
+    candidate_x = torch.cat([wx[2 * n :], wh.new_zeros(n, n, *wh.shape[2:])], dim=1)
+    candidate_h = torch.cat([wx.new_zeros(n, wx.shape[1], *wx.shape[2:]), wh[2 * n :]], dim=1)
+    bias = torch.cat([gru.x_convs.bias, gru.x_convs.bias.new_zeros(n)])
+    return torch.cat([gates, candidate_x, candidate_h]), bias
+
+
+def refine_flow(gru: "ConvGRU", head: Tensor, prior: Tensor | None) -> Tensor:
+    """FGD-Net's refinement of one scale's estimate (eqs. 10-11): ``u = gru(tanh(head), prior)``.
+
+    head: (B, n, h, w) the flow head's convolution output (before the tanh); prior: (B, n, h, w)
+    the aligned, downsampled prior flow ``ubar`` in network units, or None (fresh sequence).
+    Returns u (B, n, h, w). On a channels-last CPU head (the networks on CPU) the work is
+    :func:`_merged_refiner_conv`'s one convolution between two compiled passes, in NCHW, and u
+    is NCHW; otherwise it is ``gru`` itself, in ``head``'s layout."""
+    n = gru.hidden_size
+    if not use_gate_kernels(head) or gru.x_convs.in_channels != n:
+        if prior is not None and is_channels_last(head):
+            prior = prior.contiguous(memory_format=_CHANNELS_LAST)
+        return gru(torch.tanh(head), prior)
+    if prior is None:  # the same arithmetic as for a zeroed prior, so that the two agree bitwise
+        prior = head.new_zeros(head.shape)
+    weight, bias = _merged_refiner_conv(gru)
+    packed = _PackRefinerInput.apply(head, prior)
+    q = F.conv2d(packed, weight, bias, padding=gru.x_convs.padding)
+    return _RefinerUpdate.apply(q, prior)
+
+
 class ConvDown(nn.Module):
     """``conv_down(x) = relu(conv2d_stride2(x))``: halves the resolution."""
 

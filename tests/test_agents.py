@@ -454,8 +454,9 @@ def _at_threads(threads: int, fn):
 
 
 def _count_gate_kernel_calls(monkeypatch) -> dict:
-    calls = {"gru": 0, "gate": 0}
+    calls = {"gru": 0, "gate": 0, "refiner": 0}
     gru_apply, gate_apply = agent_layers._GRUUpdates.apply, agent_layers._OutputGate.apply
+    refiner_apply = agent_layers._RefinerUpdate.apply
 
     def gru(*args):
         calls["gru"] += 1
@@ -465,8 +466,13 @@ def _count_gate_kernel_calls(monkeypatch) -> dict:
         calls["gate"] += 1
         return gate_apply(*args)
 
+    def refiner(*args):
+        calls["refiner"] += 1
+        return refiner_apply(*args)
+
     monkeypatch.setattr(agent_layers._GRUUpdates, "apply", gru)
     monkeypatch.setattr(agent_layers._OutputGate, "apply", gate)
+    monkeypatch.setattr(agent_layers._RefinerUpdate, "apply", refiner)
     return calls
 
 
@@ -522,9 +528,9 @@ def test_compiled_st_convgru_matches_equations_5_and_6(monkeypatch, channels, me
         return out, carried, grads
 
     out, carried, grads = _at_threads(threads, lambda: run(_cl))
-    assert calls == {"gru": 1, "gate": 1}
+    assert calls == {"gru": 1, "gate": 1, "refiner": 0}
     want_out, want_carried, want_grads = run(lambda t: t.contiguous())
-    assert calls == {"gru": 1, "gate": 1}  # NCHW: the torch expressions
+    assert calls == {"gru": 1, "gate": 1, "refiner": 0}  # NCHW: the torch expressions
     torch.testing.assert_close(out, want_out, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(carried, want_carried, rtol=1e-12, atol=1e-12)
     for got, want in zip(grads, want_grads):
@@ -532,6 +538,38 @@ def test_compiled_st_convgru_matches_equations_5_and_6(monkeypatch, channels, me
             assert got is None or not got.abs().any()
         else:
             torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("fresh", [False, True])
+def test_compiled_flow_refiner_matches_equations_10_and_11(monkeypatch, fresh, threads):
+    """FGD-Net's refinement ``u = ConvGRU_flow(tanh(head), ubar)`` on a channels-last head (one
+    merged convolution between two compiled passes) against eq. 4 written out with one
+    convolution per weight matrix: values and the gradients of the head, the prior (through
+    both the convolutions and the direct (1 - z) path) and every weight."""
+    calls = _count_gate_kernel_calls(monkeypatch)
+    torch.manual_seed(11)
+    gru = ConvGRU(2, 2).double()
+    head = torch.randn(3, 2, 9, 13, dtype=torch.float64, requires_grad=True)
+    prior = torch.randn(3, 2, 9, 13, dtype=torch.float64, requires_grad=True)
+    weights = [gru.x_convs.weight, gru.x_convs.bias] + ([] if fresh else [gru.h_convs.weight])
+    inputs = [head] if fresh else [head, prior]
+    grad_out = torch.randn(3, 2, 9, 13, dtype=torch.float64)
+
+    def compiled():
+        out = agent_layers.refine_flow(gru, _cl(head), None if fresh else prior)
+        return out, torch.autograd.grad(out, inputs + weights, grad_out)
+
+    out, grads = _at_threads(threads, compiled)
+    assert calls["refiner"] == 1 and calls["gru"] == 0
+    expected = _gru_reference(gru, torch.tanh(head), torch.zeros_like(prior) if fresh else prior)
+    expected_grads = torch.autograd.grad(expected, inputs + weights, grad_out)
+    torch.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
+    for got, want in zip(grads, expected_grads):
+        torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+    # NCHW heads take the ConvGRU itself (the torch path)
+    torch.testing.assert_close(agent_layers.refine_flow(gru, head, None if fresh else prior), expected)
+    assert calls["refiner"] == 1
 
 
 def test_compiled_gates_pass_gradcheck():
@@ -548,6 +586,9 @@ def test_compiled_gates_pass_gradcheck():
         assert torch.autograd.gradcheck(lambda a: agent_layers._GRUUpdates.apply(a[:, : 3 * n].contiguous(memory_format=CHANNELS_LAST), None, None), (x_proj,))
     gate_x, gate_h, fusion = make(4), make(4), make(4)
     assert torch.autograd.gradcheck(agent_layers._OutputGate.apply, (gate_x, gate_h, fusion))
+    planar = lambda c: torch.randn(shape[0], c, *shape[2:], dtype=torch.float64).requires_grad_()  # noqa: E731
+    assert torch.autograd.gradcheck(agent_layers._PackRefinerInput.apply, (make(2), planar(2)))
+    assert torch.autograd.gradcheck(agent_layers._RefinerUpdate.apply, (planar(8), planar(2)))
 
 
 @pytest.mark.parametrize("name", BUILT_IN)
@@ -588,5 +629,5 @@ def test_cpu_default_is_channels_last_with_compiled_gates(monkeypatch):
         _, state = model(count_images(1, 32, 32), None)
         _, state = model(count_images(1, 32, 32, seed=1), state)
     assert state["encoder1"].is_contiguous(memory_format=CHANNELS_LAST)
-    # per window: the ST pair, encoders 2-4, four refiners; one output gate
-    assert calls == {"gru": 2 * 8, "gate": 2}
+    # per window: the ST pair, encoders 2-4; one output gate; four refiners (merged convolution)
+    assert calls == {"gru": 2 * 4, "gate": 2, "refiner": 2 * 4}
