@@ -33,7 +33,7 @@ import torch
 from numba import types
 from numba.extending import overload
 
-__all__ = ["kernels", "smoothness_kernels", "use_threads"]
+__all__ = ["kernels", "smoothness_kernels", "forward_warp_kernels", "warp_strips", "use_threads"]
 
 _OPTIONS = dict(nogil=True, cache=True, fastmath=False, boundscheck=False, error_model="numpy")
 # The image kernels may reassociate sums and contract multiply-adds, so that the pixel passes
@@ -456,92 +456,145 @@ def _splat_taps(x, y):
     return int(x0f), int(y0f), x - x0f, y - y0f
 
 
+#: Images of a batch smaller than this are splatted in this many row strips at once (each
+#: into its own accumulator, summed afterwards), so that a single window also uses several
+#: threads. Fixed by the batch size, not the thread count: results do not depend on threads.
+WARP_STRIPS = 4
+
+
+def warp_strips(batch: int) -> int:
+    """Row strips per image for the forward warp of a batch of ``batch`` flows."""
+    return max(1, WARP_STRIPS // max(1, batch))
+
+
 def _make_forward_warp(parallel: bool):
     loop = numba.prange if parallel else range
 
     @numba.njit(parallel=parallel, **_OPTIONS)
-    def forward(flow, acc, out):
-        """Eq. 9 for flow (B, 2, H, W): acc (B, 3, H, W) out = the splatted weight and the two
-        splatted flow components (out-of-image corners dropped); out (B, 2, H, W) = their
-        ratio, 0 where no weight arrived. One task per batch element (each owns its images)."""
+    def splat(flow, partial):
+        """Eq. 9's splatting of flow (B, 2, H, W) into partial (B, S, H, W, 3): strip s of image
+        b (rows s H / S .. (s + 1) H / S) splats [weight, weight u_x, weight u_y] at the four
+        bilinear corners of each pixel's displaced position into partial[b, s] (out-of-image
+        corners dropped). One task per (image, strip)."""
         B, _, H, W = flow.shape
-        for b in loop(B):
-            acc[b] = 0.0
-            for r in range(H):
+        S = partial.shape[1]
+        for task in loop(B * S):
+            b = task // S
+            s = task - b * S
+            acc = partial[b, s]
+            acc[:] = 0.0
+            for r in range(s * H // S, (s + 1) * H // S):
                 for q in range(W):
                     ux = flow[b, 0, r, q]
                     uy = flow[b, 1, r, q]
                     x0, y0, fx, fy = _splat_taps(q + ux, r + uy)
+                    if 0 <= x0 and x0 + 1 < W and 0 <= y0 and y0 + 1 < H:
+                        # all four corners inside (most pixels): no per-corner tests
+                        for k in range(4):
+                            cx = x0 + (k & 1)
+                            cy = y0 + (k >> 1)
+                            w = (fx if k & 1 else 1.0 - fx) * (fy if k >> 1 else 1.0 - fy)
+                            acc[cy, cx, 0] += w
+                            acc[cy, cx, 1] += w * ux
+                            acc[cy, cx, 2] += w * uy
+                        continue
                     for k in range(4):
                         cx = x0 + (k & 1)
                         cy = y0 + (k >> 1)
                         if cx < 0 or cx >= W or cy < 0 or cy >= H:
                             continue
                         w = (fx if k & 1 else 1.0 - fx) * (fy if k >> 1 else 1.0 - fy)
-                        acc[b, 0, cy, cx] += w
-                        acc[b, 1, cy, cx] += w * ux
-                        acc[b, 2, cy, cx] += w * uy
-            for r in range(H):
-                for q in range(W):
-                    a = acc[b, 0, r, q]
-                    if a > 0:
-                        out[b, 0, r, q] = acc[b, 1, r, q] / a
-                        out[b, 1, r, q] = acc[b, 2, r, q] / a
-                    else:
-                        out[b, 0, r, q] = 0.0
-                        out[b, 1, r, q] = 0.0
+                        acc[cy, cx, 0] += w
+                        acc[cy, cx, 1] += w * ux
+                        acc[cy, cx, 2] += w * uy
 
     @numba.njit(parallel=parallel, **_OPTIONS)
-    def backward(flow, acc, out, grad_out, grad_flow):
-        """grad_flow (B, 2, H, W) out: the gradient of sum(grad_out * forward(flow)).
+    def normalize(partial, acc, out):
+        """acc (B, H, W, 3) out: the strips of partial summed; out (B, 2, H, W) out: the splatted
+        flow over the splatted weight, 0 where no weight arrived. One task per image row."""
+        B, S, H, W, _ = partial.shape
+        for task in loop(B * H):
+            b = task // H
+            r = task - b * H
+            for q in range(W):
+                a0 = partial[b, 0, r, q, 0]
+                a1 = partial[b, 0, r, q, 1]
+                a2 = partial[b, 0, r, q, 2]
+                for s in range(1, S):
+                    a0 += partial[b, s, r, q, 0]
+                    a1 += partial[b, s, r, q, 1]
+                    a2 += partial[b, s, r, q, 2]
+                acc[b, r, q, 0] = a0
+                acc[b, r, q, 1] = a1
+                acc[b, r, q, 2] = a2
+                if a0 > 0:
+                    out[b, 0, r, q] = a1 / a0
+                    out[b, 1, r, q] = a2 / a0
+                else:
+                    out[b, 0, r, q] = 0.0
+                    out[b, 1, r, q] = 0.0
 
-        Per target pixel with weight A0 > 0: d/dA0 = -(g . out) / A0, d/dA_c = g_c / A0 (kept in
-        acc, which the forward no longer needs); each source pixel then reads them at its 4
-        corners: through the bilinear weights (x, y move with the flow) and through the values."""
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def target_gradients(acc, out, grad_out, target):
+        """target (B, H, W, 3) out: per target pixel with weight A0 > 0, d/dA0 = -(g . out) / A0
+        and d/dA_c = g_c / A0 (0 elsewhere), from acc (B, H, W, 3), out and grad_out
+        (B, 2, H, W). One task per image row."""
+        B, H, W, _ = acc.shape
+        for task in loop(B * H):
+            b = task // H
+            r = task - b * H
+            for q in range(W):
+                a = acc[b, r, q, 0]
+                if a > 0:
+                    g0 = grad_out[b, 0, r, q]
+                    g1 = grad_out[b, 1, r, q]
+                    target[b, r, q, 0] = -(g0 * out[b, 0, r, q] + g1 * out[b, 1, r, q]) / a
+                    target[b, r, q, 1] = g0 / a
+                    target[b, r, q, 2] = g1 / a
+                else:
+                    target[b, r, q, 0] = 0.0
+                    target[b, r, q, 1] = 0.0
+                    target[b, r, q, 2] = 0.0
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def gather(flow, target, grad_flow):
+        """grad_flow (B, 2, H, W) out: the gradient of sum(grad_out * forward(flow)), each source
+        pixel reading :func:`target_gradients` at its 4 corners: through the bilinear weights
+        (x, y move with the flow) and through the splatted values. One task per image row."""
         B, _, H, W = flow.shape
-        for b in loop(B):
-            for r in range(H):
-                for q in range(W):
-                    a = acc[b, 0, r, q]
-                    if a > 0:
-                        g0 = grad_out[b, 0, r, q]
-                        g1 = grad_out[b, 1, r, q]
-                        acc[b, 0, r, q] = -(g0 * out[b, 0, r, q] + g1 * out[b, 1, r, q]) / a
-                        acc[b, 1, r, q] = g0 / a
-                        acc[b, 2, r, q] = g1 / a
-                    else:
-                        acc[b, 0, r, q] = 0.0
-                        acc[b, 1, r, q] = 0.0
-                        acc[b, 2, r, q] = 0.0
-            for r in range(H):
-                for q in range(W):
-                    ux = flow[b, 0, r, q]
-                    uy = flow[b, 1, r, q]
-                    x0, y0, fx, fy = _splat_taps(q + ux, r + uy)
-                    gx = 0.0
-                    gy = 0.0
-                    for k in range(4):
-                        cx = x0 + (k & 1)
-                        cy = y0 + (k >> 1)
-                        if cx < 0 or cx >= W or cy < 0 or cy >= H:
-                            continue
-                        wx = fx if k & 1 else 1.0 - fx
-                        wy = fy if k >> 1 else 1.0 - fy
-                        dwx = 1.0 if k & 1 else -1.0  # d wx / dx
-                        dwy = 1.0 if k >> 1 else -1.0  # d wy / dy
-                        g_a = acc[b, 0, cy, cx]
-                        g_x = acc[b, 1, cy, cx]
-                        g_y = acc[b, 2, cy, cx]
-                        through_weight = g_a + ux * g_x + uy * g_y
-                        gx += dwx * wy * through_weight + wx * wy * g_x
-                        gy += wx * dwy * through_weight + wx * wy * g_y
-                    grad_flow[b, 0, r, q] = gx
-                    grad_flow[b, 1, r, q] = gy
+        for task in loop(B * H):
+            b = task // H
+            r = task - b * H
+            for q in range(W):
+                ux = flow[b, 0, r, q]
+                uy = flow[b, 1, r, q]
+                x0, y0, fx, fy = _splat_taps(q + ux, r + uy)
+                gx = 0.0
+                gy = 0.0
+                for k in range(4):
+                    cx = x0 + (k & 1)
+                    cy = y0 + (k >> 1)
+                    if cx < 0 or cx >= W or cy < 0 or cy >= H:
+                        continue
+                    wx = fx if k & 1 else 1.0 - fx
+                    wy = fy if k >> 1 else 1.0 - fy
+                    dwx = 1.0 if k & 1 else -1.0  # d wx / dx
+                    dwy = 1.0 if k >> 1 else -1.0  # d wy / dy
+                    g_a = target[b, cy, cx, 0]
+                    g_x = target[b, cy, cx, 1]
+                    g_y = target[b, cy, cx, 2]
+                    through_weight = g_a + ux * g_x + uy * g_y
+                    gx += dwx * wy * through_weight + wx * wy * g_x
+                    gy += wx * dwy * through_weight + wx * wy * g_y
+                grad_flow[b, 0, r, q] = gx
+                grad_flow[b, 1, r, q] = gy
 
-    return forward, backward
+    return splat, normalize, target_gradients, gather
 
 
 @functools.cache
 def forward_warp_kernels(parallel: bool):
-    """(forward, backward) of the prior-flow forward warp (eq. 9), for threads or one thread."""
+    """(splat, normalize, target_gradients, gather) of the prior-flow forward warp (eq. 9), for
+    threads or one thread: the forward is splat then normalize, the backward target_gradients
+    then gather."""
     return _make_forward_warp(parallel)

@@ -65,18 +65,25 @@ class _ForwardWarpCompiled(torch.autograd.Function):
     @staticmethod
     def forward(ctx, flow):
         f = np.ascontiguousarray(flow.detach().numpy())
-        acc = np.empty((f.shape[0], 3, *f.shape[2:]), f.dtype)
+        B, _, H, W = f.shape
+        splat, normalize, _, _ = _kernels.forward_warp_kernels(_kernels.use_threads())
+        partial = np.empty((B, _kernels.warp_strips(B), H, W, 3), f.dtype)
+        splat(f, partial)
+        acc = np.empty((B, H, W, 3), f.dtype)
         out = np.empty_like(f)
-        _kernels.forward_warp_kernels(_kernels.use_threads())[0](f, acc, out)
+        normalize(partial, acc, out)
         ctx.arrays = (f, acc, out)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
         f, acc, out = ctx.arrays
-        grad = np.empty_like(f)
+        _, _, target_gradients, gather = _kernels.forward_warp_kernels(_kernels.use_threads())
         g = np.ascontiguousarray(grad_out.detach().numpy(), dtype=f.dtype)
-        _kernels.forward_warp_kernels(_kernels.use_threads())[1](f, acc.copy(), out, g, grad)
+        target = np.empty_like(acc)
+        target_gradients(acc, out, g, target)
+        grad = np.empty_like(f)
+        gather(f, target, grad)
         return torch.from_numpy(grad)
 
 

@@ -334,9 +334,11 @@ def test_forward_warp_flow_integer_shift_and_reference(backend):
     assert torch.autograd.gradcheck(forward_warp_flow, (g,))
 
 
-def test_forward_warp_flow_compiled_equals_torch_path(monkeypatch):
+@pytest.mark.parametrize("threads", [1, 2])
+def test_forward_warp_flow_compiled_equals_torch_path(monkeypatch, threads):
     """The compiled kernel against the torch path: values and gradients, float32 and float64,
-    a batch with flows that leave the image, land on integer pixels and pile onto one pixel."""
+    a batch with flows that leave the image, land on integer pixels and pile onto one pixel,
+    and its first image alone (a single image is splatted in row strips, summed afterwards)."""
     if warp._kernels is None:
         pytest.skip("numba not installed")
     gen = torch.Generator().manual_seed(3)
@@ -345,13 +347,20 @@ def test_forward_warp_flow_compiled_equals_torch_path(monkeypatch):
     flow[1, 0, :, :4] = -30.0  # out of the image
     flow[2] = 0.5  # a constant shift: every target pixel receives from up to four sources
     weights = torch.randn(3, 2, 19, 26, generator=gen, dtype=torch.float64)
-    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-4)):
+    assert warp._kernels.warp_strips(1) > 1 and warp._kernels.warp_strips(3) == 1
+    cases = [(dtype, tol, batch) for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-4)) for batch in (3, 1)]
+    for dtype, tol, batch in cases:
         results = []
         for kernels in (warp._kernels, None):
             monkeypatch.setattr(warp, "_kernels", kernels)
-            f = flow.detach().clone().to(dtype).requires_grad_()  # a fresh leaf per run: its own .grad
-            out = forward_warp_flow(f)
-            (out * weights.to(dtype)).sum().backward()
+            f = flow[:batch].detach().clone().to(dtype).requires_grad_()  # a fresh leaf per run: its own .grad
+            before = torch.get_num_threads()
+            torch.set_num_threads(threads)  # the serial or the parallel compiled kernels
+            try:
+                out = forward_warp_flow(f)
+                (out * weights[:batch].to(dtype)).sum().backward()
+            finally:
+                torch.set_num_threads(before)
             results.append((out.detach(), f.grad))
         (out_c, grad_c), (out_t, grad_t) = results
         assert grad_c is not None and grad_t is not None and grad_c is not grad_t
