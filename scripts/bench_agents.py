@@ -11,11 +11,12 @@ matrix-product arithmetic (``agents.summary.forward_flops``), the part of the la
 no implementation removes, and, with ``--variants``, EV-MGRFlowNet's two ablations (what the
 ST-ConvGRU and the prior-flow path each add) and, with ``--nchw``, every model in the NCHW
 layout with torch's gate arithmetic (``model.channels_last = False``) and the speed-up of the
-default layout over it.
+default layout over it. ``--parts`` instead times two of EV-MGRFlowNet's own pieces alone (the
+forward warp of the prior flow, the ST-ConvGRU's pair update).
 
 ``run(report)`` is called by scripts/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_agents.py [--reps N] [--widths paper cpu]
-[--variants] [--nchw] [--device cpu|cuda] [--threads N]``.
+[--variants] [--nchw] [--parts] [--device cpu|cuda] [--threads N]``.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from agents import make_model  # noqa: E402
+from agents import WIDTHS, make_model  # noqa: E402
 from agents.summary import forward_flops  # noqa: E402
 
 SECTION = "agents"
@@ -45,6 +46,7 @@ VARIANTS = [
     ("EV-MGRFlowNet w/o prior flows", "ev-mgrflownet", {"use_prior_flow": False}),
 ]
 NCHW = " (NCHW)"
+WIDTHS_CPU = WIDTHS["cpu"]
 INPUTS = [("256x256 B=1", 1, 256, 256), ("128x128 B=8", 8, 128, 128)]
 
 
@@ -147,6 +149,49 @@ def run(report, reps: int = 2, widths=("paper", "cpu"), device: str = "cpu", var
     return results
 
 
+def _best_ms(fn, reps: int) -> float:
+    fn()  # warm-up (and the kernels' compile on a new machine)
+    times = []
+    for _ in range(reps):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1e3 * min(times)
+
+
+def time_parts(report, reps: int = 20) -> None:
+    """``--parts``: EV-MGRFlowNet's own pieces at CPU width on CPU, at both inputs: the forward
+    warp of the prior flow (eq. 9; flows ~ N(0, 3^2) pixels) forward and forward+backward, and
+    the ST-ConvGRU's pair update (eq. 5, both GRUs from the 16 -> 96 input projection) forward."""
+    from agents.layers import _GRUUpdates, use_gate_kernels
+    from losses import forward_warp_flow
+
+    generator = torch.Generator().manual_seed(0)
+    for input_label, batch, height, width in INPUTS:
+        flow = 3 * torch.randn(batch, 2, height, width, generator=generator)
+        leaf = flow.clone().requires_grad_()
+
+        def warp_both():
+            forward_warp_flow(leaf).sum().backward()
+
+        with torch.no_grad():
+            report(SECTION, f"forward warp {input_label} forward", _best_ms(lambda: forward_warp_flow(flow), reps), "ms")
+        report(SECTION, f"forward warp {input_label} forward+backward", _best_ms(warp_both, reps), "ms")
+        channels = 2 * WIDTHS_CPU
+        size = (batch, channels, height // 2, width // 2)
+        layout = torch.channels_last
+        projections = torch.randn(size[0], 6 * channels, *size[2:], generator=generator).contiguous(memory_format=layout)
+        hidden = [torch.randn(*size, generator=generator).contiguous(memory_format=layout) for _ in range(2)]
+        if not use_gate_kernels(projections):
+            continue
+        h_proj = [torch.randn(size[0], 3 * channels, *size[2:], generator=generator).contiguous(memory_format=layout)
+                  for _ in range(2)]
+        with torch.no_grad():
+            report(SECTION, f"ST-ConvGRU pair update (compiled, convolutions apart) {input_label} forward",
+                   _best_ms(lambda: _GRUUpdates.apply(projections, h_proj[0], hidden[0], h_proj[1], hidden[1]), reps),
+                   "ms")
+
+
 def _print_row(section: str, row_name: str, value: float, unit: str) -> None:
     print(f"{section:8s} {row_name:70s} {value:10.2f} {unit}", flush=True)
 
@@ -159,7 +204,12 @@ if __name__ == "__main__":
     parser.add_argument("--nchw", action="store_true", help="also every model in NCHW with torch's gate arithmetic")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--parts", action="store_true",
+                        help="only EV-MGRFlowNet's forward warp and ST-ConvGRU pair update, timed alone")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.parts:
+        time_parts(_print_row, reps=max(args.reps, 20))
+        sys.exit(0)
     run(_print_row, reps=args.reps, widths=args.widths, device=args.device, variants=args.variants, nchw=args.nchw)
