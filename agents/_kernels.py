@@ -22,7 +22,7 @@ import numpy as np
 
 from losses._kernels import _exp, use_threads
 
-__all__ = ["gru_kernels", "output_gate_kernels", "refiner_kernels", "use_threads"]
+__all__ = ["fused_refiner_kernel", "gru_kernels", "output_gate_kernels", "refiner_kernels", "use_threads"]
 
 _OPTIONS = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy",
                 fastmath={"reassoc", "contract", "nsz"})
@@ -316,6 +316,81 @@ def _make_refiner(parallel: bool, n: int):
     return pack_forward, pack_backward, update_forward, update_backward
 
 
+def _make_fused_refiner(parallel: bool, n: int):
+    """The whole flow refiner of FGD-Net (eqs. 10-11) in one call, for inference (no backward):
+    ``u = ConvGRU_flow(tanh(a), ubar)`` with the merged 3x3 convolution of
+    :func:`_make_refiner` computed here as well, row by row, instead of by oneDNN between two
+    passes. At 2n = 4 input and 4n = 8 output channels oneDNN's convolution costs about as much
+    as the passes around it, and at batch 8 torch falls back to its slow convolution for the
+    small scales; here the padded input rows of one output row stay in cache and its 4n
+    pre-activation rows are consumed by eq. 4 straight away.
+
+    Arrays: a (B, h, w, n) the channels-last head output; hidden (B, n, h, w) the prior ubar;
+    weight (4n, 2n, 3, 3) and bias (4n) the merged convolution (zero padding 1); out (B, n, h, w).
+    Two parallel loops over the B * h rows: [tanh(a), ubar] into a zero-bordered planar buffer,
+    then the convolution (a 9-tap vector loop per input channel and output row) and eq. 4.
+    """
+    loop = numba.prange if parallel else range
+    m = 2 * n
+    k = 4 * n
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def fused_forward(a, hidden, weight, bias, out):
+        batch, height, width = out.shape[0], out.shape[2], out.shape[3]
+        one = out.dtype.type(1.0)
+        zero = one - one
+        padded = np.empty((batch, m, height + 2, width + 2), dtype=out.dtype)
+        for task in loop(batch * height):
+            b = task // height
+            y = task - b * height
+            for c in range(m):
+                padded[b, c, y + 1, 0] = zero
+                padded[b, c, y + 1, width + 1] = zero
+                for edge in range(2):  # the zero rows above the first and below the last
+                    if y == (0 if edge == 0 else height - 1):
+                        border = padded[b, c, 0 if edge == 0 else height + 1]
+                        for x in range(width + 2):
+                            border[x] = zero
+            for j in range(n):
+                row = padded[b, j, y + 1]
+                for x in range(width):  # the strided gather first, then a vector loop
+                    row[x + 1] = a[b, y, x, j]
+                for x in range(1, width + 1):
+                    row[x] = _tanh(row[x], one)
+                row = padded[b, n + j, y + 1]
+                h = hidden[b, j, y]
+                for x in range(width):
+                    row[x + 1] = h[x]
+        for task in loop(batch * height):
+            b = task // height
+            y = task - b * height
+            q = np.empty((k, width), dtype=out.dtype)
+            for o in range(k):
+                q_o = q[o]
+                for x in range(width):
+                    q_o[x] = bias[o]
+                for c in range(m):
+                    s0, s1, s2 = padded[b, c, y], padded[b, c, y + 1], padded[b, c, y + 2]
+                    w = weight[o, c]
+                    w00, w01, w02 = w[0, 0], w[0, 1], w[0, 2]
+                    w10, w11, w12 = w[1, 0], w[1, 1], w[1, 2]
+                    w20, w21, w22 = w[2, 0], w[2, 1], w[2, 2]
+                    for x in range(width):
+                        q_o[x] += (
+                            w00 * s0[x] + w01 * s0[x + 1] + w02 * s0[x + 2]
+                            + w10 * s1[x] + w11 * s1[x + 1] + w12 * s1[x + 2]
+                            + w20 * s2[x] + w21 * s2[x + 1] + w22 * s2[x + 2]
+                        )
+            for j in range(n):
+                q_r, q_z, q_x, q_h = q[j], q[n + j], q[2 * n + j], q[3 * n + j]
+                h = hidden[b, j, y]
+                o_row = out[b, j, y]
+                for x in range(width):
+                    o_row[x] = _gru_forward(q_r[x], q_z[x], q_x[x], zero, zero, q_h[x], h[x], one)
+
+    return fused_forward
+
+
 def _make_output_gate(parallel: bool):
     loop = numba.prange if parallel else range
 
@@ -356,6 +431,13 @@ def refiner_kernels(parallel: bool, hidden_size: int):
     """(pack_forward, pack_backward, update_forward, update_backward) of the merged-convolution
     flow refiner of ``hidden_size`` channels (see :func:`_make_refiner`)."""
     return _make_refiner(parallel, int(hidden_size))
+
+
+@functools.cache
+def fused_refiner_kernel(parallel: bool, hidden_size: int):
+    """The inference-only flow refiner of ``hidden_size`` channels (see
+    :func:`_make_fused_refiner`), for threads or one thread."""
+    return _make_fused_refiner(parallel, int(hidden_size))
 
 
 @functools.cache
