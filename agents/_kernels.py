@@ -22,7 +22,7 @@ import numpy as np
 
 from losses._kernels import _exp, use_threads
 
-__all__ = ["fused_refiner_kernel", "gru_kernels", "output_gate_kernels", "refiner_kernels", "use_threads"]
+__all__ = ["deep_memory_up_kernel", "fused_refiner_kernel", "gru_kernels", "output_gate_kernels", "refiner_kernels", "use_threads"]
 
 _OPTIONS = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy",
                 fastmath={"reassoc", "contract", "nsz"})
@@ -391,6 +391,62 @@ def _make_fused_refiner(parallel: bool, n: int):
     return fused_forward
 
 
+def _make_deep_memory_up(parallel: bool):
+    """``M = relu(conv3x3(upsample_bilinear(S4)))`` from the convolution's 9 taps already applied
+    at low resolution (see :class:`~agents.evmgrflownet.DeepMemoryUp`), for inference: the tap
+    shift and the bilinear upsampling (2 source rows and 2 source columns per output pixel) as two
+    gather passes instead of dense matrix products, and the relu, in one call.
+
+    Arrays: taps (B, h, w, 3, 3, O) (the channels-last output of the tap convolution); per output
+    row Y + i of the shifted grid (index Y + i for tap row i, i.e. position Y + i - 1, H + 2
+    entries) the source rows row0/row1 and weights rw0/rw1 (zero off the image: the convolution's
+    zero padding), likewise col0/col1/cw0/cw1 for the W + 2 columns; half (B, 3, h, W, O) scratch;
+    out (B, H, W, O), the channels-last M.
+    """
+    loop = numba.prange if parallel else range
+
+    @numba.njit(parallel=parallel, **_OPTIONS)
+    def forward(taps, row0, row1, rw0, rw1, col0, col1, cw0, cw1, half, out):
+        batch, low_h = taps.shape[0], taps.shape[1]
+        height, width, channels = out.shape[1], out.shape[2], out.shape[3]
+        for task in loop(batch * 3 * low_h):  # columns: half[b, i, y, X] = sum_j C_j[X] T[b, y, :, i, j]
+            b = task // (3 * low_h)
+            i = (task // low_h) % 3
+            y = task % low_h
+            for x in range(width):
+                dest = half[b, i, y, x]
+                for o in range(channels):
+                    dest[o] = 0.0
+                for j in range(3):
+                    k = x + j
+                    a0, a1 = cw0[k], cw1[k]
+                    s0 = taps[b, y, col0[k], i, j]
+                    s1 = taps[b, y, col1[k], i, j]
+                    for o in range(channels):
+                        dest[o] += a0 * s0[o] + a1 * s1[o]
+        for task in loop(batch * height):  # rows: M[b, Y] = relu(sum_i R_i[Y] half[b, i])
+            b = task // height
+            y = task - b * height
+            dest = out[b, y]
+            for x in range(width):
+                for o in range(channels):
+                    dest[x, o] = 0.0
+            for i in range(3):
+                k = y + i
+                a0, a1 = rw0[k], rw1[k]
+                s0 = half[b, i, row0[k]]
+                s1 = half[b, i, row1[k]]
+                for x in range(width):
+                    for o in range(channels):
+                        dest[x, o] += a0 * s0[x, o] + a1 * s1[x, o]
+            for x in range(width):
+                for o in range(channels):
+                    if dest[x, o] < 0.0:
+                        dest[x, o] = 0.0
+
+    return forward
+
+
 def _make_output_gate(parallel: bool):
     loop = numba.prange if parallel else range
 
@@ -438,6 +494,13 @@ def fused_refiner_kernel(parallel: bool, hidden_size: int):
     """The inference-only flow refiner of ``hidden_size`` channels (see
     :func:`_make_fused_refiner`), for threads or one thread."""
     return _make_fused_refiner(parallel, int(hidden_size))
+
+
+@functools.cache
+def deep_memory_up_kernel(parallel: bool):
+    """The inference-only tap shift + upsampling + relu of ``DeepMemoryUp`` (see
+    :func:`_make_deep_memory_up`), for threads or one thread."""
+    return _make_deep_memory_up(parallel)
 
 
 @functools.cache

@@ -34,14 +34,26 @@ def parameter_table(width: str = "paper") -> list[tuple[str, int]]:
 def forward_flops(model: nn.Module, batch: int = 1, height: int = 256, width: int = 256) -> int:
     """Floating-point operations of the convolutions and matrix products (2 per multiply-add)
     in one forward window of ``model`` with a carried state (the second window of a sequence,
-    so that every recurrent path runs); elementwise arithmetic is not counted."""
+    so that every recurrent path runs); elementwise arithmetic is not counted. Built-in networks
+    are counted on their torch reference path (NCHW, ``channels_last = False``): the CPU path
+    computes some convolutions inside compiled kernels, which the counter does not see."""
     x = torch.zeros(batch, getattr(model, "in_channels", 2), height, width)
     x[:, :, ::3, ::5] = 1.0
-    with torch.no_grad():
-        _, state = model(x, None)
-        counter = FlopCounterMode(display=False)
-        with counter:
-            model(x, state)
+    had_layout = "channels_last" in vars(model)
+    layout = getattr(model, "channels_last", None)
+    if hasattr(model, "channels_last"):
+        model.channels_last = False
+    try:
+        with torch.no_grad():
+            _, state = model(x, None)
+            counter = FlopCounterMode(display=False)
+            with counter:
+                model(x, state)
+    finally:
+        if had_layout:
+            model.channels_last = layout
+        elif hasattr(model, "channels_last"):
+            del model.channels_last
     return int(counter.get_total_flops())
 
 

@@ -288,7 +288,7 @@ def test_ablation_switches_remove_those_parameters():
 
 
 @pytest.mark.parametrize("low, size", [((16, 16), (128, 128)), ((3, 5), (24, 40)), ((5, 7), (13, 30))])
-def test_deep_memory_up_equals_upsample_then_conv(low, size):
+def test_deep_memory_up_equals_upsample_then_conv(monkeypatch, low, size):
     torch.manual_seed(0)
     layer = DeepMemoryUp(12, 5).double()
     deepest = torch.randn(2, 12, *low, dtype=torch.float64, requires_grad=True)
@@ -301,6 +301,14 @@ def test_deep_memory_up_equals_upsample_then_conv(low, size):
     for a, b in zip(g_fast, g_slow):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
     assert layer(torch.zeros(1, 12, *low, dtype=torch.float64), size).abs().max() == 0
+    # without gradients on channels-last CPU tensors: the compiled gather passes
+    calls = []
+    compiled_pass = DeepMemoryUp._compiled
+    monkeypatch.setattr(DeepMemoryUp, "_compiled", staticmethod(lambda *args: calls.append(1) or compiled_pass(*args)))
+    with torch.no_grad():
+        compiled = layer(_cl(deepest), size)
+    assert calls == [1] and compiled.is_contiguous(memory_format=CHANNELS_LAST)
+    torch.testing.assert_close(compiled, slow, rtol=1e-10, atol=1e-10)
 
 
 def test_convgru_matches_equation_4():
