@@ -70,30 +70,31 @@ def use_gate_kernels(tensor: Tensor) -> bool:
 
 
 class _GRUUpdates(torch.autograd.Function):
-    """ConvGRU updates (eq. 4) of G GRUs of hidden size n whose input-side convolutions sit side
-    by side in one tensor (``x_proj``: (B, 3nG, h, w), GRU g at channels 3ng .. 3n(g + 1)), each
-    given its hidden-side convolution and hidden state (both None = a fresh sequence), in one
-    compiled pass per GRU (see ``agents/_kernels.py``). Returns the G new hidden states."""
+    """ConvGRU updates (eq. 4) of G GRUs of hidden size n whose input-side convolutions sit in
+    one tensor (``x_proj``: (B, C, h, w), GRU g's [r, z, candidate] at channels ``offsets[g]`` ..
+    ``offsets[g] + 3n``; channels no GRU reads get a zero gradient), each given its hidden-side
+    convolution and hidden state (both None = a fresh sequence), in one compiled pass per GRU
+    (see ``agents/_kernels.py``). Returns the G new hidden states."""
 
     @staticmethod
-    def forward(ctx, x_proj, *memories):  # type: ignore[override]
+    def forward(ctx, n, offsets, x_proj, *memories):  # type: ignore[override]
         # memories: h_proj_1, hidden_1, ..., h_proj_G, hidden_G
         x_proj = _with_rows(x_proj)
         pairs = [
             (None, None) if hidden is None else (_with_rows(h_proj), _with_rows(hidden))
             for h_proj, hidden in zip(memories[0::2], memories[1::2])
         ]
-        n = x_proj.shape[1] // (3 * len(pairs))
         forward, _, forward_fresh, _ = _kernels.gru_kernels(_kernels.use_threads(), n)
         x_rows = _pixel_rows(x_proj)
         outs = []
-        for g, (h_proj, hidden) in enumerate(pairs):
+        for offset, (h_proj, hidden) in zip(offsets, pairs):
             out = _new_channels_last(x_proj, n)
             if hidden is None:
-                forward_fresh(x_rows, 3 * n * g, _pixel_rows(out))
+                forward_fresh(x_rows, offset, _pixel_rows(out))
             else:
-                forward(x_rows, 3 * n * g, _pixel_rows(h_proj), _pixel_rows(hidden), _pixel_rows(out))
+                forward(x_rows, offset, _pixel_rows(h_proj), _pixel_rows(hidden), _pixel_rows(out))
             outs.append(out)
+        ctx.n, ctx.offsets = n, tuple(offsets)
         ctx.fresh = [hidden is None for _, hidden in pairs]
         ctx.save_for_backward(x_proj, *(t for pair in pairs if pair[1] is not None for t in pair))
         return tuple(outs)
@@ -101,37 +102,44 @@ class _GRUUpdates(torch.autograd.Function):
     @staticmethod
     def backward(ctx, *grad_outs):  # type: ignore[override]
         x_proj, *saved = ctx.saved_tensors
-        n = x_proj.shape[1] // (3 * len(ctx.fresh))
+        n = ctx.n
         _, backward, _, backward_fresh = _kernels.gru_kernels(_kernels.use_threads(), n)
-        # Every GRU writes its own 3n columns of grad_x, so none is left unwritten.
+        # Each GRU writes its own 3n columns of grad_x; zeros first only if some are left over.
+        covered = sorted(ctx.offsets) == list(range(0, x_proj.shape[1], 3 * n))
         grad_x = _new_channels_last(x_proj, x_proj.shape[1])
+        if not covered:
+            grad_x.zero_()
         x_rows, gx_rows = _pixel_rows(x_proj), _pixel_rows(grad_x)
-        grads = [grad_x]
-        for g, (fresh, grad_out) in enumerate(zip(ctx.fresh, grad_outs)):
+        grads = [None, None, grad_x]
+        for offset, fresh, grad_out in zip(ctx.offsets, ctx.fresh, grad_outs):
             grad_out = _with_rows(torch.zeros_like(x_proj[:, :n]) if grad_out is None else grad_out)
             if fresh:
-                backward_fresh(x_rows, 3 * n * g, _pixel_rows(grad_out), gx_rows)
+                backward_fresh(x_rows, offset, _pixel_rows(grad_out), gx_rows)
                 grads += [None, None]
                 continue
             h_proj, hidden = saved.pop(0), saved.pop(0)
             grad_h = _new_channels_last(h_proj, h_proj.shape[1])
             grad_hidden = _new_channels_last(hidden, hidden.shape[1])
             backward(
-                x_rows, 3 * n * g, _pixel_rows(h_proj), _pixel_rows(hidden), _pixel_rows(grad_out),
+                x_rows, offset, _pixel_rows(h_proj), _pixel_rows(hidden), _pixel_rows(grad_out),
                 gx_rows, _pixel_rows(grad_h), _pixel_rows(grad_hidden),
             )
             grads += [grad_h, grad_hidden]
         return tuple(grads)
 
 
-def gru_updates(convgrus, x_proj: Tensor, hidden_states) -> list[Tensor]:
-    """The compiled eq. 4 of several :class:`ConvGRU` sharing one input-side tensor ``x_proj``
-    (their ``x_convs`` outputs concatenated in order); ``hidden_states``: one previous state (or
-    None) each. Only for tensors that pass :func:`use_gate_kernels`."""
+def gru_updates(convgrus, x_proj: Tensor, hidden_states, offsets=None) -> list[Tensor]:
+    """The compiled eq. 4 of several :class:`ConvGRU` of one hidden size sharing one input-side
+    tensor ``x_proj`` (their ``x_convs`` outputs at channel ``offsets``, by default side by side
+    from 0); ``hidden_states``: one previous state (or None) each. Only for tensors that pass
+    :func:`use_gate_kernels`."""
+    n = convgrus[0].hidden_size
+    if offsets is None:
+        offsets = [3 * n * g for g in range(len(convgrus))]
     memories = []
     for gru, hidden in zip(convgrus, hidden_states):
         memories += [None, None] if hidden is None else [gru.h_convs(hidden), hidden]
-    return list(_GRUUpdates.apply(x_proj, *memories))
+    return list(_GRUUpdates.apply(n, tuple(offsets), x_proj, *memories))
 
 
 class _OutputGate(torch.autograd.Function):

@@ -188,7 +188,7 @@ def time_parts(report, reps: int = 20) -> None:
                   for _ in range(2)]
         with torch.no_grad():
             report(SECTION, f"ST-ConvGRU pair update (compiled, convolutions apart) {input_label} forward",
-                   _best_ms(lambda: _GRUUpdates.apply(projections, h_proj[0], hidden[0], h_proj[1], hidden[1]), reps),
+                   _best_ms(lambda: _GRUUpdates.apply(channels, (0, 3 * channels), projections, h_proj[0], hidden[0], h_proj[1], hidden[1]), reps),
                    "ms")
 
 

@@ -618,9 +618,17 @@ def test_compiled_gates_pass_gradcheck():
         x_proj, h_proj, hidden = make(6 * n), make(3 * n), make(n)
         h_proj2, hidden2 = make(3 * n), make(n)
         assert torch.autograd.gradcheck(
-            lambda a, b, c, d, e: agent_layers._GRUUpdates.apply(a, b, c, d, e), (x_proj, h_proj, hidden, h_proj2, hidden2)
+            lambda a, b, c, d, e: agent_layers._GRUUpdates.apply(n, (0, 3 * n), a, b, c, d, e), (x_proj, h_proj, hidden, h_proj2, hidden2)
         )
-        assert torch.autograd.gradcheck(lambda a: agent_layers._GRUUpdates.apply(a[:, : 3 * n].contiguous(memory_format=CHANNELS_LAST), None, None), (x_proj,))
+        assert torch.autograd.gradcheck(lambda a: agent_layers._GRUUpdates.apply(n, (0,), a[:, : 3 * n].contiguous(memory_format=CHANNELS_LAST), None, None), (x_proj,))
+        # GRUs at other column offsets, columns no GRU reads (zero gradient), in any order
+        wide = make(7 * n)
+        assert torch.autograd.gradcheck(
+            lambda a, b, c: agent_layers._GRUUpdates.apply(n, (4 * n,), a, b, c), (wide, h_proj, hidden)
+        )
+        assert torch.autograd.gradcheck(
+            lambda a, b, c, d, e: agent_layers._GRUUpdates.apply(n, (3 * n, 0), a, b, c, d, e), (x_proj, h_proj, hidden, h_proj2, hidden2)
+        )
     gate_x, gate_h, fusion = make(4), make(4), make(4)
     assert torch.autograd.gradcheck(agent_layers._OutputGate.apply, (gate_x, gate_h, fusion))
     planar = lambda c: torch.randn(shape[0], c, *shape[2:], dtype=torch.float64).requires_grad_()  # noqa: E731
