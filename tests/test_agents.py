@@ -698,3 +698,22 @@ def test_cpu_default_is_channels_last_with_compiled_gates(monkeypatch):
     assert calls == {"gru": 2 * 4, "gate": 2, "refiner": 0, "fused refiner": 2 * 4}
     flows, _ = model(count_images(1, 32, 32, seed=2), state)  # with gradients: merged convolution
     assert calls == {"gru": 3 * 4, "gate": 3, "refiner": 4, "fused refiner": 2 * 4}
+
+
+def test_bench_agents_parts_rows():
+    """``scripts/bench_agents.py --parts`` runs against the current layers and reports every
+    piece at both inputs (one timed repetition each)."""
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "scripts" / "bench_agents.py"
+    spec = importlib.util.spec_from_file_location("bench_agents_under_test", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    rows = []
+    bench.time_parts(lambda section, name, value, unit: rows.append((name, value, unit)), reps=1)
+    names = [name for name, _, _ in rows]
+    for input_label in ("256x256 B=1", "128x128 B=8"):
+        for piece in ("forward warp", "pair update", "FGD refiners", "DeepMemoryUp"):
+            assert any(piece in name and input_label in name for name in names), (piece, input_label)
+    assert all(value > 0 and unit == "ms" for _, value, unit in rows)
