@@ -346,11 +346,12 @@ def _make_fused_refiner(parallel: bool, n: int):
             for c in range(m):
                 padded[b, c, y + 1, 0] = zero
                 padded[b, c, y + 1, width + 1] = zero
-                for edge in range(2):  # the zero rows above the first and below the last
-                    if y == (0 if edge == 0 else height - 1):
-                        border = padded[b, c, 0 if edge == 0 else height + 1]
-                        for x in range(width + 2):
-                            border[x] = zero
+                if y == 0:  # the zero row above the first
+                    for x in range(width + 2):
+                        padded[b, c, 0, x] = zero
+                if y == height - 1:  # and below the last
+                    for x in range(width + 2):
+                        padded[b, c, height + 1, x] = zero
             for j in range(n):
                 row = padded[b, j, y + 1]
                 for x in range(width):  # the strided gather first, then a vector loop
@@ -409,6 +410,7 @@ def _make_deep_memory_up(parallel: bool):
     def forward(taps, row0, row1, rw0, rw1, col0, col1, cw0, cw1, half, out):
         batch, low_h = taps.shape[0], taps.shape[1]
         height, width, channels = out.shape[1], out.shape[2], out.shape[3]
+        zero = out.dtype.type(0.0)  # typed: a Python 0.0 would promote float32 loops to float64
         for task in loop(batch * 3 * low_h):  # columns: half[b, i, y, X] = sum_j C_j[X] T[b, y, :, i, j]
             b = task // (3 * low_h)
             i = (task // low_h) % 3
@@ -416,7 +418,7 @@ def _make_deep_memory_up(parallel: bool):
             for x in range(width):
                 dest = half[b, i, y, x]
                 for o in range(channels):
-                    dest[o] = 0.0
+                    dest[o] = zero
                 for j in range(3):
                     k = x + j
                     a0, a1 = cw0[k], cw1[k]
@@ -430,7 +432,7 @@ def _make_deep_memory_up(parallel: bool):
             dest = out[b, y]
             for x in range(width):
                 for o in range(channels):
-                    dest[x, o] = 0.0
+                    dest[x, o] = zero
             for i in range(3):
                 k = y + i
                 a0, a1 = rw0[k], rw1[k]
@@ -441,8 +443,7 @@ def _make_deep_memory_up(parallel: bool):
                         dest[x, o] += a0 * s0[x, o] + a1 * s1[x, o]
             for x in range(width):
                 for o in range(channels):
-                    if dest[x, o] < 0.0:
-                        dest[x, o] = 0.0
+                    dest[x, o] = max(dest[x, o], zero)
 
     return forward
 

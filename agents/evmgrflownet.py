@@ -93,7 +93,7 @@ class DeepMemoryUp(nn.Module):
         tap_weights = weight.permute(2, 3, 0, 1).reshape(9 * out_channels, channels, 1, 1)
         taps = F.conv2d(deepest_hidden, tap_weights)  # each tap's channel mixing, low resolution
         wants_grad = torch.is_grad_enabled() and (deepest_hidden.requires_grad or weight.requires_grad)
-        if channels_last and not wants_grad and use_gate_kernels(taps) and taps.permute(0, 2, 3, 1).is_contiguous():
+        if not wants_grad and use_gate_kernels(taps):  # CPU, channels-last: the compiled pass
             return self._compiled(taps, size)
         taps = taps.view(batch, 3, 3, out_channels, height, width)
         rows = _shifted_upsampling_matrices(height, size[0], deepest_hidden)  # (3, H, h)
