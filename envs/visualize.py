@@ -3,7 +3,11 @@
 - :func:`flow_to_rgb`: the standard optical-flow colour wheel (Baker et al., Middlebury):
   hue = direction, saturation = magnitude relative to ``max_magnitude``; zero flow is white.
 - :func:`count_image_to_rgb`: ON events red, OFF events blue, on white.
+- :func:`flow_legend`: the colour wheel itself, a disc whose rim is ``max_magnitude``.
+- :func:`panel`: labelled tiles side by side with a caption underneath (one picture per window).
 - :func:`save_png`: writes a picture atomically (Pillow, the ``plots``/``test`` extra).
+- :func:`save_animation`: frames to an animated GIF (Pillow), or MP4 where ``imageio`` with an
+  ffmpeg codec is installed; written atomically.
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["color_wheel", "flow_to_rgb", "count_image_to_rgb", "save_png"]
+__all__ = ["color_wheel", "flow_to_rgb", "flow_legend", "count_image_to_rgb", "panel", "save_png", "save_animation"]
 
 # Hue segments of the Middlebury wheel: red-yellow, yellow-green, green-cyan, cyan-blue,
 # blue-magenta, magenta-red, with these many steps each.
@@ -81,6 +85,93 @@ def save_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
     try:
         Image.fromarray(np.ascontiguousarray(rgb)).save(tmp, format="PNG")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def flow_legend(size: int = 64) -> np.ndarray:
+    """(size, size, 3) uint8: the colour wheel as a disc; a pixel's colour is that of a flow
+    pointing from the centre to it, the rim being the magnitude shown fully saturated."""
+    r = (np.arange(size) - (size - 1) / 2) / ((size - 1) / 2)
+    u, v = np.meshgrid(r, r)
+    rgb = flow_to_rgb(np.stack([u, v]), max_magnitude=1.0)
+    rgb[np.hypot(u, v) > 1] = 255
+    return rgb
+
+
+def _text_height() -> int:
+    return 12
+
+
+def panel(tiles: list[tuple[str, np.ndarray]], caption: str = "", gap: int = 4) -> np.ndarray:
+    """Tiles side by side, each with its label above it, and ``caption`` below all of them.
+
+    tiles: (label, (h, w, 3) uint8) pairs; tiles of different heights are top-aligned on white.
+    Returns (H, W, 3) uint8. Text is drawn with Pillow's built-in bitmap font.
+    """
+    from PIL import Image, ImageDraw
+
+    line = _text_height()
+    height = max(t.shape[0] for _, t in tiles) + 2 * line + 3 * gap
+    width = sum(t.shape[1] for _, t in tiles) + gap * (len(tiles) + 1)
+    width = max(width, 6 * len(caption) + 2 * gap)
+    canvas = Image.new("RGB", (width, height), (255, 255, 255))
+    draw = ImageDraw.Draw(canvas)
+    left = gap
+    for label, tile in tiles:
+        draw.text((left, gap // 2), label, fill=(0, 0, 0))
+        canvas.paste(Image.fromarray(np.ascontiguousarray(tile)), (left, line + gap))
+        left += tile.shape[1] + gap
+    if caption:
+        draw.text((gap, height - line - gap // 2), caption, fill=(0, 0, 0))
+    return np.asarray(canvas, np.uint8)
+
+
+def save_animation(path: str | os.PathLike, frames: list[np.ndarray], fps: float = 10.0) -> Path:
+    """Write (H, W, 3) uint8 frames as an animation through a temporary file.
+
+    ``.gif``: Pillow (always available with the ``test``/``plots`` extras). ``.mp4``: through
+    ``imageio`` with its ffmpeg plugin; when that is not installed the frames go to a GIF beside
+    it instead (same stem) and that path is returned. Frames of different sizes are padded
+    with white to the largest.
+    """
+    from PIL import Image
+
+    if not frames:
+        raise ValueError(f"{path}: no frames to write")
+    path = Path(path)
+    h = max(f.shape[0] for f in frames)
+    w = max(f.shape[1] for f in frames)
+    padded = []
+    for f in frames:
+        canvas = np.full((h, w, 3), 255, np.uint8)
+        canvas[: f.shape[0], : f.shape[1]] = f[..., :3]
+        padded.append(canvas)
+    if path.suffix.lower() == ".mp4":
+        try:
+            import imageio.v3 as iio
+            import imageio_ffmpeg  # noqa: F401  (the codec imageio needs for MP4)
+        except ImportError:
+            path = path.with_suffix(".gif")
+        else:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f"{path.stem}.tmp-{os.getpid()}{path.suffix}")
+            try:
+                # even sizes for yuv420p
+                even = [f[: h - h % 2, : w - w % 2] for f in padded]
+                iio.imwrite(tmp, np.stack(even), fps=fps, codec="libx264")
+                os.replace(tmp, path)
+            finally:
+                tmp.unlink(missing_ok=True)
+            return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    try:
+        images = [Image.fromarray(f) for f in padded]
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
+                       duration=int(round(1000 / fps)), loop=0)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
