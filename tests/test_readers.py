@@ -10,6 +10,7 @@ import h5py
 import numpy as np
 import pytest
 
+from envs.env import EventFlowEnv
 from envs.events import Events
 from envs.h5format import FormatError, H5Reader
 from envs.readers import open_recording
@@ -180,7 +181,8 @@ def test_mvsec_wrong_layout_names_the_dataset(tmp_path):
 # ------------------------------------------------------------------------------------ Hagenaars
 def write_hagenaars(path, x, y, t_us, p01, *, t0_s=1.5e3, flows=(), images=(), ps_bool=True, hqf=False):
     """events/xs, ys int16; ts float64 seconds; ps bool; attrs t0, duration, sensor_resolution (H, W);
-    flows: (group, end_us, (2,H,W)); images: (t_us, (H,W) uint8); timestamps in seconds like ts."""
+    flows: (group, end_us, (2,H,W)[, start_us]); images: (t_us, (H,W) uint8); timestamps in seconds
+    like ts; a flow with start_us also gets the start attribute ``timestamp_from``."""
     with h5py.File(path, "w") as f:
         f.create_dataset("events/xs", data=x.astype(np.int16), chunks=True, compression="gzip")
         f.create_dataset("events/ys", data=y.astype(np.int16), chunks=True, compression="gzip")
@@ -190,9 +192,11 @@ def write_hagenaars(path, x, y, t_us, p01, *, t0_s=1.5e3, flows=(), images=(), p
         f.attrs["duration"] = float(t_us[-1]) / 1e6
         f.attrs["sensor_resolution"] = (20, 30)
         f.attrs["num_events"] = len(x)
-        for k, (group, end_us, flow) in enumerate(flows):
+        for k, (group, end_us, flow, *start) in enumerate(flows):
             ds = f.create_dataset(f"{group}/flow{k:09d}", data=flow.astype(np.float32))
             ds.attrs["timestamp"] = t0_s + end_us / 1e6
+            if start:
+                ds.attrs["timestamp_from"] = t0_s + start[0] / 1e6
         for k, (t_us_img, image) in enumerate(images):
             ds = f.create_dataset(f"images/image{k:09d}", data=image)
             ds.attrs["timestamp"] = t0_s + t_us_img / 1e6
@@ -237,6 +241,31 @@ def test_hagenaars_hqf_flow_group_uint8_polarity_and_start_convention(tmp_path, 
         np.testing.assert_allclose(r.flow_between(0, 40_000)[0], maps[1].astype(np.float32))
     with HagenaarsReader(path, flow_timestamp="start") as r:
         np.testing.assert_allclose(r.flow_between(0, 40_000)[0], maps[0].astype(np.float32))
+
+
+def test_hagenaars_start_attributes_deliver_the_first_window(tmp_path, rng):
+    """Maps that state their start: the first map is used, and a GT-aligned episode delivers
+    every event from the first start to the last end exactly once."""
+    x, y, t, p = _stream(rng, 4_000, (20, 30), 300_000)
+    starts = np.arange(20_000, 260_001, 60_000)
+    maps = [np.full((2, 20, 30), k + 1.0) for k in range(len(starts))]
+    flows = [("flow_dt1", int(a + 60_000), m, int(a)) for a, m in zip(starts, maps)]
+    path = write_hagenaars(tmp_path / "stated.h5", x, y, t, p, flows=flows)
+    with HagenaarsReader(path) as r:
+        np.testing.assert_array_equal(r.flow_timestamps(), np.append(starts, starts[-1] + 60_000))
+        np.testing.assert_allclose(r.flow_between(20_000, 80_000)[0], maps[0])  # the first map
+        chained, valid = r.flow_between(20_000, 140_000)  # chained: 1 px, then 2 px from where it landed
+        assert valid[:, :-1].all() and np.allclose(chained[:, valid], 3.0)
+    env = EventFlowEnv(str(path), window="frames", compute_reward=False)
+    _, info = env.reset(options={"sequence": 0})
+    seen, gts, truncated = [], [], False
+    while not truncated:
+        seen.append(np.asarray(info["events"]["t"]))
+        gts.append(float(info["flow_gt"][0, 0, 0]))
+        _, _, _, truncated, info = env.step(np.zeros((2, 20, 30), np.float32))
+    inside = t[(t >= starts[0]) & (t < starts[-1] + 60_000)]
+    np.testing.assert_array_equal(np.concatenate(seen), inside)
+    assert gts == [k + 1.0 for k in range(len(starts))]
 
 
 def test_hagenaars_wrong_layout_names_the_dataset(tmp_path, rng):

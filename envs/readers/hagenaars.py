@@ -14,8 +14,13 @@ Layout read (REFERENCE section 8):
 Times: integer µs relative to t0 (``t_us = rint(ts * 1e6) - rint(t0 * 1e6)``; t0 defaults to
 the first event's ts). Map names are sorted, so zero-padded names keep time order.
 
-Ground-truth intervals: a ``flow_dt1`` (or ``flow``) map whose timestamp is ``E_k`` spans
-``[E_{k-1}, E_k)`` (the first map has no start and is not used). A ``flow_dt4`` map ending at
+Ground-truth intervals, as the file states them: a map with a start attribute
+(``timestamp_from``, or ``timestamp_start``; what converters write beside ``timestamp``) spans
+``[timestamp_from, timestamp)``, the first map included. Without a start attribute a
+``flow_dt1`` (or ``flow``) map whose timestamp is ``E_k`` spans ``[E_{k-1}, E_k)``: the first
+map has no start and is not used, so a GT-aligned episode of such a file begins at ``E_0``
+(the events before the first map's end are not delivered, nor those from the last map's end
+on). A ``flow_dt4`` map ending at
 ``E`` spans 4 steps of the dt1 grid back from E (of the image timestamps when there is no dt1
 group; of the dt4 group itself otherwise). ``flow_timestamp="start"`` reads the attribute as
 the START instead (some converters write it that way): map k of dt1 then spans
@@ -41,6 +46,8 @@ from envs.readers.flowgt import flow_from_displacements, valid_of
 __all__ = ["HagenaarsReader", "FLOW_GROUPS"]
 
 FLOW_GROUPS = ("flow_dt1", "flow_dt4", "flow")
+#: Attributes that state where a flow map's interval starts (the first one found is used).
+START_ATTRIBUTES = ("timestamp_from", "timestamp_start")
 
 
 class HagenaarsReader(EventReader):
@@ -93,6 +100,7 @@ class HagenaarsReader(EventReader):
         self._t_end = (int(self._to_us(ts[self.num_events - 1 : self.num_events])[0]) + 1) if self.num_events else 1
         # frames and ground truth: names and timestamps only (the maps stay on disk)
         try:
+            self._starts: dict[str, np.ndarray] = {}  # per flow group, when every map states its start
             self._image_names, self._image_t = self._group_times("images")
             self._maps: dict[str, tuple[list[str], np.ndarray]] = {}
             for g in FLOW_GROUPS:
@@ -114,14 +122,28 @@ class HagenaarsReader(EventReader):
             return [], None
         g = self._file[group]
         names = sorted(k for k in g if isinstance(g[k], h5py.Dataset))
-        stamps = []
+        stamps, starts = [], []
         for k in names:
-            if "timestamp" not in g[k].attrs:
+            attrs = g[k].attrs
+            if "timestamp" not in attrs:
                 raise FormatError(f"{self.path}: dataset '/{group}/{k}' has no attribute 'timestamp'")
-            stamps.append(float(np.asarray(g[k].attrs["timestamp"]).ravel()[0]))
-        times = self._to_us(np.asarray(stamps, np.float64 if self._seconds else np.int64))
+            stamps.append(float(np.asarray(attrs["timestamp"]).ravel()[0]))
+            key = next((a for a in START_ATTRIBUTES if a in attrs), None)
+            starts.append(float(np.asarray(attrs[key]).ravel()[0]) if key else np.nan)
+        dtype = np.float64 if self._seconds else np.int64
+        times = self._to_us(np.asarray(stamps, dtype))
         if len(times) > 1 and (np.diff(times) < 0).any():
             raise FormatError(f"{self.path}: '/{group}' timestamps are not in name order")
+        starts = np.asarray(starts, np.float64)
+        if group in FLOW_GROUPS and len(starts) and np.isfinite(starts).all():
+            start_us = self._to_us(starts.astype(dtype))
+            if (start_us >= times).any():
+                k = int(np.argmax(start_us >= times))
+                raise FormatError(
+                    f"{self.path}: '/{group}/{names[k]}' starts at or after its end "
+                    f"({START_ATTRIBUTES[0]} >= timestamp)"
+                )
+            self._starts[group] = start_us
         return names, times
 
     def _build_intervals(self, mode: str) -> dict[tuple[int, int], tuple[str, str]]:
@@ -129,7 +151,18 @@ class HagenaarsReader(EventReader):
         intervals: dict[tuple[int, int], tuple[str, str]] = {}
         dt1 = "flow_dt1" if "flow_dt1" in self._maps else ("flow" if "flow" in self._maps else None)
         self._chain = None  # (times (K+1,), names (K,)) for scaling / chaining
-        if dt1 is not None:
+        stated = dt1 is not None and dt1 in self._starts
+        if stated:  # each map's interval as the file states it, the first one included
+            names, t = self._maps[dt1]
+            starts = self._starts[dt1]
+            for a, b, n in zip(starts, t, names):
+                intervals[(int(a), int(b))] = (dt1, n)
+            if (starts[1:] == t[:-1]).all():  # contiguous: one grid, and the maps chain
+                self._chain = (np.concatenate([starts[:1], t]), names)
+                self._grid = self._chain[0]
+            else:  # gaps between maps: windows on every start and end, GT only where a map is
+                self._grid = np.unique(np.concatenate([starts, t]))
+        elif dt1 is not None:
             names, t = self._maps[dt1]
             if mode == "end":
                 pairs = [(int(t[k - 1]), int(t[k]), names[k]) for k in range(1, len(names))]
@@ -140,8 +173,15 @@ class HagenaarsReader(EventReader):
             for a, b, n in pairs:
                 if b > a:
                     intervals[(a, b)] = (dt1, n)
-        self._grid = self._maps[dt1][1] if dt1 is not None else self._image_t
-        if "flow_dt4" in self._maps:
+        if not stated:
+            self._grid = self._maps[dt1][1] if dt1 is not None else self._image_t
+        if "flow_dt4" in self._starts:
+            names, t = self._maps["flow_dt4"]
+            for a, b, n in zip(self._starts["flow_dt4"], t, names):
+                intervals.setdefault((int(a), int(b)), ("flow_dt4", n))
+            if self._grid is None:
+                self._grid = np.unique(np.concatenate([self._starts["flow_dt4"], t]))
+        elif "flow_dt4" in self._maps:
             names, t = self._maps["flow_dt4"]
             grid = self._grid if self._grid is not None and len(self._grid) else t
             for k, n in enumerate(names):
