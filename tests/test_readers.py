@@ -255,7 +255,7 @@ def test_hagenaars_start_attributes_deliver_the_first_window(tmp_path, rng):
         np.testing.assert_array_equal(r.flow_timestamps(), np.append(starts, starts[-1] + 60_000))
         np.testing.assert_allclose(r.flow_between(20_000, 80_000)[0], maps[0])  # the first map
         chained, valid = r.flow_between(20_000, 140_000)  # chained: 1 px, then 2 px from where it landed
-        assert valid[:, :-1].all() and np.allclose(chained[:, valid], 3.0)
+        assert valid[:-1, :-1].all() and np.allclose(chained[:, valid], 3.0)
     env = EventFlowEnv(str(path), window="frames", compute_reward=False)
     _, info = env.reset(options={"sequence": 0})
     seen, gts, truncated = [], [], False
