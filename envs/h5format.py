@@ -22,7 +22,13 @@ binary search inside one millisecond, so neither the file nor the time column is
 
 The writer writes ``<name>.tmp-<pid>`` next to the target and renames it over the target only
 after a successful close, so a crash or an exception never leaves a half-written file under
-the final name.
+the final name; temporaries of killed writers are removed when the next writer of that name
+starts (:mod:`envs.atomic`).
+
+The reader checks the index on open (``ms_to_idx`` of the right length, non-decreasing, from 0 to
+``num_events``, and consistent with the time column at sampled milliseconds; the first and last
+events inside ``[t_start_us, t_end_us)``), and every window read through ``events_between``
+holds only events of its time span.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from envs.atomic import remove_stale_temporaries, temporary_path
 from envs.events import EventError, Events
 from envs.readers.base import EventReader, FlowGT
 
@@ -70,6 +77,8 @@ class H5Writer:
         overwrite: bool = True,
     ) -> None:
         self.path = Path(path)
+        if self.path.is_dir():
+            raise IsADirectoryError(f"{self.path}: is a folder; the output must be a file path (e.g. {self.path / 'recording.h5'})")
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists (pass overwrite=True to replace it)")
         self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
@@ -78,8 +87,9 @@ class H5Writer:
         json.dumps(self.provenance)  # fail now, not at close
         self._t_start = t_start_us
         self._t_end = t_end_us
-        self._tmp = self.path.with_name(f"{self.path.name}.tmp-{os.getpid()}")
+        self._tmp = temporary_path(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(self.path)
         self._file = h5py.File(self._tmp, "w")
         group = self._file.create_group("events")
         self._events = {
@@ -187,10 +197,17 @@ class H5Writer:
         """Write the index and attributes, then move the file to its final name."""
         if self._closed:
             return
+        try:
+            self._finish()
+        except BaseException:
+            self.abort()
+            raise
+        self._closed = True
+
+    def _finish(self) -> None:
         t_start = self._t_start if self._t_start is not None else (self._first_t or 0)
         t_end = self._t_end if self._t_end is not None else ((self._last_t + 1) if self._last_t is not None else t_start + 1)
         if self._first_t is not None and (self._first_t < t_start or self._last_t >= t_end):
-            self.abort()
             raise EventError(
                 f"{self.path}: events span [{self._first_t}, {self._last_t}] us, outside the "
                 f"declared recording span [{t_start}, {t_end})"
@@ -208,14 +225,14 @@ class H5Writer:
         attrs["provenance"] = json.dumps(self.provenance)
         self._file.close()
         os.replace(self._tmp, self.path)
-        self._closed = True
 
     def abort(self) -> None:
         """Discard everything written (the final path is left untouched)."""
         if self._closed:
             return
         try:
-            self._file.close()
+            if self._file.id.valid:
+                self._file.close()
         finally:
             self._tmp.unlink(missing_ok=True)
             self._closed = True
@@ -291,6 +308,62 @@ class H5Reader(EventReader):
         else:
             self._flow_from = self._flow_to = None
         self._frame_t = f["frames/t"][:] if "frames" in f else None
+        try:
+            self._check_index()
+        except Exception:
+            f.close()
+            raise
+
+    def _check_index(self, samples: int = 16) -> None:
+        """Cheap checks that the index and the time span describe the events: ``ms_to_idx`` has
+        one entry per millisecond of [t_start_us, t_end_us) plus one, runs from 0 to num_events
+        without decreasing, and points at the right events at ``samples`` milliseconds; the first
+        and last events lie inside the span. Raises FormatError naming the file and the field."""
+        t_start, t_end, n = self._t_start, self._t_end, self.num_events
+        if t_end <= t_start:
+            raise FormatError(f"{self.path}: attribute 't_end_us' ({t_end}) must be greater than 't_start_us' ({t_start})")
+        index = self._ms_to_idx
+        n_ms = max(1, -(-(t_end - t_start) // 1000))
+        where = f"{self.path}: dataset '/ms_to_idx'"
+        if index.ndim != 1 or len(index) != n_ms + 1:
+            raise FormatError(
+                f"{where} has shape {index.shape}, expected ({n_ms + 1},): one entry per millisecond of "
+                f"[t_start_us, t_end_us) = [{t_start}, {t_end}) plus one (cut short or of another recording?)"
+            )
+        if index[0] != 0 or index[-1] != n:
+            raise FormatError(f"{where} runs from {index[0]} to {index[-1]}, expected 0 to num_events = {n} (zeroed or corrupt?)")
+        drops = np.flatnonzero(np.diff(index) < 0)
+        if len(drops):
+            m = int(drops[0]) + 1
+            raise FormatError(f"{where} decreases at entry {m} ({index[m]} after {index[m - 1]}); it must be non-decreasing")
+        if n == 0:
+            return
+        t_first, t_last = self.time_of(0), self.time_of(n - 1)
+        if t_first < t_start or t_last >= t_end:
+            raise FormatError(
+                f"{self.path}: events span [{t_first}, {t_last}] us, outside the attributes "
+                f"[t_start_us, t_end_us) = [{t_start}, {t_end})"
+            )
+        for m in np.unique(np.linspace(0, n_ms, samples).round().astype(np.int64)):
+            self._check_entry(int(m))
+
+    def _check_entry(self, m: int, block: np.ndarray | None = None, block_start: int = 0) -> None:
+        """ms_to_idx[m] must be the first event with t >= t_start_us + 1000 m: the event before
+        it earlier, the event at it not earlier. ``block``: the time column from ``block_start``
+        when the caller has read it already."""
+        i, bound, n = int(self._ms_to_idx[m]), self._t_start + 1000 * m, self.num_events
+        a, b = max(i - 1, 0), min(i + 1, n)
+        if block is not None and block_start <= a and b <= block_start + len(block):
+            around = block[a - block_start : b - block_start]
+        else:
+            around = self._ds["t"][a:b]
+        before = around[0] if i > 0 else None
+        at = around[-1] if i < n else None
+        if (before is not None and before >= bound) or (at is not None and at < bound):
+            raise FormatError(
+                f"{self.path}: dataset '/ms_to_idx' entry {m} = {i} does not point at the first event at or "
+                f"after {bound} us (events {a}..{b - 1} have t = {around.tolist()}); the index is corrupt"
+            )
 
     # -- events -----------------------------------------------------------------------------
     def index_at(self, t_us: int) -> int:
@@ -299,10 +372,13 @@ class H5Reader(EventReader):
         if t_us >= self._t_end:
             return self.num_events
         m = (int(t_us) - self._t_start) // 1000
-        lo, hi = int(self._ms_to_idx[m]), int(self._ms_to_idx[min(m + 1, len(self._ms_to_idx) - 1)])
-        if hi <= lo:
-            return lo
-        return lo + int(np.searchsorted(self._ds["t"][lo:hi], t_us, side="left"))
+        lo, hi = int(self._ms_to_idx[m]), int(self._ms_to_idx[m + 1])
+        # one event either side, so the two index entries used are checked against the events
+        a, b = max(lo - 1, 0), min(hi + 1, self.num_events)
+        block = self._ds["t"][a:b]
+        self._check_entry(m, block, a)
+        self._check_entry(m + 1, block, a)
+        return lo + int(np.searchsorted(block[lo - a : hi - a], t_us, side="left"))
 
     def events_range(self, i_start: int, i_end: int) -> Events:
         i_start, i_end = max(0, int(i_start)), min(self.num_events, int(i_end))

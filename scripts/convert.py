@@ -2,11 +2,12 @@
 
     python scripts/convert.py INPUT OUTPUT.h5 [--format mvsec|dsec|hagenaars|ecd-text|aedat4|evflow-h5]
         [--crop center256 | --crop TOP LEFT H W]  (MVSEC)   [--flow-dir DIR --flow-timestamps FILE] (DSEC)
-        [--sensor-size H W] (text)  [--flow-dt 1] [--no-flow] [--no-frames] [--chunk-events N]
+        [--sensor-size H W] (text)  [--flow-dt 1] [--no-flow] [--no-frames] [--chunk-events N] [--overwrite]
 
 The format is detected from the file unless --format is given. Events are streamed a chunk at a
 time with a progress bar; the output appears under its final name only when complete
-(envs.readers.convert.convert_recording).
+(envs.readers.convert.convert_recording). An existing OUTPUT is refused unless --overwrite is
+given; OUTPUT may never be INPUT itself (nor a link to it).
 """
 
 from __future__ import annotations
@@ -19,6 +20,17 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from envs.readers import FORMATS, open_recording  # noqa: E402
 from envs.readers.convert import convert_recording  # noqa: E402
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer > 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
 
 
 def main(argv=None) -> int:
@@ -34,7 +46,8 @@ def main(argv=None) -> int:
     parser.add_argument("--flow-dt", type=int, default=1, help="grid steps per stored ground-truth map")
     parser.add_argument("--no-flow", action="store_true", help="do not store ground truth")
     parser.add_argument("--no-frames", action="store_true", help="do not store frames")
-    parser.add_argument("--chunk-events", type=int, default=1 << 20, help="events per read/write step")
+    parser.add_argument("--chunk-events", type=positive_int, default=1 << 20, help="events per read/write step (> 0)")
+    parser.add_argument("--overwrite", action="store_true", help="replace OUTPUT if it exists (never the input itself)")
     args = parser.parse_args(argv)
 
     options = {}
@@ -52,7 +65,7 @@ def main(argv=None) -> int:
         print(reader, file=sys.stderr)
         out = convert_recording(
             reader, args.output, chunk_events=args.chunk_events, flow_dt=None if args.no_flow else args.flow_dt,
-            frames=not args.no_frames, progress=True, source=os.path.abspath(args.input),
+            frames=not args.no_frames, progress=True, source=os.path.abspath(args.input), overwrite=args.overwrite,
         )
     print(out)
     return 0

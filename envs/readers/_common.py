@@ -18,6 +18,8 @@ from envs.h5format import FormatError
 
 __all__ = [
     "SortedColumn",
+    "check_finite",
+    "check_pixel_coordinates",
     "open_h5",
     "require",
     "resolve_crop",
@@ -81,13 +83,46 @@ def nonbuiltin_filters(ds: h5py.Dataset) -> list[int]:
     return [plist.get_filter(i)[0] for i in range(plist.get_nfilters()) if plist.get_filter(i)[0] not in _BUILTIN_FILTERS]
 
 
-def seconds_to_us(t_seconds: np.ndarray, origin_us: int) -> np.ndarray:
+def check_finite(values: np.ndarray, source: str, field: str, offset: int = 0) -> None:
+    """Raise FormatError naming ``source``, ``field`` and the first index (plus ``offset``)
+    that holds NaN or infinity. values: any shape, float (other dtypes pass)."""
+    values = np.asarray(values)
+    if values.dtype.kind != "f" or values.size == 0:
+        return
+    finite = np.isfinite(values)
+    if not finite.all():
+        i = int(np.flatnonzero(~finite.ravel())[0])
+        raise FormatError(f"{source}: field '{field}' is not a finite number at index {offset + i} ({values.ravel()[i].item()!r})")
+
+
+def check_pixel_coordinates(values: np.ndarray, source: str, field: str, offset: int = 0) -> np.ndarray:
+    """Whole, non-negative pixel coordinates stored as floats -> int64; anything else (-0.6,
+    10.7, NaN) raises FormatError naming ``source``, ``field`` and the first bad index (plus
+    ``offset``) rather than being truncated. values: (N,) any numeric dtype."""
+    values = np.asarray(values)
+    if values.dtype.kind == "f":
+        bad = ~np.isfinite(values) | (values < 0) | (values != np.floor(values))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise FormatError(
+                f"{source}: field '{field}' must hold whole, non-negative pixel coordinates; index "
+                f"{offset + i} holds {values[i].item()!r}"
+            )
+    return values.astype(np.int64)
+
+
+def seconds_to_us(t_seconds: np.ndarray, origin_us: int, *, source: str = "timestamps", field: str = "t",
+                  offset: int = 0) -> np.ndarray:
     """float seconds -> int64 µs relative to ``origin_us`` (absolute µs on the same clock).
 
     rint(t * 1e6) first (exact to the µs for epoch times: float64 resolution there is 0.24 µs),
     then the integer origin is subtracted, so the same stored value always maps to the same µs.
+    A NaN or infinite time raises FormatError naming ``source``, ``field`` and the index (plus
+    ``offset``, the position of ``t_seconds`` in its column).
     """
-    return np.rint(np.asarray(t_seconds, np.float64) * 1e6).astype(np.int64) - np.int64(origin_us)
+    t_seconds = np.asarray(t_seconds, np.float64)
+    check_finite(t_seconds, source, field, offset)
+    return np.rint(t_seconds * 1e6).astype(np.int64) - np.int64(origin_us)
 
 
 class SortedColumn:

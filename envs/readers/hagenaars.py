@@ -39,7 +39,7 @@ import numpy as np
 
 from envs.events import Events
 from envs.h5format import FormatError
-from envs.readers._common import SortedColumn, open_h5, require, seconds_to_us
+from envs.readers._common import SortedColumn, check_finite, open_h5, require, seconds_to_us
 from envs.readers.base import EventReader, FlowGT
 from envs.readers.flowgt import flow_from_displacements, valid_of
 
@@ -89,12 +89,26 @@ class HagenaarsReader(EventReader):
         self._seconds = ts.dtype.kind == "f"
         if "t0" in f.attrs:
             t0 = float(np.asarray(f.attrs["t0"]).ravel()[0])
+            where = "attribute 't0'"
         elif self.num_events:
             t0 = float(ts[0])
+            where = "events/ts"
         else:
-            t0 = 0.0
+            t0, where = 0.0, "t0"
+        try:
+            check_finite(np.float64(t0), str(self.path), where)
+        except Exception:
+            f.close()
+            raise
         self.origin_us = int(np.rint(t0 * 1e6)) if self._seconds else int(t0)
-        self._times = SortedColumn(lambda i0, i1: self._to_us(self._ds["ts"][i0:i1]), self.num_events)
+        self._times = SortedColumn(lambda i0, i1: self._to_us(self._ds["ts"][i0:i1], offset=i0), self.num_events)
+        try:
+            last = self.num_events - 1
+            if self.num_events:  # NaN first / last times: an error naming the file, not a bogus span
+                self._to_us(ts[last : last + 1], offset=last)
+        except Exception:
+            f.close()
+            raise
         first = int(self._to_us(ts[0:1])[0]) if self.num_events else 0
         self._t_start = min(0, first)
         self._t_end = (int(self._to_us(ts[self.num_events - 1 : self.num_events])[0]) + 1) if self.num_events else 1
@@ -112,9 +126,10 @@ class HagenaarsReader(EventReader):
             f.close()
             raise
 
-    def _to_us(self, ts: np.ndarray) -> np.ndarray:
+    def _to_us(self, ts: np.ndarray, *, field: str = "events/ts", offset: int = 0) -> np.ndarray:
+        """Times as stored -> int64 µs after t0; a NaN raises naming the file, field and index."""
         if self._seconds:
-            return seconds_to_us(ts, self.origin_us)
+            return seconds_to_us(ts, self.origin_us, source=str(self.path), field=field, offset=offset)
         return np.asarray(ts).astype(np.int64) - np.int64(self.origin_us)
 
     def _group_times(self, group: str) -> tuple[list[str], np.ndarray | None]:
@@ -131,7 +146,7 @@ class HagenaarsReader(EventReader):
             key = next((a for a in START_ATTRIBUTES if a in attrs), None)
             starts.append(float(np.asarray(attrs[key]).ravel()[0]) if key else np.nan)
         dtype = np.float64 if self._seconds else np.int64
-        times = self._to_us(np.asarray(stamps, dtype))
+        times = self._to_us(np.asarray(stamps, dtype), field=f"/{group} attribute 'timestamp'")
         if len(times) > 1 and (np.diff(times) < 0).any():
             raise FormatError(f"{self.path}: '/{group}' timestamps are not in name order")
         starts = np.asarray(starts, np.float64)
@@ -221,7 +236,7 @@ class HagenaarsReader(EventReader):
             return Events.empty(self.sensor_size)
         d = self._ds
         return Events.create(
-            d["xs"][i_start:i_end], d["ys"][i_start:i_end], self._to_us(d["ts"][i_start:i_end]),
+            d["xs"][i_start:i_end], d["ys"][i_start:i_end], self._to_us(d["ts"][i_start:i_end], offset=i_start),
             d["ps"][i_start:i_end], self.sensor_size,
             source=f"{self.path} (events {i_start}..{i_end})", validate=self.validate,
         )

@@ -44,7 +44,8 @@ import numpy as np
 
 from envs.events import Events
 from envs.h5format import FormatError
-from envs.readers._common import SortedColumn, crop_events, open_h5, require, resolve_crop, seconds_to_us
+from envs.readers._common import (SortedColumn, check_finite, check_pixel_coordinates, crop_events, open_h5, require,
+                                  resolve_crop, seconds_to_us)
 from envs.readers.base import EventReader, FlowGT
 from envs.readers.flowgt import flow_from_displacements, valid_of
 
@@ -192,9 +193,16 @@ class MVSECReader(EventReader):
             self.full_sensor_size = tuple(int(v) for v in f[f"{base}/image_raw"].shape[1:3])
         self.crop = resolve_crop(crop, self.full_sensor_size)
         self.sensor_size = self.full_sensor_size if self.crop is None else (self.crop[2], self.crop[3])
-        self.origin_us = int(np.rint(float(ev[0, 2]) * 1e6))
-        self._times = SortedColumn(lambda i0, i1: seconds_to_us(self._events[i0:i1, 2], self.origin_us), self.num_events)
-        self._t_end = int(seconds_to_us(ev[self.num_events - 1, 2], self.origin_us)) + 1
+        self._events_name = f"/{base}/events"
+        self._events_field = f"{self._events_name} column 2 (t, seconds)"
+        try:
+            check_finite(ev[0:1, 2], str(self.path), self._events_field)
+            self.origin_us = int(np.rint(float(ev[0, 2]) * 1e6))
+            self._t_end = int(self._seconds_to_us(ev[self.num_events - 1 : self.num_events, 2], self.num_events - 1)[0]) + 1
+        except Exception:
+            f.close()
+            raise
+        self._times = SortedColumn(lambda i0, i1: self._seconds_to_us(self._events[i0:i1, 2], i0), self.num_events)
         # frames
         self._images = None
         self._image_t = None
@@ -203,7 +211,12 @@ class MVSECReader(EventReader):
                 f.close()
                 raise FormatError(f"{self.path}: '/{base}/image_raw' has no timestamps: missing dataset '/{base}/image_raw_ts'")
             self._images = f[f"{base}/image_raw"]
-            self._image_t = seconds_to_us(f[f"{base}/image_raw_ts"][:], self.origin_us)
+            try:
+                self._image_t = seconds_to_us(f[f"{base}/image_raw_ts"][:], self.origin_us, source=str(self.path),
+                                              field=f"/{base}/image_raw_ts")
+            except Exception:
+                f.close()
+                raise
         # ground truth
         if gt is None:
             candidate = self.path.with_name(self.name + "_gt_flow_dist.npz")
@@ -245,7 +258,7 @@ class MVSECReader(EventReader):
                 )
         if ts.ndim != 1 or (np.diff(ts) <= 0).any():
             raise FormatError(f"{path}: array 'timestamps' must be 1-D and increasing")
-        self._gt_t = seconds_to_us(ts, self.origin_us)
+        self._gt_t = seconds_to_us(ts, self.origin_us, source=str(path), field="timestamps")
         self.gt_path = path
 
     # -- events -----------------------------------------------------------------------------
@@ -257,25 +270,35 @@ class MVSECReader(EventReader):
     def t_end(self) -> int:
         return self._t_end
 
+    def _seconds_to_us(self, t_seconds: np.ndarray, offset: int) -> np.ndarray:
+        """Event times (the events' column 2, from row ``offset``) -> µs after the first event."""
+        return seconds_to_us(t_seconds, self.origin_us, source=str(self.path), field=self._events_field, offset=offset)
+
     def index_at(self, t_us: int) -> int:
         return self._times.searchsorted(int(t_us))
 
     def time_of(self, index: int) -> int:
-        return int(seconds_to_us(self._events[int(index), 2], self.origin_us))
+        i = int(index)
+        return int(self._seconds_to_us(self._events[i : i + 1, 2], i)[0])
 
     def events_range(self, i_start: int, i_end: int) -> Events:
         i_start, i_end = max(0, int(i_start)), min(self.num_events, int(i_end))
         if i_end <= i_start:
             return Events.empty(self.sensor_size)
         block = self._events[i_start:i_end]
-        x, y = block[:, 0], block[:, 1]
-        t = seconds_to_us(block[:, 2], self.origin_us)
+        source = str(self.path)
+        if self.validate:  # -0.6 or 10.7 is an error, not a pixel
+            x = check_pixel_coordinates(block[:, 0], source, f"{self._events_name} column 0 (x)", i_start)
+            y = check_pixel_coordinates(block[:, 1], source, f"{self._events_name} column 1 (y)", i_start)
+        else:
+            x, y = block[:, 0].astype(np.int64), block[:, 1].astype(np.int64)
+        t = self._seconds_to_us(block[:, 2], i_start)
         p = block[:, 3]
         keep, x, y = crop_events(x, y, self.crop)
         if keep is not None:
             t, p = t[keep], p[keep]
         return Events.create(
-            x.astype(np.int64), y.astype(np.int64), t, p, self.sensor_size,
+            x, y, t, p, self.sensor_size,
             source=f"{self.path} (events {i_start}..{i_end})", validate=self.validate,
         )
 

@@ -3,7 +3,10 @@
 Layout read: one event per line, ``t x y p`` separated by spaces: t in seconds (float), x
 column, y row, p in {0, 1} (or -1/+1). Leading header lines that do not hold four numbers
 are skipped; a leading ``width height`` line (the rpg_e2vid convention) gives the sensor size.
-Blank lines after the header are an error (they would break the line index).
+Blank lines after the header are an error (they would break the line index), and so are a
+file whose first lines are not text or hold no ``t x y p`` line (e.g. a binary file forced as
+text), a NaN or infinite time, and coordinates that are not whole non-negative numbers (10.7 is
+not truncated to 10).
 
 Sensor size: the ``sensor_size`` argument, else the header line, else the first frame's size
 when ``images.txt`` lies beside the file, else the ECD camera (DAVIS240C, 180 x 240) when all
@@ -27,6 +30,7 @@ import numpy as np
 
 from envs.events import Events
 from envs.h5format import FormatError
+from envs.readers._common import check_finite, check_pixel_coordinates
 from envs.readers.base import EventReader
 
 __all__ = ["TextReader", "ECD_SENSOR_SIZE"]
@@ -98,13 +102,28 @@ class TextReader(EventReader):
         return np.rint(t * self._scale).astype(np.int64)
 
     def _read_header(self) -> tuple[tuple[int, int] | None, int]:
-        """Skip leading lines that are not 't x y p'; a 'width height' line gives the size."""
+        """Skip leading lines that are not 't x y p'; a 'width height' line gives the size.
+
+        A header line that is not printable text, or 16 lines without an event line, raise
+        FormatError: such a file is not an event text file (a binary file would otherwise read
+        as a header and no events)."""
         size, offset = None, 0
         with open(self.path, "rb") as fh:
-            for _ in range(16):
+            for k in range(17):
                 line = fh.readline()
                 if not line:
                     break
+                if k == 16:
+                    raise FormatError(f"{self.path}: no 't x y p' event line in the first 16 lines; not an event text file")
+                try:
+                    text = line.decode("utf-8")
+                except UnicodeDecodeError:
+                    text = None
+                if text is None or not text.rstrip("\r\n").replace("\t", " ").isprintable():
+                    raise FormatError(
+                        f"{self.path}: line {k + 1} is not text (binary data?); an event text file holds "
+                        "'t x y p' lines after an optional header"
+                    )
                 tokens = line.split()
                 if len(tokens) == 4 and not line.lstrip().startswith(b"#"):
                     try:
@@ -157,6 +176,9 @@ class TextReader(EventReader):
                 rows = _parse(body, self.path, n + 1)
                 if len(rows) != len(starts):
                     raise FormatError(f"{self.path}: could not split the lines near event {n + 1} into 't x y p'")
+                check_finite(rows[:, 0], str(self.path), "t", n)
+                for column, field in ((1, "x"), (2, "y")):
+                    check_pixel_coordinates(rows[:, column], str(self.path), field, n)
                 t = self._to_us(rows[:, 0])
                 if self.validate:
                     dt = np.diff(t)
