@@ -143,6 +143,11 @@ class DSECReader(EventReader):
         self.num_events = lengths["t"]
         self.sensor_size = DSEC_SENSOR_SIZE
         self._times = SortedColumn(lambda i0, i1: self._ds["t"][i0:i1].astype(np.int64) + self.t_offset, self.num_events)
+        try:
+            self._check_index()
+        except Exception:
+            f.close()
+            raise
         n = self.num_events
         self._t_end = (int(self._ds["t"][n - 1]) + self.t_offset + 1) if n else self.t_offset + 1
         # rectification
@@ -199,6 +204,34 @@ class DSECReader(EventReader):
     def t_end(self) -> int:
         return self._t_end
 
+    def _check_index(self, samples: int = 16) -> None:
+        """Cheap checks of ``ms_to_idx`` on open: entries in [0, num_events], non-decreasing, and
+        pointing at the first event of their millisecond at ``samples`` sampled entries (a zeroed or
+        shuffled index raises FormatError naming the file instead of giving wrong windows)."""
+        index = np.asarray(self._ms_to_idx[:], np.int64)
+        n = self.num_events
+        where = f"{self.path}: dataset '/ms_to_idx'"
+        if n and len(index) == 0:
+            raise FormatError(f"{where} is empty for {n} events")
+        out = np.flatnonzero((index < 0) | (index > n))
+        if len(out):
+            raise FormatError(f"{where} entry {out[0]} = {index[out[0]]} is outside [0, num_events = {n}]")
+        drops = np.flatnonzero(np.diff(index) < 0)
+        if len(drops):
+            m = int(drops[0]) + 1
+            raise FormatError(f"{where} decreases at entry {m} ({index[m]} after {index[m - 1]}); it must be non-decreasing")
+        for m in np.unique(np.linspace(0, len(index) - 1, samples).round().astype(np.int64)) if n else ():
+            self._check_entry(int(m), int(index[m]))
+
+    def _check_entry(self, m: int, i: int) -> None:
+        """ms_to_idx[m] = i must be the first event with t >= 1000 m (relative µs)."""
+        bound, n = self.t_offset + 1000 * m, self.num_events
+        if (i > 0 and self._times._probe(i - 1) >= bound) or (i < n and self._times._probe(i) < bound):
+            raise FormatError(
+                f"{self.path}: dataset '/ms_to_idx' entry {m} = {i} is not the first event at or after {1000 * m} us "
+                "(relative to t_offset); the index is corrupt"
+            )
+
     def index_at(self, t_us: int) -> int:
         rel = int(t_us) - self.t_offset
         if rel <= 0:  # relative times are unsigned: every event is at or after t_offset
@@ -208,6 +241,10 @@ class DSECReader(EventReader):
         lo = int(self._ms_to_idx[min(m, nm - 1)])
         hi = int(self._ms_to_idx[m + 1]) if m + 1 < nm else self.num_events
         # ms_to_idx[m] is the first event at or after m ms, so the answer lies in [lo, hi]
+        if m < nm:  # memoised single reads: the two entries this window relies on are checked
+            self._check_entry(m, lo)
+        if m + 1 < nm:
+            self._check_entry(m + 1, hi)
         return self._times.searchsorted(int(t_us), lo, hi)
 
     def time_of(self, index: int) -> int:
