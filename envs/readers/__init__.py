@@ -19,6 +19,8 @@ __all__ = [
     "HagenaarsReader",
     "TextReader",
     "AedatReader",
+    "PropheseeRawReader",
+    "PropheseeDatReader",
 ]
 
 _LAZY = {
@@ -30,6 +32,8 @@ _LAZY = {
     "HagenaarsReader": "envs.readers.hagenaars",
     "TextReader": "envs.readers.text",
     "AedatReader": "envs.readers.aedat",
+    "PropheseeRawReader": "envs.readers.prophesee",
+    "PropheseeDatReader": "envs.readers.prophesee",
 }
 
 

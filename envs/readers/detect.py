@@ -1,11 +1,14 @@
 """Open any supported recording: ``open_recording(path, format=None, **options)``.
 
 Formats (``FORMATS``): "evflow-h5" (the project's own, :class:`envs.h5format.H5Reader`), "mvsec",
-"dsec", "hagenaars", "ecd-text", "aedat4". Without ``format`` it is detected from the file:
+"dsec", "hagenaars", "ecd-text", "aedat4", "prophesee-raw", "prophesee-dat". Without ``format`` it is
+detected from the file:
 
 - a folder: ``events.h5`` (DSEC, also under ``events/left/``), ``events.txt`` (ECD) or a single
   ``*_data.hdf5`` (MVSEC) inside it;
 - ``.aedat4`` or a file starting with ``#!AER-DAT4``: aedat4;
+- ``.raw``, or a ``%`` header naming an EVT format (``% evt``, ``% format EVT``): prophesee-raw;
+  ``.dat``, or a ``%`` header saying ``Data file containing``: prophesee-dat;
 - an HDF5 file: attribute ``format == "evflow-h5"`` -> evflow-h5; group ``davis`` -> mvsec;
   ``events/xs`` -> hagenaars; ``events/x`` with ``ms_to_idx`` or ``t_offset`` -> dsec;
 - any other text file whose first event line holds four numbers: ecd-text.
@@ -26,7 +29,7 @@ from envs.readers.base import EventReader
 
 __all__ = ["open_recording", "detect_format", "FORMATS"]
 
-FORMATS = ("evflow-h5", "mvsec", "dsec", "hagenaars", "ecd-text", "aedat4")
+FORMATS = ("evflow-h5", "mvsec", "dsec", "hagenaars", "ecd-text", "aedat4", "prophesee-raw", "prophesee-dat")
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 
 
@@ -68,6 +71,21 @@ def _detect_h5(path: Path) -> str:
     )
 
 
+def _detect_prophesee(path: Path, head: bytes) -> str | None:
+    suffix = path.suffix.lower()
+    if suffix == ".raw":
+        return "prophesee-raw"
+    if suffix == ".dat":
+        return "prophesee-dat"
+    if head.startswith(b"%"):
+        text = head.split(b"\n", 16)
+        if any(line.startswith((b"% evt ", b"% format EVT")) for line in text):
+            return "prophesee-raw"
+        if any(line.startswith(b"% Data file containing") for line in text):
+            return "prophesee-dat"
+    return None
+
+
 def detect_format(path: str | os.PathLike) -> tuple[Path, str]:
     """(the file to open, its format name) for a file or folder (module docstring)."""
     path = Path(path)
@@ -79,6 +97,9 @@ def detect_format(path: str | os.PathLike) -> tuple[Path, str]:
         head = fh.read(512)
     if path.suffix.lower() == ".aedat4" or head.startswith(b"#!AER-DAT4"):
         return path, "aedat4"
+    prophesee = _detect_prophesee(path, head)
+    if prophesee is not None:
+        return path, prophesee
     if head.startswith(_HDF5_MAGIC) or path.suffix.lower() in (".h5", ".hdf5"):
         return path, _detect_h5(path)
     if path.suffix.lower() == ".npz":
@@ -127,4 +148,12 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
         from envs.readers.aedat import AedatReader
 
         return AedatReader(path, **options)
+    if format == "prophesee-raw":
+        from envs.readers.prophesee import PropheseeRawReader
+
+        return PropheseeRawReader(path, **options)
+    if format == "prophesee-dat":
+        from envs.readers.prophesee import PropheseeDatReader
+
+        return PropheseeDatReader(path, **options)
     raise ValueError(f"unknown format {format!r}; expected one of {FORMATS}")

@@ -1,0 +1,537 @@
+"""Prophesee recordings: RAW files in EVT 2.0 or EVT 3.0, and DAT files of CD events.
+
+Both are decoded here with numpy, vectorised over whole chunks of words (no Python loop per
+event), following Prophesee's published format descriptions:
+
+- **RAW header**: ASCII lines ``% key value`` (``% evt 3.0``, ``% format EVT3;height=720;width=1280``,
+  ``% geometry 1280x720``, ``% camera_integrator_name ...``, ``% serial_number ...``), ended by
+  ``% end`` or by the first line that does not start with ``%``; then little-endian words.
+- **EVT 2.0** (32-bit words, type in bits 31..28): CD_OFF 0x0 / CD_ON 0x1 (bits 27..22: the 6
+  low bits of the time, 21..11: x, 10..0: y); EVT_TIME_HIGH 0x8 (bits 27..0: time >> 6);
+  EXT_TRIGGER 0xA, OTHERS 0xE, CONTINUED 0xF (skipped). Time is 34 bits and wraps every ~4.8 h.
+- **EVT 3.0** (16-bit words, type in bits 15..12): EVT_ADDR_Y 0x0 (bits 10..0: y), EVT_ADDR_X 0x2
+  (one event; bit 11: polarity, 10..0: x), VECT_BASE_X 0x3 (base x and polarity of the vectors
+  that follow), VECT_12 0x4 / VECT_8 0x5 (a validity mask over 12 / 8 pixels from the base x,
+  which then advances by 12 / 8), EVT_TIME_LOW 0x6 / EVT_TIME_HIGH 0x8 (the low / high 12 bits
+  of the 24-bit time base, which wraps every ~16.8 s); EXT_TRIGGER 0xA, OTHERS 0xE and the
+  CONTINUED words are skipped.
+- **DAT**: ``%`` header lines (``% Width 640``, ``% Height 480``, ``% Version 2``), one byte of
+  event type (0x00 Event2d or 0x0C EventCd are read; 0x0E external triggers are refused) and one
+  of event size (8), then records of a uint32 time (µs) and a uint32 with x in bits 0..13, y in
+  bits 14..27 and the polarity in bits 28..31.
+
+Time-base wrap-arounds are unfolded (times are absolute µs since the camera's clock start, as
+Metavision reports them). Events before the first time-high word of a RAW file have no known
+time and are dropped. The rare event stamped earlier than one before it is given that earlier
+time (the project's events never go back in time); ``reordered_events`` counts them.
+
+**Streaming.** The file is cut into chunks of a fixed number of words. On first open the
+whole file is decoded once, chunk by chunk, and for every chunk the decoder state at its start
+(time base, y, base x...), its first event index and its last event time are kept: the *time
+index*. It is cached on disk (``index_dir``, default ``$EVFLOW_CACHE/prophesee-index``; in
+memory only when the cache is off), keyed by the file's path, size and modification time, so
+later opens read it instead of decoding. A window is then read by decoding only the one or two
+chunks that hold it (the last chunks decoded are kept), wherever it lies in the file: memory
+stays a few chunks deep however long the recording.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+import warnings
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from envs.events import Events
+from envs.h5format import FormatError
+from envs.readers.base import EventReader
+
+__all__ = ["RawHeader", "read_raw_header", "PropheseeRawReader", "PropheseeDatReader", "RAW_FORMATS",
+           "DAT_EVENT_TYPES"]
+
+RAW_FORMATS = ("EVT2", "EVT3")
+# DAT event-type byte: the CD layouts read here (Event2d, EventCd); 0x0E is EventExtTrigger
+DAT_EVENT_TYPES = {0x00: "Event2d", 0x0C: "EventCd"}
+_DAT_TRIGGER = 0x0E
+_INDEX_VERSION = 1
+_HEADER_LIMIT = 1 << 16  # bytes of header read at most
+
+
+@dataclass(frozen=True)
+class RawHeader:
+    """What a RAW file's ASCII header says.
+
+    format: "EVT2" or "EVT3"; sensor_size: (height, width) or None when the header gives none;
+    camera: the other header keys (integrator, plugin, serial number, date...);
+    data_offset: bytes from the file start to the first event word.
+    """
+
+    format: Literal["EVT2", "EVT3"]
+    sensor_size: tuple[int, int] | None
+    camera: dict[str, str] = field(default_factory=dict)
+    data_offset: int = 0
+
+
+def _header_lines(path: Path, head: bytes) -> tuple[list[str], int]:
+    """The ``%`` lines at the start of ``head`` (without '% ') and the byte offset after them."""
+    lines, pos = [], 0
+    while pos < len(head) and head[pos : pos + 1] == b"%":
+        end = head.find(b"\n", pos)
+        if end < 0:
+            raise FormatError(f"{path}: the header line at byte {pos} has no end (file truncated inside the header?)")
+        raw = head[pos:end]
+        try:
+            text = raw.decode("ascii").rstrip("\r")
+        except UnicodeDecodeError:
+            break  # binary data that happens to start with '%': the header ended before it
+        pos = end + 1
+        text = text[1:].strip()
+        if text == "end":
+            return lines, pos
+        lines.append(text)
+    return lines, pos
+
+
+def read_raw_header(path: str | os.PathLike) -> RawHeader:
+    """Parse a RAW file's header; a missing header or an EVT version other than 2.0 / 3.0 raises
+    FormatError naming the file."""
+    path = Path(path)
+    with open(path, "rb") as fh:
+        head = fh.read(_HEADER_LIMIT)
+    if not head.startswith(b"%"):
+        raise FormatError(
+            f"{path}: no RAW header: a Prophesee RAW file starts with ASCII lines '% key value' "
+            "(e.g. '% evt 3.0', '% format EVT3;height=720;width=1280'); this one starts with "
+            f"bytes {head[:8].hex(' ')}"
+        )
+    lines, offset = _header_lines(path, head)
+    keys: dict[str, str] = {}
+    for line in lines:
+        key, _, value = line.partition(" ")
+        keys[key.strip()] = value.strip()
+    fmt, size = None, None
+    if "format" in keys:  # "EVT3;height=720;width=1280"
+        name, *options = keys["format"].split(";")
+        fmt = name.strip().upper()
+        opts = dict(o.split("=", 1) for o in options if "=" in o)
+        if "height" in opts and "width" in opts:
+            size = (int(opts["height"]), int(opts["width"]))
+    if fmt is None and "evt" in keys:  # older headers: "% evt 2.0"
+        fmt = {"2.0": "EVT2", "3.0": "EVT3"}.get(keys["evt"], f"EVT {keys['evt']}")
+    if fmt is None:
+        raise FormatError(f"{path}: the RAW header names no event format (no '% format' or '% evt' line)")
+    if fmt not in RAW_FORMATS:
+        raise FormatError(
+            f"{path}: unsupported event format {fmt!r} in the RAW header; supported: EVT 2.0 and EVT 3.0 "
+            f"({', '.join(RAW_FORMATS)})"
+        )
+    if size is None and "geometry" in keys:  # "1280x720" (width x height)
+        w, _, h = keys["geometry"].partition("x")
+        if w.strip().isdigit() and h.strip().isdigit():
+            size = (int(h), int(w))
+    camera = {k: v for k, v in keys.items() if k not in ("format", "evt", "geometry")}
+    return RawHeader(fmt, size, camera, offset)
+
+
+# ---------------------------------------------------------------------------------------------
+# Decoders: a chunk of words and the state at its start -> events and the state at its end.
+# A state is a small int64 vector; -1 marks "not seen yet".
+
+_EVT2_STATE = ("time_high", "last_t")  # time_high: full (unwrapped) value of the last EVT_TIME_HIGH
+_EVT3_STATE = ("time_high", "time_low", "y", "base_x", "polarity", "last_t")
+_DAT_STATE = ("time", "last_t")  # time: full (unwrapped) time of the last record
+
+
+def _latest(values: np.ndarray, is_update: np.ndarray, before: int) -> np.ndarray:
+    """For every word, the value of the last update word at or before it (``before`` if none).
+
+    values: (N,) int64 payloads, read where is_update; returns (N,) int64.
+    """
+    table = np.concatenate([np.array([before], np.int64), values[is_update].astype(np.int64)])
+    return table[np.cumsum(is_update)]
+
+
+def _unwrap(values: np.ndarray, previous: int, bits: int) -> np.ndarray:
+    """Unfold a counter of ``bits`` bits that wraps around: a value below the one before it
+    starts a new period. previous: the full value before these (-1: none). Returns int64."""
+    values = values.astype(np.int64)
+    if len(values) == 0:
+        return values
+    period = np.int64(1) << bits
+    if previous >= 0:
+        low = np.concatenate([[previous & (period - 1)], values])
+        epoch0 = previous >> bits
+    else:
+        low = np.concatenate([values[:1], values])
+        epoch0 = 0
+    epochs = epoch0 + np.cumsum(np.diff(low) < 0)
+    return values + epochs * period
+
+
+def _monotonic(t: np.ndarray, last_t: int) -> tuple[np.ndarray, int]:
+    """t made non-decreasing after last_t (running maximum); also how many values changed."""
+    if len(t) == 0:
+        return t, 0
+    fixed = np.maximum.accumulate(np.maximum(t, last_t))
+    return fixed, int(np.count_nonzero(fixed != t))
+
+
+def _decode_evt2(words: np.ndarray, state: np.ndarray):
+    """words: (N,) uint32. Returns (x, y, t, p, state, reordered)."""
+    time_high, last_t = (int(v) for v in state)
+    kind = words >> 28
+    is_th = kind == 0x8
+    th_full = _unwrap(words[is_th] & 0x0FFFFFFF, time_high, 28)
+    table = np.concatenate([np.array([time_high], np.int64), th_full])
+    th = table[np.cumsum(is_th)]
+    cd = np.flatnonzero((kind <= 0x1) & (th >= 0))
+    w = words[cd]
+    t = (th[cd] << 6) | ((w >> 22) & 0x3F).astype(np.int64)
+    t, reordered = _monotonic(t, last_t)
+    x = ((w >> 11) & 0x7FF).astype(np.int16)
+    y = (w & 0x7FF).astype(np.int16)
+    p = kind[cd].astype(np.int8)
+    new_state = np.array([table[-1], int(t[-1]) if len(t) else last_t], np.int64)
+    return x, y, t, p, new_state, reordered
+
+
+_BIT = np.arange(12, dtype=np.uint16)
+
+
+def _decode_evt3(words: np.ndarray, state: np.ndarray):
+    """words: (N,) uint16. Returns (x, y, t, p, state, reordered)."""
+    time_high, time_low, y_state, base_state, pol_state, last_t = (int(v) for v in state)
+    kind = words >> 12
+    payload = (words & 0x0FFF).astype(np.int64)
+    is_th = kind == 0x8
+    th_full = _unwrap(payload[is_th], time_high, 12)
+    th_table = np.concatenate([np.array([time_high], np.int64), th_full])
+    th = th_table[np.cumsum(is_th)]
+    tl = _latest(payload, kind == 0x6, time_low)
+    y = _latest(payload & 0x7FF, kind == 0x0, y_state)
+    # vector base: the last VECT_BASE_X, advanced by 12 / 8 for every VECT_12 / VECT_8 since it
+    is_base = kind == 0x3
+    step = np.where(kind == 0x4, 12, np.where(kind == 0x5, 8, 0)).astype(np.int64)
+    advanced = np.cumsum(step)  # inclusive
+    base_word = np.concatenate([np.array([base_state], np.int64), payload[is_base] & 0x7FF])
+    base_mark = np.concatenate([np.array([0], np.int64), advanced[is_base]])
+    base_pol = np.concatenate([np.array([pol_state], np.int64), payload[is_base] >> 11])
+    which = np.cumsum(is_base)
+    base = base_word[which] + (advanced - step) - base_mark[which]
+    pol = base_pol[which]
+    # every event-carrying word as (first x, validity mask, polarity)
+    single = kind == 0x2
+    vector = (kind == 0x4) | (kind == 0x5)
+    known = (th >= 0) & (tl >= 0) & (y >= 0)
+    sel = np.flatnonzero((single | (vector & (base_word[which] >= 0))) & known)
+    is_single = single[sel]
+    first_x = np.where(is_single, payload[sel] & 0x7FF, base[sel])
+    mask = np.where(is_single, 1, np.where(kind[sel] == 0x4, payload[sel], payload[sel] & 0xFF)).astype(np.uint16)
+    polarity = np.where(is_single, payload[sel] >> 11, pol[sel])
+    row, col = np.nonzero((mask[:, None] >> _BIT) & 1)  # word order, then pixel order
+    word = sel[row]
+    x = (first_x[row] + col).astype(np.int16)
+    t = (th[word] << 12) | tl[word]
+    t, reordered = _monotonic(t, last_t)
+    n = len(words)
+    end_base = int(base_word[-1] + advanced[-1] - base_mark[-1]) if n else base_state
+    if n and base_word[-1] < 0:
+        end_base = -1
+    new_state = np.array([
+        th_table[-1], int(tl[-1]) if n else time_low, int(y[-1]) if n else y_state, end_base,
+        int(pol[-1]) if n else pol_state, int(t[-1]) if len(t) else last_t,
+    ], np.int64)
+    return x, y[word].astype(np.int16), t, polarity.astype(np.int8)[row], new_state, reordered
+
+
+def _decode_dat(records: np.ndarray, state: np.ndarray):
+    """records: (N, 2) uint32 (time, packed address). Returns (x, y, t, p, state, reordered)."""
+    time, last_t = (int(v) for v in state)
+    full = _unwrap(records[:, 0], time, 32)  # 32-bit µs: wraps every ~71.6 min
+    t, reordered = _monotonic(full, last_t)
+    data = records[:, 1]
+    x = (data & 0x3FFF).astype(np.int16)
+    y = ((data >> 14) & 0x3FFF).astype(np.int16)
+    p = (((data >> 28) & 0xF) > 0).astype(np.int8)
+    new_state = np.array([full[-1], t[-1]], np.int64) if len(full) else state.copy()
+    return x, y, t, p, new_state, reordered
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def _index_root(index_dir) -> Path | None:
+    if index_dir is not None:
+        return Path(index_dir)
+    from envs.synthetic import cache_root
+
+    root = cache_root()
+    return None if root is None else root / "prophesee-index"
+
+
+class _ChunkedReader(EventReader):
+    """A file of fixed-size words decoded a chunk at a time through a cached time index
+    (module docstring). Subclasses set the word layout and the decoder."""
+
+    layout = "prophesee"
+    _word_dtype: np.dtype
+    _words_per_item = 1  # array items per word (DAT: 2 uint32 per record)
+    _state_names: tuple[str, ...]
+
+    def _setup(self, path: Path, data_offset: int, chunk_words: int, index_dir, validate: bool) -> None:
+        self.path = path
+        self.name = path.stem
+        self.validate = validate
+        self._data_offset = int(data_offset)
+        self._chunk_words = int(chunk_words)
+        self._word_bytes = np.dtype(self._word_dtype).itemsize * self._words_per_item
+        size = path.stat().st_size
+        data_bytes = size - self._data_offset
+        if data_bytes % self._word_bytes:
+            raise FormatError(
+                f"{path}: truncated: {data_bytes} bytes of event data after the header is not a whole "
+                f"number of {self._word_bytes}-byte words (the file ends {data_bytes % self._word_bytes} "
+                "bytes into a word)"
+            )
+        self._num_words = data_bytes // self._word_bytes
+        self._file = open(path, "rb")
+        self._decoded: OrderedDict[int, tuple] = OrderedDict()
+        self._load_or_build_index(_index_root(index_dir))
+        counts = np.diff(self._first_event)
+        self.num_events = int(self._first_event[-1])
+        self._chunk_t_last = self._t_last  # -1 for chunks without events before any with
+        nonempty = np.flatnonzero(counts > 0)
+        if len(nonempty):
+            self._t_start = int(self._decode_chunk(int(nonempty[0]))[2][0])
+            self._t_end = int(self._t_last[-1]) + 1
+        else:
+            self._t_start, self._t_end = 0, 1
+        if self.reordered_events:
+            warnings.warn(f"{path}: {self.reordered_events} events were stamped earlier than an event before "
+                          "them and were given that earlier time", stacklevel=3)
+
+    # --- the time index -------------------------------------------------------------------
+    def _index_key(self) -> str:
+        st = self.path.stat()
+        ident = f"{_INDEX_VERSION}|{self.path.resolve()}|{st.st_size}|{st.st_mtime_ns}|{self._chunk_words}|{type(self).__name__}"
+        return hashlib.sha1(ident.encode()).hexdigest()[:16]
+
+    def _load_or_build_index(self, root: Path | None) -> None:
+        cached = None if root is None else root / f"{self.name}-{self._index_key()}.npz"
+        if cached is not None and cached.exists():
+            try:
+                with np.load(cached) as z:
+                    self._states, self._first_event = z["states"], z["first_event"]
+                    self._t_last, self.reordered_events = z["t_last"], int(z["reordered"])
+                self.index_path = cached
+                return
+            except (OSError, KeyError, ValueError):
+                pass  # unreadable cache: build again
+        self._build_index()
+        self.index_path = None
+        if cached is not None:
+            try:
+                cached.parent.mkdir(parents=True, exist_ok=True)
+                fd, tmp = tempfile.mkstemp(prefix=cached.stem, suffix=".tmp.npz", dir=cached.parent)
+                os.close(fd)
+                try:
+                    np.savez(tmp, states=self._states, first_event=self._first_event, t_last=self._t_last,
+                             reordered=np.int64(self.reordered_events))
+                    os.replace(tmp, cached)
+                    self.index_path = cached
+                finally:
+                    Path(tmp).unlink(missing_ok=True)
+            except OSError as err:
+                warnings.warn(f"{self.path}: could not cache the time index in {cached.parent}: {err}", stacklevel=4)
+
+    def _build_index(self) -> None:
+        n_chunks = -(-self._num_words // self._chunk_words)
+        states = np.empty((n_chunks + 1, len(self._state_names)), np.int64)
+        first = np.zeros(n_chunks + 1, np.int64)
+        t_last = np.empty(n_chunks, np.int64)
+        state = np.full(len(self._state_names), -1, np.int64)
+        reordered = 0
+        last_t = -1
+        for k in range(n_chunks):
+            states[k] = state
+            x, y, t, p, state, moved = self._decoder(self._read_words(k), state)
+            self._check(k, x, y)
+            reordered += moved
+            first[k + 1] = first[k] + len(t)
+            last_t = int(t[-1]) if len(t) else last_t
+            t_last[k] = last_t
+        states[n_chunks] = state
+        self._states, self._first_event, self._t_last = states, first, t_last
+        self.reordered_events = reordered
+
+    def _check(self, k: int, x: np.ndarray, y: np.ndarray) -> None:
+        if not self.validate or not len(x):
+            return
+        h, w = self.sensor_size
+        for name, values, limit in (("x", x, w), ("y", y, h)):
+            bad = np.flatnonzero(values >= limit)
+            if len(bad):
+                raise FormatError(
+                    f"{self.path}: event {name}={int(values[bad[0]])} outside the {h}x{w} sensor (height x width) "
+                    f"in the words from byte {self._data_offset + k * self._chunk_words * self._word_bytes}; "
+                    "wrong geometry in the header? pass sensor_size=(height, width)"
+                )
+
+    # --- decoding -------------------------------------------------------------------------
+    def _read_words(self, k: int) -> np.ndarray:
+        start = k * self._chunk_words
+        count = min(self._chunk_words, self._num_words - start)
+        self._file.seek(self._data_offset + start * self._word_bytes)
+        raw = self._file.read(count * self._word_bytes)
+        if len(raw) != count * self._word_bytes:
+            raise FormatError(f"{self.path}: the file shrank while being read (byte {self._file.tell()})")
+        words = np.frombuffer(raw, self._word_dtype)
+        return words.reshape(-1, self._words_per_item) if self._words_per_item > 1 else words
+
+    def _decode_chunk(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        hit = self._decoded.get(k)
+        if hit is not None:
+            self._decoded.move_to_end(k)
+            return hit
+        x, y, t, p, _, _ = self._decoder(self._read_words(k), self._states[k])
+        hit = (x, y, t, np.where(p > 0, 1, -1).astype(np.int8))
+        self._decoded[k] = hit
+        while len(self._decoded) > 3:
+            self._decoded.popitem(last=False)
+        return hit
+
+    # --- EventReader ----------------------------------------------------------------------
+    def events_range(self, i_start: int, i_end: int) -> Events:
+        i_start = max(0, int(i_start))
+        i_end = min(self.num_events, int(i_end))
+        if i_end <= i_start:
+            return Events.empty(self.sensor_size)
+        k0 = int(np.searchsorted(self._first_event, i_start, side="right")) - 1
+        k1 = int(np.searchsorted(self._first_event, i_end, side="left"))
+        parts = []
+        for k in range(k0, k1):
+            lo = max(i_start, int(self._first_event[k])) - int(self._first_event[k])
+            hi = min(i_end, int(self._first_event[k + 1])) - int(self._first_event[k])
+            if hi > lo:
+                x, y, t, p = self._decode_chunk(k)
+                parts.append(Events(x[lo:hi], y[lo:hi], t[lo:hi], p[lo:hi], self.sensor_size))
+        return parts[0] if len(parts) == 1 else Events.concatenate(parts)
+
+    def index_at(self, t_us: int) -> int:
+        k = int(np.searchsorted(self._t_last, int(t_us), side="left"))  # first chunk reaching t_us
+        if k >= len(self._t_last):
+            return self.num_events
+        t = self._decode_chunk(k)[2]
+        return int(self._first_event[k]) + int(np.searchsorted(t, int(t_us), side="left"))
+
+    def time_of(self, index: int) -> int:
+        k = int(np.searchsorted(self._first_event, int(index), side="right")) - 1
+        return int(self._decode_chunk(k)[2][int(index) - int(self._first_event[k])])
+
+    def close(self) -> None:
+        if getattr(self, "_file", None) is not None:
+            self._file.close()
+            self._file = None
+        self._decoded = OrderedDict()
+
+
+class PropheseeRawReader(_ChunkedReader):
+    """A Prophesee RAW file (EVT 2.0 or EVT 3.0; module docstring).
+
+    sensor_size: (height, width), needed only when the header gives no geometry.
+    chunk_words: words decoded at a time (memory: about 12 events per EVT 3.0 word at worst).
+    index_dir: where the time index is cached (default ``$EVFLOW_CACHE/prophesee-index``).
+    validate: check every event lies inside the sensor while building the index.
+
+    Attributes: ``header`` (:class:`RawHeader`: format, geometry, camera keys),
+    ``reordered_events``, ``index_path`` (the cached index, or None).
+    """
+
+    layout = "prophesee-raw"
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        sensor_size: tuple[int, int] | None = None,
+        chunk_words: int | None = None,
+        index_dir: str | os.PathLike | None = None,
+        validate: bool = True,
+    ) -> None:
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such file")
+        self.header = read_raw_header(path)
+        size = sensor_size or self.header.sensor_size
+        if size is None:
+            raise FormatError(f"{path}: the RAW header gives no geometry; pass sensor_size=(height, width)")
+        self.sensor_size = (int(size[0]), int(size[1]))
+        if self.header.format == "EVT2":
+            self._word_dtype, self._state_names, self._decoder = np.dtype("<u4"), _EVT2_STATE, _decode_evt2
+        else:
+            self._word_dtype, self._state_names, self._decoder = np.dtype("<u2"), _EVT3_STATE, _decode_evt3
+        self._setup(path, self.header.data_offset, chunk_words or (1 << 19 if self.header.format == "EVT2" else 1 << 18),
+                    index_dir, validate)
+
+    @property
+    def format(self) -> str:
+        return self.header.format
+
+
+class PropheseeDatReader(_ChunkedReader):
+    """A Prophesee DAT file of CD events (module docstring).
+
+    sensor_size: (height, width), needed only when the header has no ``% Width``/``% Height``.
+    chunk_words: records decoded at a time; index_dir, validate: as for RAW.
+    Attribute ``header``: the header's keys.
+    """
+
+    layout = "prophesee-dat"
+    _word_dtype = np.dtype("<u4")
+    _words_per_item = 2
+    _state_names = _DAT_STATE
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        sensor_size: tuple[int, int] | None = None,
+        chunk_words: int = 1 << 18,
+        index_dir: str | os.PathLike | None = None,
+        validate: bool = True,
+    ) -> None:
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such file")
+        with open(path, "rb") as fh:
+            head = fh.read(_HEADER_LIMIT)
+        lines, offset = _header_lines(path, head) if head.startswith(b"%") else ([], 0)
+        self.header = {}
+        for line in lines:
+            key, _, value = line.partition(" ")
+            self.header[key.strip()] = value.strip()
+        if len(head) < offset + 2:
+            raise FormatError(f"{path}: truncated: the DAT file ends before its event type and size bytes")
+        ev_type, ev_size = head[offset], head[offset + 1]
+        if ev_type not in DAT_EVENT_TYPES:
+            what = "external-trigger events (EventExtTrigger)" if ev_type == _DAT_TRIGGER else "an unknown event type"
+            raise FormatError(
+                f"{path}: DAT event type 0x{ev_type:02X} is {what}; this reader reads CD events "
+                f"(types {', '.join(f'0x{k:02X} {v}' for k, v in DAT_EVENT_TYPES.items())})"
+            )
+        if ev_size != 8:
+            raise FormatError(f"{path}: DAT event size {ev_size} bytes; CD events are 8 bytes")
+        size = sensor_size
+        if size is None and "Height" in self.header and "Width" in self.header:
+            size = (int(self.header["Height"]), int(self.header["Width"]))
+        if size is None:
+            raise FormatError(f"{path}: the DAT header has no '% Width'/'% Height'; pass sensor_size=(height, width)")
+        self.sensor_size = (int(size[0]), int(size[1]))
+        self._decoder = _decode_dat
+        self._setup(path, offset + 2, chunk_words, index_dir, validate)
