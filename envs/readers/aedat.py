@@ -17,18 +17,21 @@ gray (16-bit samples >> 8, colour averaged over channels) and placed at their of
 
 from __future__ import annotations
 
+import itertools
 import os
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from envs.events import Events
+from envs.events import EventError, Events
 from envs.h5format import FormatError, H5Reader, H5Writer
 from envs.readers._common import missing_extra
 from envs.readers.base import EventReader, FlowGT
 
 __all__ = ["AedatReader", "import_aedat"]
+
+MAGIC = b"#!AER-DAT4.0\r\n"  # the first line of every AEDAT 4.0 file
 
 
 def import_aedat():
@@ -38,6 +41,36 @@ def import_aedat():
     except ImportError:
         raise missing_extra("aedat", "aedat", "Reading AEDAT4 files") from None
     return aedat
+
+
+def _check_magic(path: Path) -> None:
+    """A FormatError naming ``path`` unless it starts with the AEDAT4 header line (the decoder's
+    own message for other files is a bare "invalid utf-8 sequence" or "failed to fill whole
+    buffer")."""
+    with open(path, "rb") as f:
+        head = f.read(len(MAGIC))
+    if head != MAGIC:
+        if not head:
+            kind = "an empty file"
+        elif MAGIC.startswith(head):
+            kind = f"cut short: {len(head)} bytes"
+        elif head.startswith(b"#!AER-DAT"):
+            kind = "an AEDAT file of another version"
+        else:
+            kind = "not an AEDAT4 file"
+        raise FormatError(
+            f"{path}: {kind}: it starts with {head!r}, an AEDAT4 file starts with {MAGIC!r}"
+        )
+
+
+def _describe(streams: dict) -> str:
+    """The decoder's streams in words: "stream 1: frame 346x260, stream 2: imus"."""
+    if not streams:
+        return "no streams"
+    return ", ".join(
+        f"stream {k}: {s.get('type')}" + (f" {s['width']}x{s['height']}" if "width" in s else "")
+        for k, s in sorted(streams.items())
+    )
 
 
 def _gray(frame: dict, sensor_size: tuple[int, int]) -> np.ndarray:
@@ -76,44 +109,85 @@ class AedatReader(EventReader):
         aedat = import_aedat()
         self.name = self.path.stem
         self._inner: H5Reader | None = None
-        decoder = aedat.Decoder(str(self.path))
-        streams = decoder.id_to_stream()
-        event_ids = [k for k, s in streams.items() if s.get("type") == "events"]
+        _check_magic(self.path)
+        try:
+            decoder = aedat.Decoder(str(self.path))
+            streams = decoder.id_to_stream()
+        except (RuntimeError, OSError, ValueError) as err:
+            raise FormatError(
+                f"{self.path}: the AEDAT4 header cannot be read ({err}); the file is cut short or damaged"
+            ) from None
+        event_ids = sorted(k for k, s in streams.items() if s.get("type") == "events")
         if stream_id is None:
             if not event_ids:
-                raise FormatError(f"{self.path}: no event stream (streams: {streams})")
-            stream_id = min(event_ids)
+                raise FormatError(
+                    f"{self.path}: no polarity event stream (EVTS); the file holds {_describe(streams)}"
+                )
+            stream_id = event_ids[0]
         elif stream_id not in event_ids:
-            raise FormatError(f"{self.path}: stream {stream_id} is not an event stream (streams: {streams})")
+            raise FormatError(
+                f"{self.path}: stream {stream_id} is not a polarity event stream; the file holds "
+                f"{_describe(streams)}"
+            )
         info = streams[stream_id]
         self.sensor_size = (int(info["height"]), int(info["width"]))
-        frame_ids = [k for k, s in streams.items() if s.get("type") == "frame"]
-        frame_id = min(frame_ids) if frame_ids else None
+        frame_ids = sorted(k for k, s in streams.items() if s.get("type") == "frame")
         fd, tmp = tempfile.mkstemp(prefix=f"{self.name}-", suffix=".evflow.h5", dir=cache_dir)
         os.close(fd)
         self._cache_path = Path(tmp)
         try:
-            writer = H5Writer(self._cache_path, self.sensor_size, name=self.name, provenance={"source": str(self.path), "format": "aedat4"})
+            writer = H5Writer(self._cache_path, self.sensor_size, name=self.name,
+                              provenance={"source": str(self.path), "format": "aedat4"})
             with writer:
-                for packet in decoder:
-                    sid = packet.get("stream_id")
-                    if sid == stream_id and "events" in packet:
-                        ev = packet["events"]
-                        if len(ev) == 0:
-                            continue
-                        writer.append_events(
-                            Events.create(ev["x"], ev["y"], ev["t"].astype(np.int64), ev["on"], self.sensor_size,
-                                          source=f"{self.path} (stream {sid})", validate=validate)
-                        )
-                    elif sid == frame_id and "frame" in packet:
-                        writer.add_frame(int(packet["frame"]["t"]), _gray(packet["frame"], self.sensor_size))
+                self._decode(decoder, writer, stream_id, frame_ids[0] if frame_ids else None, validate)
             self._inner = H5Reader(self._cache_path, validate=validate)
-        except Exception:
+        except BaseException:  # Ctrl-C included: no decoded copy survives a failed open
             self._cache_path.unlink(missing_ok=True)
             raise
         finally:
             decoder = None  # the aedat README: drop the decoder to release the file
         self.num_events = self._inner.num_events
+
+    def _decode(self, decoder, writer: H5Writer, stream_id: int, frame_id: int | None, validate: bool) -> None:
+        """Every packet of ``decoder`` into ``writer``: the events of ``stream_id`` and the
+        frames of ``frame_id``, each checked to go forward in time (an error names this file,
+        the stream and the packet, not the temporary copy)."""
+        last_t: int | None = None
+        last_frame_t: int | None = None
+        num_events = 0
+        packets = iter(decoder)
+        for number in itertools.count():
+            try:
+                packet = next(packets)
+            except StopIteration:
+                return
+            except (RuntimeError, OSError, ValueError) as err:
+                raise FormatError(
+                    f"{self.path}: AEDAT4 packet {number} cannot be read ({err}) after "
+                    f"{num_events} events; the file is cut short or damaged"
+                ) from None
+            sid = packet.get("stream_id")
+            where = f"{self.path} (stream {sid}, packet {number})"
+            if sid == stream_id and "events" in packet:
+                ev = packet["events"]
+                if len(ev) == 0:
+                    continue
+                t = ev["t"].astype(np.int64)
+                if last_t is not None and t[0] < last_t:
+                    raise EventError(
+                        f"{where}: events go back in time: t={t[0]} us follows t={last_t} us of the "
+                        f"previous packet; the reader needs the events of a stream in time order"
+                    )
+                writer.append_events(Events.create(ev["x"], ev["y"], t, ev["on"], self.sensor_size,
+                                                   source=where, validate=validate))
+                last_t = int(t[-1])
+                num_events += len(t)
+            elif sid == frame_id and "frame" in packet:
+                t_frame = int(packet["frame"]["t"])
+                if last_frame_t is not None and t_frame < last_frame_t:
+                    raise EventError(f"{where}: frame at t={t_frame} us follows a frame at t={last_frame_t} us")
+                writer.add_frame(t_frame, _gray(packet["frame"], self.sensor_size))
+                last_frame_t = t_frame
 
     # everything else is the decoded copy's
     @property
