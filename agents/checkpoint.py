@@ -1,61 +1,150 @@
-"""Checkpoints that cannot be half-written: saved to a temporary file, then renamed.
+"""Checkpoints that cannot be half-written and are safe to load.
 
 A checkpoint is a dict saved with ``torch.save``:
 
-    format: "evflow-checkpoint", version: 1
+    format: "evflow-checkpoint", version: 2
     model_name: registry name or "package.module:factory"; model_config: its kwargs
     model: state_dict; optimizer, scheduler: state_dicts (training checkpoints)
     step: optimizer steps done; config: the training configuration (a dict)
-    rng: python / numpy / torch (and CUDA) generator states
+    rng: python / numpy / torch generator states, and CUDA's of the training device only
     policy_state: the recurrent state carried into the next unroll (tensors on CPU)
     env_states: every training env's episode state (see EventFlowEnv.episode_state)
+
+Safe schema: what is stored holds only tensors, numbers, strings, booleans, None, lists, tuples
+and dicts, so it loads with ``torch.load(weights_only=True)``, which runs no code from the file.
+:func:`save_checkpoint` converts numpy arrays (``{"__ndarray__": tensor, "dtype": ...}``, or the
+elements of an object array), numpy scalars and other mappings on the way in, and
+:func:`load_checkpoint` turns them back into numpy arrays and dicts. Anything else is refused
+when saving. A file written before (version 1, pickled numpy objects) raises
+:class:`CheckpointError` telling to convert it once with :func:`upgrade_checkpoint`
+(``python scripts/export_model.py --upgrade FILE``), which must unpickle it: only for files you trust.
+
+Writes go to ``<name>.tmp-<pid>`` and are renamed over the target when complete; temporaries of
+killed writers are removed by the next save to that name (:mod:`envs.atomic`).
 """
 
 from __future__ import annotations
 
 import os
+import pickle
 import random
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from envs.atomic import remove_stale_temporaries, temporary_path
+
 from .registry import make_model
 
-__all__ = ["save_checkpoint", "load_checkpoint", "load_model", "rng_state", "set_rng_state", "CheckpointError"]
+__all__ = [
+    "save_checkpoint",
+    "load_checkpoint",
+    "load_model",
+    "upgrade_checkpoint",
+    "to_safe",
+    "from_safe",
+    "rng_state",
+    "set_rng_state",
+    "CheckpointError",
+]
 
 FORMAT = "evflow-checkpoint"
+VERSION = 2
+_NDARRAY = "__ndarray__"
+_OBJECTS = "__ndarray_objects__"
 
 
 class CheckpointError(ValueError):
     """A file that is not a checkpoint of this project (the message names the file)."""
 
 
-def rng_state() -> dict[str, Any]:
+def rng_state(device: str | torch.device | None = None) -> dict[str, Any]:
+    """Python, numpy and torch generator states, plus CUDA's of ``device`` when it is a CUDA
+    device (only that one: other GPUs are neither needed nor touched, and a CPU run never
+    initialises CUDA)."""
     state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
+    device = None if device is None else torch.device(device)
+    if device is not None and device.type == "cuda":
+        state["cuda"] = torch.cuda.get_rng_state(device)
     return state
 
 
-def set_rng_state(state: dict[str, Any]) -> None:
+def set_rng_state(state: dict[str, Any], device: str | torch.device | None = None) -> None:
+    """Restore :func:`rng_state`; the CUDA state goes to ``device`` when both are CUDA."""
     random.setstate(state["python"])
     np.random.set_state(state["numpy"])
     torch.set_rng_state(state["torch"])
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
+    device = None if device is None else torch.device(device)
+    cuda = state.get("cuda")
+    if cuda is not None and device is not None and device.type == "cuda":
+        if isinstance(cuda, (list, tuple)):  # version 1 stored every GPU's state: take this device's
+            index = device.index if device.index is not None else torch.cuda.current_device()
+            if index >= len(cuda):
+                return
+            cuda = cuda[index]
+        torch.cuda.set_rng_state(cuda, device)
+
+
+def to_safe(value: Any, where: str = "checkpoint") -> Any:
+    """``value`` in the safe schema (module docstring): numpy arrays become tagged tensors (object
+    arrays: their elements), numpy scalars Python numbers, mappings dicts. Raises TypeError naming
+    the entry (``where``) for anything else."""
+    if value is None or isinstance(value, (bool, int, float, str, torch.Tensor)):
+        return value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind in "biuf":
+            return {_NDARRAY: torch.from_numpy(np.array(value, value.dtype.newbyteorder("="))), "dtype": value.dtype.str.lstrip("<>=|")}
+        return {_OBJECTS: [to_safe(v, f"{where}[{i}]") for i, v in enumerate(value.ravel().tolist())],
+                "shape": list(value.shape)}
+    if isinstance(value, Mapping):
+        out = {}
+        for key, item in value.items():
+            if not isinstance(key, (str, int)):
+                raise TypeError(f"{where}: key {key!r} is neither a string nor an int; cannot be saved safely")
+            out[key] = to_safe(item, f"{where}/{key}")
+        return out
+    if isinstance(value, (list, tuple)):
+        items = [to_safe(v, f"{where}[{i}]") for i, v in enumerate(value)]
+        return items if isinstance(value, list) else tuple(items)
+    raise TypeError(f"{where}: a {type(value).__name__} cannot be saved safely (allowed: tensors, numbers, strings, "
+                    "lists, tuples, dicts, numpy arrays)")
+
+
+def from_safe(value: Any) -> Any:
+    """Inverse of :func:`to_safe`: tagged tensors back to numpy arrays."""
+    if isinstance(value, dict):
+        if _NDARRAY in value:
+            return value[_NDARRAY].cpu().numpy().astype(np.dtype(value["dtype"]), copy=False)
+        if _OBJECTS in value:
+            items = [from_safe(v) for v in value[_OBJECTS]]
+            array = np.empty(len(items), object)
+            array[:] = items
+            return array.reshape(value["shape"])
+        return {key: from_safe(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [from_safe(v) for v in value]
+    if isinstance(value, tuple):
+        return tuple(from_safe(v) for v in value)
+    return value
 
 
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
     """Write ``payload`` (see the module docstring) atomically: the old file stays intact until
-    the new one is complete on disk."""
+    the new one is complete on disk. Raises TypeError, before writing, for an entry outside the
+    safe schema."""
     path = Path(path)
+    safe = to_safe({"format": FORMAT, **payload, "version": VERSION})
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    remove_stale_temporaries(path)
+    tmp = temporary_path(path)
     try:
         with open(tmp, "wb") as f:
-            torch.save({"format": FORMAT, "version": 1, **payload}, f)
+            torch.save(safe, f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -65,11 +154,23 @@ def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Load a checkpoint with ``torch.load(weights_only=True)`` (no code from the file runs).
+
+    Raises CheckpointError naming the file for a missing, truncated or foreign file, and for a
+    checkpoint in the old pickled format (with the command that converts it)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such checkpoint")
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=False)
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as err:
+        if "weights_only" in str(err) or "Weights only load failed" in str(err):
+            raise CheckpointError(
+                f"{path}: holds pickled Python objects, which a safe load refuses (a checkpoint written before "
+                f"format version {VERSION}, or not one of ours). If you trust the file, convert it once: "
+                f"python scripts/export_model.py --upgrade {path}"
+            ) from None
+        raise CheckpointError(f"{path}: not a readable checkpoint (UnpicklingError: {err})") from err
     except Exception as err:  # truncated or foreign files
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(err).__name__}: {err})") from err
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
@@ -77,7 +178,27 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     for key in ("model_name", "model_config", "model"):
         if key not in payload:
             raise CheckpointError(f"{path}: checkpoint lacks {key!r}")
-    return payload
+    return from_safe(payload)
+
+
+def upgrade_checkpoint(path: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
+    """Convert an old-format (pickled) checkpoint to the safe schema, in place or to ``out``;
+    returns the path written. This unpickles the file, which can run code: only for trusted files.
+    A file that already loads safely is rewritten unchanged in content."""
+    path = Path(path)
+    out = path if out is None else Path(out)
+    try:
+        payload = load_checkpoint(path)
+    except CheckpointError:
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as err:
+            raise CheckpointError(f"{path}: not a readable checkpoint ({type(err).__name__}: {err})") from err
+        if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+            raise CheckpointError(f"{path}: not an evflow checkpoint (missing 'format': {FORMAT!r})") from None
+    save_checkpoint(out, payload)
+    load_checkpoint(out)  # proves the result loads safely
+    return out
 
 
 def load_model(

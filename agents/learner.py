@@ -334,22 +334,29 @@ class Learner:
             "scheduler": self.scheduler.state_dict(),
             "step": self.step,
             "config": self.cfg.to_dict(),
-            "rng": rng_state(),
+            "rng": rng_state(self.device),
             "policy_state": None if state is None else {k: v.detach().cpu() for k, v in state.items()},
             "env_states": list(self.envs.call("episode_state")),
             "obs": {k: np.array(v) for k, v in self.obs.items()},
             "info": self.info,
         }
 
-    def load_state_dict(self, payload: dict[str, Any]) -> None:
+    def load_state_dict(self, payload: dict[str, Any], *, restore_episodes: bool = True) -> None:
+        """Continue the run of a training checkpoint. The step size follows ``cfg.lr`` (the
+        stored one unless a resume was allowed to change it). restore_episodes: False starts
+        fresh episodes (when the data or the windows changed) instead of the stored ones."""
         self.policy.model.load_state_dict(payload["model"])
         self.optimizer.load_state_dict(payload["optimizer"])
         self.scheduler.load_state_dict(payload["scheduler"])
         self.step = int(payload["step"])
-        set_rng_state(payload["rng"])
-        state = payload.get("policy_state")
+        self.scheduler.base_lrs = [self.cfg.lr for _ in self.optimizer.param_groups]
+        for group in self.optimizer.param_groups:
+            group["initial_lr"] = self.cfg.lr
+            group["lr"] = self.cfg.lr * self._lr_factor(self.scheduler.last_epoch)
+        set_rng_state(payload["rng"], self.device)
+        state = payload.get("policy_state") if restore_episodes else None
         self.policy.state = None if state is None else {k: v.to(self.device) for k, v in state.items()}
-        if payload.get("env_states") is not None:
+        if restore_episodes and payload.get("env_states") is not None:
             self.envs.call("restore_episode_state", payload["env_states"])
             self.obs, self.info = payload["obs"], payload["info"]
 

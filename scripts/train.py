@@ -6,15 +6,26 @@ Examples:
   python scripts/train.py --model convgru-ev-flownet --loss at --out runs/baseline
   python scripts/train.py --model mypkg.models:build --out runs/mine  # any protocol module
   python scripts/train.py --resume runs/mgr/checkpoint.pt --steps 1000
+  python scripts/train.py --resume --out runs/mgr --lr 5e-5 --allow-changes lr
   torchrun --nproc_per_node=2 scripts/train.py --steps 100 --out runs/ddp
 
 Writes OUT/metrics.jsonl (one line per optimizer step, plus validation lines),
-OUT/checkpoint.pt (every --ckpt-every steps, on Ctrl-C and at the end; atomic) and OUT/config.json.
+OUT/checkpoint.pt (every --ckpt-every steps, on Ctrl-C / SIGINT, on SIGTERM and at the end;
+atomic) and OUT/config.json.
+
+--resume continues the stored run: its configuration is used, and an option given on this command
+line that differs from it is refused, naming each field, unless --allow-changes lists it (run
+options --steps, --minutes, --out, --device, --ckpt-every and --val-* may always change, --steps
+too unless the step size decays with --decay cosine; the network's shape never: fine-tune with
+--init). metrics.jsonl is cut back to the checkpoint's step, so every step is logged once.
+
+Distributed (torchrun): each rank uses the GPU of its LOCAL_RANK with NCCL, or the CPU with gloo.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import signal
@@ -29,6 +40,7 @@ import torch.distributed as dist  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from agents.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
+from envs.atomic import remove_stale_temporaries, temporary_path  # noqa: E402
 from agents.evaluation import evaluate  # noqa: E402
 from agents.learner import Learner, TrainConfig  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
@@ -108,7 +120,10 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("run")
     g.add_argument("--out", default="runs/train", help="output directory")
     g.add_argument("--resume", nargs="?", const="auto", default=None, metavar="CHECKPOINT",
-                   help="continue from CHECKPOINT (default with no value: OUT/checkpoint.pt); its config is used, --steps/--minutes/--out may change")
+                   help="continue from CHECKPOINT (default with no value: OUT/checkpoint.pt); its config is used, an option "
+                        "that differs from it is refused unless --allow-changes names it")
+    g.add_argument("--allow-changes", default="", metavar="FIELDS",
+                   help="with --resume: comma-separated config fields this command may change, e.g. lr,steps")
     g.add_argument("--init", default=None, metavar="CHECKPOINT",
                    help="start from the network weights of CHECKPOINT, a training checkpoint or the name of a shipped "
                         "model (fine-tuning: a fresh optimizer and this run's options; the model, width, input and "
@@ -176,41 +191,143 @@ def init_weights(learner, path: Path) -> None:
     learner.policy.model.load_state_dict(payload["model"])
 
 
+#: options that say how long and where a run goes, not what it learns: free to change on --resume
+RUN_OPTIONS = frozenset({"out", "resume", "allow_changes", "init", "minutes", "device", "ckpt_every", "val_every",
+                         "val_data", "val_windows", "no_progress"})
+#: command-line dests whose TrainConfig field has another name
+FIELD_OF = {"model_kwarg": "model_kwargs", "no_flips": "flips"}
+#: fields that shape the network: a resume cannot change them (fine-tune with --init)
+ARCHITECTURE = frozenset({"model", "width", "input", "voxel_bins", "model_kwargs", "flow_scaling", "head_init"})
+#: fields that change the episodes: an allowed change starts fresh ones instead of the stored ones
+EPISODE_FIELDS = frozenset({"data", "window", "window_size", "crop", "random_crop", "flips", "num_envs", "vector", "seed"})
+
+
+def given_options(argv: list[str] | None) -> set[str]:
+    """The dests of the options written on the command line (not left at their defaults)."""
+    parser = build_parser()
+    parser.set_defaults(**{action.dest: None for action in parser._actions})  # no option parses to None
+    return {dest for dest, value in vars(parser.parse_args(argv)).items() if value is not None}
+
+
+def _comparable(value):
+    return json.loads(json.dumps(value, default=str))  # tuples and lists alike
+
+
+def resume_config(stored: dict, args, given: set[str], source: Path) -> tuple[TrainConfig, set[str]]:
+    """The configuration a resume continues with, and the fields it changed.
+
+    stored: the checkpoint's config. Each option given on the command line (``given``) must agree
+    with it, except run options, ``steps`` (unless the step size decays over the steps) and the
+    fields listed in ``--allow-changes``; otherwise ValueError names every differing field."""
+    # checkpoints from before the border rule's ramp existed trained with the plain rule
+    old = TrainConfig(**{"border_ramp": 0.0, **stored})
+    asked = config_from_args(args)
+    allowed = {name.strip() for name in args.allow_changes.split(",") if name.strip()}
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(allowed - fields)
+    if unknown:
+        raise ValueError(f"--allow-changes: unknown config field(s) {', '.join(unknown)}; fields: {', '.join(sorted(fields))}")
+    fixed = sorted(allowed & ARCHITECTURE)
+    if fixed:
+        raise ValueError(f"--allow-changes {', '.join(fixed)}: a resume cannot change the network's shape; start a new run "
+                         f"from these weights with --init {source}")
+    changed = {}
+    for dest in sorted(given - RUN_OPTIONS):
+        name = FIELD_OF.get(dest, dest)
+        if name in fields and _comparable(getattr(asked, name)) != _comparable(getattr(old, name)):
+            changed[name] = (getattr(old, name), getattr(asked, name))
+    free = {"steps"} if old.decay == "none" else set()
+    refused = [name for name in changed if name not in allowed | free]
+    if refused:
+        lines = "; ".join(f"{name}: stored {changed[name][0]!r}, asked {changed[name][1]!r}" for name in refused)
+        raise ValueError(
+            f"--resume {source}: this command changes the run's configuration ({lines}); pass "
+            f"--allow-changes {','.join(refused)} to continue with the new values, or drop the option(s)"
+        )
+    cfg = dataclasses.replace(old, **{name: new for name, (_, new) in changed.items()}, device=args.device)
+    return cfg, set(changed)
+
+
+def open_training_checkpoint(resume: str, out: Path) -> tuple[Path, dict]:
+    """(path, payload) of the checkpoint ``--resume`` names; a shipped model's name or a
+    weights-only file raises ValueError pointing at --init."""
+    path = out / "checkpoint.pt" if resume == "auto" else Path(resume)
+    if not path.exists() and resume in shipped.list_pretrained():
+        raise ValueError(f"--resume {resume}: is a shipped model (weights only), not a training run to continue; "
+                         f"fine-tune from it with --init {resume}")
+    payload = load_checkpoint(path)
+    missing = [key for key in ("optimizer", "scheduler", "step", "config", "rng") if key not in payload]
+    if missing:
+        raise ValueError(f"--resume {path}: a weights-only model file (no {', '.join(missing)}), e.g. one written by "
+                         f"export_model.py, not a training checkpoint; fine-tune from its weights with --init {path}")
+    return path, payload
+
+
+def truncate_metrics(path: Path, step: int) -> None:
+    """Keep the lines of metrics.jsonl up to ``step`` (a resumed run logs the later ones again)
+    and drop a line cut by a kill; rewritten atomically."""
+    if not path.exists():
+        return
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(row, dict) and row.get("step", 0) <= step:
+            kept.append(line)
+    remove_stale_temporaries(path)
+    tmp = temporary_path(path)
+    tmp.write_text("".join(line + "\n" for line in kept))
+    os.replace(tmp, path)
+
+
+def setup_distributed(args) -> int:
+    """Under torchrun: bind this rank to the GPU of its LOCAL_RANK (NCCL) or to the CPU (gloo),
+    and join the process group; returns the rank (0 without torchrun)."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return 0
+    if torch.device(args.device).type == "cuda":
+        local_rank = int(os.environ.get("LOCAL_RANK", 0))
+        torch.cuda.set_device(local_rank)
+        args.device = f"cuda:{local_rank}"
+        dist.init_process_group("nccl", device_id=torch.device(args.device))
+    else:
+        dist.init_process_group("gloo")
+    return dist.get_rank()
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world > 1:
-        backend = "nccl" if args.device.startswith("cuda") else "gloo"
-        dist.init_process_group(backend)
-        if args.device.startswith("cuda"):
-            args.device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
-    rank = dist.get_rank() if dist.is_initialized() else 0
+    rank = setup_distributed(args)
     out = Path(args.out)
-    payload = None
+    payload, changed = None, set()
     if args.resume:
-        resume = out / "checkpoint.pt" if args.resume == "auto" else Path(args.resume)
-        payload = load_checkpoint(resume)
-        # checkpoints from before the border rule's ramp existed trained with the plain rule
-        cfg = TrainConfig(**{"border_ramp": 0.0, **payload["config"]})
-        cfg.steps, cfg.device = args.steps, args.device
+        source, payload = open_training_checkpoint(args.resume, out)
+        cfg, changed = resume_config(payload["config"], args, given_options(argv), source)
     else:
         cfg = config_from_args(args)
     learner = Learner(cfg)
     if payload is not None:
-        learner.load_state_dict(payload)
+        learner.load_state_dict(payload, restore_episodes=not changed & EPISODE_FIELDS)
     elif args.init:
         init_weights(learner, Path(args.init))
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(out / "checkpoint.pt")  # left by a run killed while saving
         (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2, default=str))
+        if payload is not None:
+            truncate_metrics(out / "metrics.jsonl", learner.step)
     log = open(out / "metrics.jsonl", "a") if rank == 0 else None
 
     def save() -> None:
         if rank == 0:
             save_checkpoint(out / "checkpoint.pt", learner.state_dict())
 
-    interrupted = {"flag": False}
-    previous = signal.signal(signal.SIGINT, lambda *_: interrupted.__setitem__("flag", True))
+    # SIGINT (Ctrl-C) and SIGTERM (schedulers, timeout) both finish the step, save and stop
+    interrupted = {"signal": None}
+    handlers = {sig: signal.signal(sig, lambda signum, _: interrupted.__setitem__("signal", signum))
+                for sig in (signal.SIGINT, signal.SIGTERM)}
     start = time.time()
     bar = tqdm(total=cfg.steps, initial=learner.step, unit="step", disable=args.no_progress or rank != 0)
     try:
@@ -233,9 +350,9 @@ def main(argv=None) -> int:
                 bar.write(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in val.items()))
             if learner.step % args.ckpt_every == 0:
                 save()
-            stop = interrupted["flag"] or (args.minutes is not None and elapsed > 60 * args.minutes)
-            if dist.is_initialized():  # every rank stops on the same step
-                flag = torch.tensor([float(stop)])
+            stop = interrupted["signal"] is not None or (args.minutes is not None and elapsed > 60 * args.minutes)
+            if dist.is_initialized():  # every rank stops on the same step (the flag on the rank's own device)
+                flag = torch.tensor([float(stop)], device=learner.device)
                 dist.all_reduce(flag, op=dist.ReduceOp.MAX)
                 stop = bool(flag.item())
             if stop:
@@ -243,11 +360,13 @@ def main(argv=None) -> int:
     finally:
         bar.close()
         save()
-        signal.signal(signal.SIGINT, previous)
+        for sig, previous in handlers.items():
+            signal.signal(sig, previous)
         if rank == 0:
-            if interrupted["flag"]:
-                print(f"interrupted at step {learner.step}; saved {out / 'checkpoint.pt'}", file=sys.stderr)
-            if args.val_data and not interrupted["flag"]:
+            if interrupted["signal"] is not None:
+                name = signal.Signals(interrupted["signal"]).name
+                print(f"{name}: stopped at step {learner.step}; saved {out / 'checkpoint.pt'}", file=sys.stderr)
+            if args.val_data and interrupted["signal"] is None:
                 val = {"step": learner.step, **validate(learner, args.val_data, args.val_windows)}
                 log.write(json.dumps(val) + "\n")
                 print(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in val.items()))
@@ -255,7 +374,10 @@ def main(argv=None) -> int:
         learner.close()
         if dist.is_initialized():
             if sys.exc_info()[0] is None:  # tear down together: a rank whose peer already left can abort in gloo
-                dist.barrier()
+                if learner.device.type == "cuda":
+                    dist.barrier(device_ids=[learner.device.index])
+                else:
+                    dist.barrier()
             dist.destroy_process_group()
     return 0
 
