@@ -255,3 +255,25 @@ def test_an_interrupted_decode_leaves_no_copy(tmp_path, rng, cache, monkeypatch)
     monkeypatch.setattr(envs.h5format.H5Writer, "append_events", interrupt)
     with pytest.raises(KeyboardInterrupt):
         AedatReader(path, cache_dir=cache)
+
+
+def test_the_env_reads_aedat4_windows(tmp_path, rng):
+    import gymnasium
+
+    import envs  # noqa: F401  (registers EventFlow-v0)
+
+    path = tmp_path / "davis.aedat4"
+    (t, *_), _, _ = _davis_file(path, rng)
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    env = gymnasium.make("EventFlow-v0", data=str(path), window="time", window_size=10_000,
+                         data_options={"cache_dir": str(cache)})
+    _, info = env.reset(seed=0)
+    window_t = np.asarray(info["events"]["t"])
+    assert len(window_t) > 0
+    first = np.searchsorted(t, window_t[0])
+    np.testing.assert_array_equal(window_t, t[first : first + len(window_t)])
+    _, reward, *_ = env.step(np.zeros(env.action_space.shape, np.float32))
+    assert np.isfinite(reward)
+    env.close()
+    assert list(cache.iterdir()) == []
