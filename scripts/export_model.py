@@ -9,6 +9,12 @@ scripts/evaluate.py --pretrained NAME.
 The provenance records the command, the training data and budget (from the checkpoint's config
 and the run's metrics.jsonl, by default the one beside it, counted up to the checkpoint's step),
 the date, and the evaluation metrics when --eval is given.
+
+  python scripts/export_model.py --upgrade runs/old/checkpoint.pt [MORE.pt ...]
+
+converts, in place, checkpoints written before the safe format (pickled numpy objects, refused by
+the safe loader) so that they load with weights_only=True. This unpickles them once: only for
+files you trust.
 """
 
 from __future__ import annotations
@@ -21,21 +27,29 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents.checkpoint import load_checkpoint  # noqa: E402
+from agents.checkpoint import load_checkpoint, upgrade_checkpoint  # noqa: E402
 from agents.pretrained import export_pretrained  # noqa: E402
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("checkpoint")
-    p.add_argument("--name", required=True)
+    p.add_argument("checkpoint", nargs="+", help="the training checkpoint (several with --upgrade)")
+    p.add_argument("--name", default=None, help="the shipped model's name (required unless --upgrade)")
+    p.add_argument("--upgrade", action="store_true",
+                   help="convert old-format checkpoints in place to the safe format, then stop (trusted files only)")
     p.add_argument("--command", default="", help="the command(s) that trained it")
     p.add_argument("--eval", default=None, help="results.json of scripts/evaluate.py on the model")
     p.add_argument("--note", default="")
     p.add_argument("--dir", default=None, help="default: agents/weights/")
     p.add_argument("--metrics", default=None, help="the run's metrics.jsonl (default: beside the checkpoint)")
     args = p.parse_args(argv)
-    ckpt = Path(args.checkpoint)
+    if args.upgrade:
+        for path in args.checkpoint:
+            print(f"upgraded {upgrade_checkpoint(path)}")
+        return 0
+    if args.name is None or len(args.checkpoint) != 1:
+        p.error("exporting takes one checkpoint and --name NAME")
+    ckpt = Path(args.checkpoint[0])
     step = int(load_checkpoint(ckpt)["step"])
     metrics = Path(args.metrics) if args.metrics else ckpt.parent / "metrics.jsonl"
     budget = {}
