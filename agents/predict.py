@@ -1,0 +1,292 @@
+"""Flow for a whole recording: a model run window by window, the flows written to an h5 file,
+a preview animation and a summary of how well the flow explains the events.
+
+The windows and observations are the env's (:class:`envs.env.EventFlowEnv`, as in
+:func:`agents.evaluation.evaluate`): ground-truth aligned ``frames`` (a recording without a
+ground-truth grid falls back to time windows of ``no_gt_window_us``), ``time`` or ``count``;
+the recurrent state is carried from each window to the next. Per window the summary gathers
+L_HMC of the prediction and of zero flow, FWL and RSAT (ratios against zero flow, so zero
+flow scores 1 on both), and AEE / outlier % where the recording has ground truth.
+
+Output h5 (``FLOW_FORMAT``), written under a temporary name and renamed when complete (an
+interrupted run leaves nothing under the final name):
+
+- ``flow``: (K, 2, H, W) float16, pixels of displacement over each window (x right, y down),
+  gzip-compressed, one chunk per window;
+- ``t_start``, ``t_end``: (K,) int64 µs, each window ``[t_start, t_end)``; ``num_events`` (K,);
+- ``metrics/<name>``: (K,) float32 per-window hmc, hmc_zero, fwl, rsat, aee, outlier_pct (NaN
+  where a window has no events or no ground truth);
+- with ``per_event``: ``event_flow`` (N, 2) float16, the flow at each event's pixel, events in
+  window order, and ``event_offsets`` (K + 1,) int64: window k's rows are
+  ``event_offsets[k]:event_offsets[k+1]``;
+- attributes: ``format``, ``sensor_size`` (H, W of the flow frame), ``crop`` (its place in the
+  recording's sensor), ``recording``, ``reader``, ``window``, ``window_size``, ``model`` (JSON
+  provenance), ``units``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import h5py
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from envs.atomic import remove_stale_temporaries, temporary_path
+from envs.env import EventFlowEnv
+from envs.representations import event_mask
+from envs.visualize import count_image_to_rgb, flow_to_rgb, panel, save_animation
+from envs.windows import WINDOW_MODES, window_bounds
+from losses import EventBatch, flow_error, fwl, hmc_loss, rsat
+
+from .policy import RecurrentPolicy
+
+__all__ = ["FLOW_FORMAT", "PredictResult", "load_policy", "predict", "summary_table"]
+
+FLOW_FORMAT = "evflow-flow"
+WindowMode = Literal["frames", "time", "count"]
+PER_WINDOW = ("hmc", "hmc_zero", "fwl", "rsat", "aee", "outlier_pct", "aee_zero")
+
+
+@dataclass
+class PredictResult:
+    """What :func:`predict` wrote and measured.
+
+    per_window: {metric: (K,) float64} (NaN where not defined); seconds: wall time of the loop.
+    """
+
+    path: Path
+    video: Path | None
+    windows: int
+    events: int
+    seconds: float
+    per_window: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def mean(self, key: str) -> float:
+        values = self.per_window[key]
+        values = values[np.isfinite(values)]
+        return float(values.mean()) if len(values) else float("nan")
+
+    @property
+    def windows_per_second(self) -> float:
+        return self.windows / self.seconds if self.seconds > 0 else float("nan")
+
+
+def load_policy(model: str | None = None, *, device: str = "cpu", width: str | int = "cpu") -> tuple[RecurrentPolicy, dict]:
+    """The policy and its provenance for ``model``:
+
+    - None or a shipped name (``agents/weights``): ``RecurrentPolicy.from_pretrained``;
+    - a path to a checkpoint file written by training: ``agents.checkpoint.load_model``;
+    - a registry name or ``package.module:factory``: a fresh, untrained model of ``width``.
+    """
+    from .checkpoint import load_model
+    from .pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info
+    from .registry import make_model
+
+    if model is None or model in list_pretrained():
+        name = model or DEFAULT_PRETRAINED
+        info = pretrained_info(name)
+        provenance = {"kind": "pretrained", "name": name, **{k: info[k] for k in ("command", "date", "data") if k in info}}
+        return RecurrentPolicy.from_pretrained(name, device=device), provenance
+    if os.path.isfile(model):
+        net, payload = load_model(model, map_location=device)
+        cfg = payload.get("config") or {}
+        provenance = {"kind": "checkpoint", "path": os.path.abspath(model), "model_name": payload.get("model_name"),
+                      "model_config": payload.get("model_config"), "step": payload.get("step")}
+        policy = RecurrentPolicy(net, device=device, input_key=cfg.get("input", "count_image"), voxel_bins=cfg.get("voxel_bins", 5))
+        return policy, provenance
+    kwargs = {"width": width} if isinstance(width, str) else {"base_width": int(width)}
+    net = make_model(model, **kwargs).eval()
+    return RecurrentPolicy(net, device=device), {"kind": "untrained", "name": model, **kwargs}
+
+
+def _windows(env: EventFlowEnv, reader, window: str, start_us, end_us, no_gt_window_us) -> np.ndarray:
+    """(K, 2) µs rows [t_start, t_end): the env's windows of the recording inside [start, end)."""
+    mode, size = window, env.window_size
+    if window == "frames" and reader.flow_timestamps() is None:
+        mode, size = "time", no_gt_window_us
+    bounds = window_bounds(reader, mode, size, t_from=start_us)[:, :2]
+    if end_us is not None:
+        bounds = bounds[bounds[:, 1] <= end_us]
+    return bounds
+
+
+def _preview(count: np.ndarray, flow: np.ndarray, t_start: int, t_end: int, max_width: int) -> np.ndarray:
+    """Count image and colour-coded flow side by side, nearest-subsampled to ``max_width`` per tile."""
+    step = max(1, math.ceil(count.shape[-1] / max_width))
+    count, flow = count[:, ::step, ::step], flow[:, ::step, ::step]
+    magnitude = np.hypot(flow[0], flow[1])
+    scale = float(np.percentile(magnitude, 99)) if magnitude.size else 1.0
+    caption = f"{t_start / 1e6:.3f}-{t_end / 1e6:.3f} s, flow colour saturates at {scale:.2f} px"
+    return panel([("events", count_image_to_rgb(count)), ("flow", flow_to_rgb(flow, max(scale, 1e-3)))], caption)
+
+
+def predict(
+    policy: RecurrentPolicy,
+    recording: str | os.PathLike,
+    out_path: str | os.PathLike,
+    *,
+    window: WindowMode = "frames",
+    window_size: int | None = None,
+    start_s: float | None = None,
+    end_s: float | None = None,
+    crop=None,
+    sequence: int | str = 0,
+    data_format: str | None = None,
+    data_options: dict | None = None,
+    per_event: bool = False,
+    video: str | os.PathLike | None = None,
+    video_fps: float = 10.0,
+    video_frames: int = 150,
+    video_width: int = 320,
+    provenance: dict | None = None,
+    no_gt_window_us: int = 33_333,
+    progress: bool = True,
+    compression: int = 4,
+) -> PredictResult:
+    """Run ``policy`` over every window of ``recording`` and write the flows (module docstring).
+
+    window, window_size: as in the env (frames: grid steps, default 1; time: µs, default 10 000;
+    count: events, default 15 000). start_s, end_s: only windows inside [start_s, end_s), in
+    seconds from the recording's start (None: its start / end). crop: as in the env. video: path of the preview
+    (``.gif``, or ``.mp4`` where a codec is installed), None for none; at most ``video_frames``
+    windows spread evenly over the run, each tile at most ``video_width`` pixels wide.
+    sequence: which recording when ``recording`` names several (a folder, a synthetic split).
+    """
+    if window not in WINDOW_MODES:
+        raise ValueError(f"window must be one of {WINDOW_MODES}, got {window!r}")
+    out_path = Path(out_path)
+    parts = ("count_image",) if policy.input_key == "count_image" else ("count_image", policy.input_key)
+    env = EventFlowEnv(str(recording), data_format=data_format, data_options=data_options, window=window,
+                       window_size=window_size, crop=crop, compute_reward=False, observations=parts,
+                       voxel_bins=policy.voxel_bins)
+    names = env.sequence_names
+    if isinstance(sequence, str) and sequence not in names:
+        env.close()
+        raise ValueError(f"sequence {sequence!r} is not in {recording}; its sequences: {names}")
+    index = names.index(sequence) if isinstance(sequence, str) else int(sequence)
+    if not 0 <= index < len(names):
+        env.close()
+        raise ValueError(f"sequence {index} outside [0, {len(names)}) for {recording}")
+    reader = env.sources[index].reader()
+    start_us = None if start_s is None else reader.t_start + int(round(start_s * 1e6))
+    end_us = None if end_s is None else reader.t_start + int(round(end_s * 1e6))
+    bounds = _windows(env, reader, window, start_us, end_us, no_gt_window_us)
+    if len(bounds) == 0:
+        env.close()
+        raise ValueError(f"{recording}: no {window} window of size {env.window_size} inside the span "
+                         f"[{start_s or 0}, {end_s if end_s is not None else 'end'}) s from the recording's start")
+    k_total, (h, w) = len(bounds), (env.height, env.width)
+    video_at = set(np.linspace(0, k_total - 1, min(video_frames, k_total)).astype(int).tolist()) if video else set()
+    frames: list[np.ndarray] = []
+    per_window = {key: np.full(k_total, np.nan) for key in PER_WINDOW}
+
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out_path)
+    tmp = temporary_path(out_path)
+    bar = tqdm(total=k_total, desc=f"predict {reader.name}", unit="win", disable=not progress)
+    events_total, t0 = 0, time.perf_counter()
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs.update(format=FLOW_FORMAT, version=1, sensor_size=(h, w),
+                           recording=str(Path(recording).resolve()) if Path(recording).exists() else str(recording),
+                           reader=type(reader).__name__, window=window, window_size=env.window_size,
+                           model=json.dumps(provenance or {}, default=str),
+                           units="flow: pixels of displacement over the window, channel 0 = x (right), 1 = y (down)")
+            flow_ds = f.create_dataset("flow", (k_total, 2, h, w), np.float16, chunks=(1, 2, h, w),
+                                       compression="gzip", compression_opts=compression, shuffle=True)
+            f.create_dataset("t_start", data=bounds[:, 0])
+            f.create_dataset("t_end", data=bounds[:, 1])
+            counts = np.zeros(k_total, np.int64)
+            if per_event:
+                event_ds = f.create_dataset("event_flow", (0, 2), np.float16, maxshape=(None, 2), chunks=(1 << 16, 2),
+                                            compression="gzip", compression_opts=compression)
+            obs, info = env.reset(options={"sequence": index, "windows": bounds})
+            f.attrs["crop"] = info["crop"]
+            policy.reset()
+            for k in range(k_total):
+                flow = policy.act(obs)
+                win = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+                n = len(win["t"])
+                counts[k] = n
+                flow_ds[k] = flow.astype(np.float16)
+                if per_event and n:
+                    rows = flow[:, win["y"].astype(np.int64), win["x"].astype(np.int64)].T.astype(np.float16)
+                    event_ds.resize((events_total + n, 2))
+                    event_ds[events_total:] = rows
+                events_total += n
+                _score_window(per_window, k, flow, win, info, (h, w), env.flow_scaling)
+                if k in video_at:
+                    frames.append(_preview(obs["count_image"], flow, info["t_start"], info["t_end"], video_width))
+                bar.update(1)
+                obs, _, _, _, info = env.step(flow)
+            f.create_dataset("num_events", data=counts)
+            if per_event:
+                f.create_dataset("event_offsets", data=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
+            for key, values in per_window.items():
+                f.create_dataset(f"metrics/{key}", data=values.astype(np.float32))
+        seconds = time.perf_counter() - t0
+        os.replace(tmp, out_path)
+    except BaseException:  # KeyboardInterrupt included: nothing under the final name
+        tmp.unlink(missing_ok=True)
+        raise
+    finally:
+        bar.close()
+        env.close()
+    video_path = save_animation(video, frames, video_fps) if video and frames else None
+    return PredictResult(out_path, video_path, k_total, events_total, seconds, per_window)
+
+
+def _score_window(per_window: dict, k: int, flow: np.ndarray, win: dict, info: dict, size, flow_scaling: float) -> None:
+    """The evaluation's per-window metrics (agents/evaluation.py), stored at index k."""
+    if not len(win["t"]):
+        return
+    batch = EventBatch.from_windows([win])
+    with torch.no_grad():
+        for key, f in (("hmc", flow), ("hmc_zero", np.zeros_like(flow))):
+            per_window[key][k] = float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=flow_scaling).loss)
+    per_window["fwl"][k] = fwl(flow, win, size)
+    per_window["rsat"][k] = rsat(flow, win, size)
+    if "flow_gt" in info:
+        mask = event_mask(_EventView(win), size)
+        err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], mask)
+        if err["n_pixels"] > 0:
+            per_window["aee"][k], per_window["outlier_pct"][k] = err["aee"], err["outlier_pct"]
+            zero = flow_error(np.zeros_like(flow), info["flow_gt"], info["flow_gt_valid"], mask)
+            per_window["aee_zero"][k] = zero["aee"]
+
+
+class _EventView:
+    def __init__(self, events: dict) -> None:
+        self.x, self.y, self.p = events["x"], events["y"], events["p"]
+
+
+def _fmt(value: float, digits: int = 4) -> str:
+    return "-" if not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def summary_table(result: PredictResult, name: str = "model") -> str:
+    """Markdown: the model against zero flow, means over the windows with events (AEE over
+    those with ground truth). FWL and RSAT are ratios to zero flow, which scores 1 on both."""
+    m = result.mean
+    lines = [
+        "| | windows | L_HMC | FWL (higher better) | RSAT (lower better) | AEE | % outliers |",
+        "|---|---|---|---|---|---|---|",
+        f"| {name} | {result.windows} | {_fmt(m('hmc'))} | {_fmt(m('fwl'))} | {_fmt(m('rsat'))} | {_fmt(m('aee'), 3)} | {_fmt(m('outlier_pct'), 2)} |",
+        f"| zero flow | {result.windows} | {_fmt(m('hmc_zero'))} | 1.0000 | 1.0000 | {_fmt(m('aee_zero'), 3)} | - |",
+    ]
+    return "\n".join(lines)
+
+
+def summary_dict(result: PredictResult) -> dict[str, Any]:
+    """The means of :func:`summary_table` as a JSON-ready dict (NaN -> None)."""
+    clean = lambda v: v if math.isfinite(v) else None  # noqa: E731
+    return {"windows": result.windows, "events": result.events, "seconds": result.seconds,
+            **{key: clean(result.mean(key)) for key in PER_WINDOW}}

@@ -1,0 +1,100 @@
+"""agents.predict against the env-driven evaluation: same windows, same flows, same metrics."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from agents.evaluation import evaluate
+from agents.policy import RecurrentPolicy
+from agents.predict import FLOW_FORMAT, predict, summary_table
+from agents.registry import make_model
+
+
+class RecordingPolicy:
+    """Forwards to a policy and keeps every flow it returned (what the evaluation saw)."""
+
+    def __init__(self, policy: RecurrentPolicy) -> None:
+        self.policy, self.flows = policy, []
+        self.input_key, self.voxel_bins = policy.input_key, policy.voxel_bins
+
+    def reset(self) -> None:
+        self.policy.reset()
+
+    def act(self, obs):
+        flow = self.policy.act(obs)
+        self.flows.append(flow)
+        return flow
+
+
+def tiny_policy() -> RecurrentPolicy:
+    import torch
+
+    torch.manual_seed(0)
+    return RecurrentPolicy(make_model("plugin_example.tiny_flow:build", flow_scaling=4.0).eval())
+
+
+@pytest.fixture
+def plugin_path(monkeypatch):
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))
+
+
+@pytest.mark.parametrize("window,size", [("frames", 1), ("time", 20_000)])
+def test_predict_writes_the_flows_the_evaluation_produces(tmp_path, plugin_path, window, size):
+    policy = tiny_policy()
+    spy = RecordingPolicy(policy)
+    runs = evaluate(spy, "synthetic-mini", window=window, window_size=size, progress=False)
+    expected = runs[1]  # predict the second sequence; its flows follow the first one's in the spy
+    flows = np.stack(spy.flows[runs[0].windows : runs[0].windows + expected.windows])
+    out = tmp_path / "flow.h5"
+    result = predict(policy, "synthetic-mini", out, window=window, window_size=size, sequence=1, per_event=True,
+                     video=tmp_path / "preview.gif", progress=False, provenance={"kind": "test"})
+    with h5py.File(out, "r") as f:
+        assert f.attrs["format"] == FLOW_FORMAT and tuple(f.attrs["sensor_size"]) == (64, 64)
+        assert f["flow"].dtype == np.float16 and f["flow"].chunks == (1, 2, 64, 64) and f["flow"].compression == "gzip"
+        np.testing.assert_array_equal(f["flow"][:], flows.astype(np.float16))
+        assert len(f["t_start"]) == expected.windows == result.windows
+        assert (f["t_end"][:-1] == f["t_start"][1:]).all()
+        offsets = f["event_offsets"][:]
+        assert offsets[-1] == f["num_events"][:].sum() == len(f["event_flow"]) == result.events
+    for key in ("hmc", "hmc_zero", "fwl", "rsat") + (("aee",) if window == "frames" else ()):
+        assert result.mean(key) == pytest.approx(expected.mean(key), rel=1e-6), key
+    assert result.video is not None and result.video.stat().st_size > 0
+    table = summary_table(result)
+    assert "zero flow" in table and f"{expected.mean('hmc'):.4f}" in table
+
+
+def test_predict_carries_the_recurrent_state(tmp_path, plugin_path):
+    """Window 2's flow depends on window 1 (state carried), unlike a fresh start there."""
+    policy = tiny_policy()
+    out = tmp_path / "all.h5"
+    predict(policy, "synthetic-mini", out, window="time", window_size=20_000, progress=False)
+    cut = tmp_path / "cut.h5"
+    predict(policy, "synthetic-mini", cut, window="time", window_size=20_000, start_s=0.1, end_s=0.2, progress=False)
+    with h5py.File(out, "r") as a, h5py.File(cut, "r") as b:
+        t0 = a["t_start"][0]
+        assert b["t_start"][0] == t0 + 100_000 and b["t_end"][-1] <= t0 + 200_000 and len(b["t_start"]) == 5
+        k = int(np.searchsorted(a["t_start"][:], b["t_start"][0]))
+        assert not np.array_equal(a["flow"][k], b["flow"][0])  # fresh state at the cut's first window
+
+
+def test_an_interrupted_prediction_leaves_no_file(tmp_path, plugin_path, monkeypatch):
+    policy = tiny_policy()
+    calls = []
+    real = policy.act
+
+    def interrupted(obs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(obs)
+
+    monkeypatch.setattr(policy, "act", interrupted)
+    out = tmp_path / "out" / "flow.h5"
+    with pytest.raises(KeyboardInterrupt):
+        predict(policy, "synthetic-mini", out, window="time", window_size=20_000, video=tmp_path / "out" / "v.gif",
+                progress=False)
+    assert len(calls) == 3 and list((tmp_path / "out").iterdir()) == []
