@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -21,17 +22,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from envs.dataset import resolve_data
 from envs.env import EventFlowEnv, NoWindowsError
 from envs.representations import event_mask
-from envs.visualize import count_image_to_rgb, flow_to_rgb, save_png
-from envs.windows import window_bounds
+from envs.visualize import count_image_to_rgb, flow_legend, flow_to_rgb, panel, save_animation, save_png
+from envs.windows import FALLBACK_INTERVAL_US, window_grid
 from losses import EventBatch, flow_error, fwl, hmc_loss, rsat, sample_flow, warped_event_images
 
-from .policy import RecurrentPolicy
+__all__ = ["SequenceResult", "evaluate", "results_table", "results_json", "window_panel", "windowing_of"]
 
-__all__ = ["SequenceResult", "evaluate", "results_table", "results_json"]
-
-METRICS = ("aee", "outlier_pct", "cosine", "hmc", "hmc_zero", "fwl", "rsat")
+METRICS = ("aee", "outlier_pct", "cosine", "hmc", "hmc_zero", "fwl", "rsat", "ms")
 
 
 def flow_cosine(flow: np.ndarray, flow_gt: np.ndarray, mask: np.ndarray) -> float:
@@ -49,6 +49,8 @@ def flow_cosine(flow: np.ndarray, flow_gt: np.ndarray, mask: np.ndarray) -> floa
 @dataclass
 class SequenceResult:
     name: str
+    size: tuple = ()  # (H, W) of the frame it was evaluated in
+    windowing: str = ""  # how its windows were cut
     windows: int = 0
     sums: dict = field(default_factory=lambda: {k: 0.0 for k in METRICS})
     counts: dict = field(default_factory=lambda: {k: 0 for k in METRICS})
@@ -62,7 +64,8 @@ class SequenceResult:
         return self.sums[key] / self.counts[key] if self.counts[key] else float("nan")
 
     def as_dict(self) -> dict[str, Any]:
-        return {"sequence": self.name, "windows": self.windows, **{k: self.mean(k) for k in METRICS}}
+        return {"sequence": self.name, "windows": self.windows, "size": list(self.size), "windowing": self.windowing,
+                **{k: self.mean(k) for k in METRICS}}
 
 
 class _EventView:
@@ -79,8 +82,31 @@ def _iwe_picture(flow: np.ndarray, window: dict, size) -> np.ndarray:
     return count_image_to_rgb(count[0, 0].numpy())
 
 
+def _describe_windows(window: str, size: int, grid_kind: str | None) -> str:
+    """How the windows were cut, for table titles and JSON."""
+    if window == "frames":
+        what = {"ground truth": "ground-truth intervals", "frames": "APS frame intervals",
+                "time": f"fixed {FALLBACK_INTERVAL_US} us intervals (no ground truth, no frames)"}[grid_kind]
+        return f"{size} x {what}"
+    return f"{size} us" if window == "time" else f"{size} events"
+
+
+def _act(policy, obs: dict, window: dict, size: tuple[int, int]) -> np.ndarray:
+    """One window's flow: zero flow (None), a window-solving policy, or a recurrent policy."""
+    if policy is None:
+        return np.zeros((2,) + size, np.float32)
+    if hasattr(policy, "act_on_window"):
+        return policy.act_on_window(obs, window)
+    return policy.act(obs)
+
+
+def _input_parts(policy) -> tuple[str, ...]:
+    key = "count_image" if policy is None else getattr(policy, "input_key", "count_image")
+    return ("count_image",) if key == "count_image" else ("count_image", key)
+
+
 def evaluate(
-    policy: RecurrentPolicy | None,
+    policy,
     data,
     *,
     window: str = "frames",
@@ -90,105 +116,175 @@ def evaluate(
     max_windows: int | None = None,
     pictures_dir: str | Path | None = None,
     pictures_per_sequence: int = 2,
+    animation_windows: int = 0,
     progress: bool = True,
     flow_scaling: float | None = None,
     data_format: str | None = None,
     data_options: dict | None = None,
     windows_fn: Callable | None = None,
-    no_gt_window_us: int = 33_333,
 ) -> list[SequenceResult]:
-    """Roll ``policy`` (None: zero flow) through every sequence of ``data``.
+    """Roll ``policy`` through every sequence of ``data``, each at its own sensor size.
 
+    policy: a :class:`RecurrentPolicy`, None (zero flow), or a policy that solves each window
+    from its events (``act_on_window(obs, window)``, e.g. ``agents.cmax.ContrastMaximisationPolicy``
+    or ``RefinedPolicy``).
+    Every recording is evaluated whole in its own sensor frame (the built-in networks pad the
+    input to a multiple of 16 and crop their flow back), unless ``crop`` is given: then that
+    crop of every recording (``(h, w)`` centred, or ``(top, left, h, w)``).
+    window, window_size: as in :class:`EventFlowEnv`; ``frames`` windows follow the ground-truth
+    grid, else the APS frames, else fixed 30 Hz intervals (``envs.windows.window_grid``).
     dt_ratio: ground-truth interval / input window duration; predictions are multiplied by
     it before the comparison with ground truth (linear motion). max_windows: per sequence.
-    pictures_dir: where to write PNGs (count image, predicted flow, ground truth, images of
-    warped events with zero and predicted flow) for the first windows of each sequence.
+    pictures_dir: where to write one labelled PNG panel per drawn window (count image,
+    predicted flow, ground truth, warped events with zero and predicted flow, colour-wheel
+    legend; AEE / FWL in the caption) for the first ``pictures_per_sequence`` windows, and, with
+    ``animation_windows > 0``, a GIF per sequence of count image + predicted flow over its first
+    that many windows.
     data_format, data_options: reader choice and options (see EventFlowEnv).
     windows_fn: reader -> (K, 2) µs ``[t_start, t_end)`` rows, the windows to evaluate (an
     evaluation protocol's valid range); default: all windows of the chosen mode.
-    no_gt_window_us: in ``frames`` mode, a recording without a ground-truth grid is cut into
-    time windows of this length instead (FWL, RSAT and L_HMC only; AEE is reported as NaN).
+    Per window the time the policy takes to produce its flow is measured (``ms``).
     """
-    parts = ("count_image",) if policy is None or policy.input_key == "count_image" else ("count_image", policy.input_key)
-    env = EventFlowEnv(data, window=window, window_size=window_size, crop=crop, compute_reward=False,
-                       flow_scaling=flow_scaling, data_format=data_format, data_options=data_options,
-                       observations=parts, voxel_bins=policy.voxel_bins if policy is not None else 5)
-    size = (env.height, env.width)
+    sources = resolve_data(data, format=data_format, options=data_options)
     results = []
-    total = len(env.sources)
+    total = len(sources)
     for index in range(total):
-        options = {"sequence": index}
-        reader = env.sources[index].reader()
-        if windows_fn is not None:
-            options["windows"] = windows_fn(reader)
-        elif window == "frames" and reader.flow_timestamps() is None:
-            options["windows"] = window_bounds(reader, "time", no_gt_window_us)[:, :2]
+        # one env per recording: each in its own frame, nothing cropped unless asked
+        env = EventFlowEnv(data, window=window, window_size=window_size, crop=crop, compute_reward=False,
+                           flow_scaling=flow_scaling, data_format=data_format, data_options=data_options,
+                           observations=_input_parts(policy), sequences=[index],
+                           voxel_bins=getattr(policy, "voxel_bins", 5) if policy is not None else 5)
         try:
-            obs, info = env.reset(options=options)
-        except NoWindowsError:  # too short for this window size: reported with 0 windows
-            results.append(SequenceResult(env.sequence_names[index]))
-            continue
-        if policy is not None:
-            policy.reset()
-        result = SequenceResult(info["sequence"])
-        bar = tqdm(desc=f"eval {info['sequence']} ({index + 1}/{total})", unit="win", disable=not progress, leave=False)
-        truncated = False
-        while not truncated and (max_windows is None or result.windows < max_windows):
-            flow = np.zeros((2,) + size, np.float32) if policy is None else policy.act(obs)
-            win = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
-            n_events = len(win["t"])
-            if n_events:
-                batch = EventBatch.from_windows([win])
-                with torch.no_grad():
-                    for key, f in (("hmc", flow), ("hmc_zero", np.zeros_like(flow))):
-                        result.add(key, float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=env.flow_scaling).loss))
-                result.add("fwl", fwl(flow, win, size))
-                result.add("rsat", rsat(flow, win, size))
-            if "flow_gt" in info and n_events:
-                err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], event_mask(_EventView(win), size), dt_ratio=dt_ratio)
-                if err["n_pixels"] > 0:
-                    result.add("aee", err["aee"])
-                    result.add("outlier_pct", err["outlier_pct"])
-                    mask = event_mask(_EventView(win), size) & info["flow_gt_valid"]
-                    result.add("cosine", flow_cosine(flow, info["flow_gt"], mask))
-            if pictures_dir is not None and result.windows < pictures_per_sequence and n_events:
-                stem = Path(pictures_dir) / f"{info['sequence']}_w{result.windows:03d}"
-                save_png(f"{stem}_events.png", count_image_to_rgb(obs["count_image"]))
-                scale = float(np.abs(info["flow_gt"]).max()) if "flow_gt" in info else None
-                save_png(f"{stem}_flow.png", flow_to_rgb(flow, scale))
-                if "flow_gt" in info:
-                    save_png(f"{stem}_flow_gt.png", flow_to_rgb(info["flow_gt"], scale))
-                save_png(f"{stem}_iwe_zero.png", _iwe_picture(np.zeros_like(flow), win, size))
-                save_png(f"{stem}_iwe_pred.png", _iwe_picture(flow, win, size))
-            result.windows += 1
-            bar.update(1)
-            obs, _, _, truncated, info = env.step(flow)
-        bar.close()
-        results.append(result)
-    env.close()
+            results.append(_evaluate_sequence(
+                env, policy, index, total, window=window, windows_fn=windows_fn, dt_ratio=dt_ratio,
+                max_windows=max_windows, pictures_dir=pictures_dir, pictures_per_sequence=pictures_per_sequence,
+                animation_windows=animation_windows, progress=progress))
+        finally:
+            env.close()
     return results
+
+
+def _evaluate_sequence(env: EventFlowEnv, policy, index: int, total: int, *, window, windows_fn, dt_ratio,
+                       max_windows, pictures_dir, pictures_per_sequence, animation_windows, progress) -> SequenceResult:
+    size = (env.height, env.width)
+    reader = env.sources[0].reader()
+    options: dict[str, Any] = {"sequence": 0}
+    grid_kind = window_grid(reader)[1] if window == "frames" else None
+    if windows_fn is not None:
+        options["windows"] = windows_fn(reader)
+    name = env.sequence_names[0]
+    described = _describe_windows(window, env.window_size, grid_kind)
+    try:
+        obs, info = env.reset(options=options)
+    except NoWindowsError:  # too short for this window size: reported with 0 windows
+        return SequenceResult(name, size=size, windowing=described)
+    if policy is not None:
+        policy.reset()
+    result = SequenceResult(info["sequence"], size=size, windowing=described)
+    bar = tqdm(desc=f"eval {info['sequence']} ({index + 1}/{total})", unit="win", disable=not progress, leave=False)
+    frames: list[np.ndarray] = []
+    truncated = False
+    while not truncated and (max_windows is None or result.windows < max_windows):
+        win = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+        began = time.perf_counter()
+        flow = _act(policy, obs, win, size)
+        result.add("ms", 1e3 * (time.perf_counter() - began))
+        n_events = len(win["t"])
+        aee = None
+        if n_events:
+            batch = EventBatch.from_windows([win])
+            with torch.no_grad():
+                for key, f in (("hmc", flow), ("hmc_zero", np.zeros_like(flow))):
+                    result.add(key, float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=env.flow_scaling).loss))
+            result.add("fwl", fwl(flow, win, size))
+            result.add("rsat", rsat(flow, win, size))
+        if "flow_gt" in info and n_events:
+            events_mask = event_mask(_EventView(win), size)
+            err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], events_mask, dt_ratio=dt_ratio)
+            if err["n_pixels"] > 0:
+                aee = err["aee"]
+                result.add("aee", err["aee"])
+                result.add("outlier_pct", err["outlier_pct"])
+                result.add("cosine", flow_cosine(flow, info["flow_gt"], events_mask & info["flow_gt_valid"]))
+        if pictures_dir is not None and result.windows < pictures_per_sequence and n_events:
+            path = Path(pictures_dir) / f"{info['sequence']}_w{result.windows:03d}.png"
+            save_png(path, window_panel(obs["count_image"], flow, win, info.get("flow_gt"), aee=aee))
+        if pictures_dir is not None and result.windows < animation_windows:
+            scale = float(np.abs(info["flow_gt"]).max()) if "flow_gt" in info else None
+            frames.append(panel([("events", count_image_to_rgb(obs["count_image"])),
+                                 ("flow", flow_to_rgb(flow, scale))], caption=f"window {result.windows}"))
+        result.windows += 1
+        bar.update(1)
+        obs, _, _, truncated, info = env.step(flow)
+    bar.close()
+    if frames:
+        save_animation(Path(pictures_dir) / f"{result.name}.gif", frames, fps=10)
+    return result
+
+
+def window_panel(count: np.ndarray, flow: np.ndarray, window: dict, flow_gt: np.ndarray | None = None,
+                 aee: float | None = None) -> np.ndarray:
+    """One labelled picture of a window: count image, predicted flow, ground truth (if any),
+    warped events with zero and with the predicted flow, a colour-wheel legend; the caption
+    gives the window's AEE (if any) and FWL. Flows share one colour scale (the ground truth's
+    largest magnitude, else the prediction's), which the legend's rim shows."""
+    size = tuple(flow.shape[-2:])
+    scale = float(np.abs(flow_gt).max()) if flow_gt is not None else float(np.hypot(*flow).max())
+    scale = max(scale, 1e-3)
+    tiles = [("events", count_image_to_rgb(count)), ("predicted flow", flow_to_rgb(flow, scale))]
+    if flow_gt is not None:
+        tiles.append(("ground truth", flow_to_rgb(flow_gt, scale)))
+    tiles += [("warped, zero flow", _iwe_picture(np.zeros_like(flow), window, size)),
+              ("warped, predicted", _iwe_picture(flow, window, size)),
+              (f"colours: rim {scale:.1f} px", flow_legend(min(64, max(size))))]
+    caption = f"{window['t_start']}-{window['t_end']} us   FWL {fwl(flow, window, size):.3f}"
+    if aee is not None:
+        caption += f"   AEE {aee:.3f} px"
+    return panel(tiles, caption)
 
 
 def _fmt(value: float, digits: int = 3) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
-def results_table(named_results: dict[str, list[SequenceResult]], title: str = "") -> str:
-    """Markdown table, paper layout: one row per method, per sequence AEE / outlier %, then
-    the mean L_HMC (and zero flow's), FWL and RSAT over all windows."""
+def results_table(named_results: dict[str, list[SequenceResult]], title: str = "",
+                  per_sequence: bool | None = None) -> str:
+    """Markdown table, paper layout: one row per method; per sequence AEE / outlier % (with
+    ``per_sequence``; default when there are at most 6 sequences), then the mean of the
+    sequences' AEE, the cosine, L_HMC and zero flow's over all windows, in how many sequences
+    the method's L_HMC is below zero flow's, FWL, RSAT and the milliseconds per window."""
     methods = list(named_results)
     sequences = [r.name for r in named_results[methods[0]]]
-    head = ["method"] + [f"{s} AEE / %Out" for s in sequences] + ["mean AEE", "cos", "L_HMC", "L_HMC zero", "FWL", "RSAT"]
+    per_sequence = len(sequences) <= 6 if per_sequence is None else per_sequence
+    head = ["method"] + ([f"{s} AEE / %Out" for s in sequences] if per_sequence else [])
+    head += ["mean AEE", "cos", "L_HMC", "L_HMC zero", "seq. L_HMC < zero", "FWL", "RSAT", "ms/win"]
     lines = ([f"**{title}**", ""] if title else []) + ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for method in methods:
         rows = named_results[method]
-        cells = [method] + [f"{_fmt(r.mean('aee'), 2)} / {_fmt(r.mean('outlier_pct'), 2)}" for r in rows]
+        cells = [method]
+        if per_sequence:
+            cells += [f"{_fmt(r.mean('aee'), 2)} / {_fmt(r.mean('outlier_pct'), 2)}" for r in rows]
         pooled = {k: _pooled(rows, k) for k in METRICS}
         aees = [r.mean("aee") for r in rows if math.isfinite(r.mean("aee"))]
+        scored = [r for r in rows if r.counts["hmc"]]
+        below = sum(r.mean("hmc") < r.mean("hmc_zero") for r in scored)
         cells += [_fmt(float(np.mean(aees)) if aees else float("nan"), 3), _fmt(pooled["cosine"], 3)]
-        cells += [_fmt(pooled["hmc"], 4), _fmt(pooled["hmc_zero"], 4), _fmt(pooled["fwl"], 4), _fmt(pooled["rsat"], 4)]
+        cells += [_fmt(pooled["hmc"], 4), _fmt(pooled["hmc_zero"], 4), f"{below}/{len(scored)}",
+                  _fmt(pooled["fwl"], 4), _fmt(pooled["rsat"], 4), _fmt(pooled["ms"], 1)]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def windowing_of(named_results: dict[str, list[SequenceResult]]) -> str:
+    """The windowing of the evaluated sequences, e.g. "1 x ground-truth intervals" (several
+    kinds joined with "; " and the number of sequences of each)."""
+    rows = next(iter(named_results.values()))
+    kinds: dict[str, int] = {}
+    for r in rows:
+        kinds[r.windowing] = kinds.get(r.windowing, 0) + 1
+    if len(kinds) == 1:
+        return next(iter(kinds))
+    return "; ".join(f"{k} ({n} sequences)" for k, n in kinds.items())
 
 
 def _pooled(rows: list[SequenceResult], key: str) -> float:

@@ -22,7 +22,10 @@ def _register() -> None:
     if "EventFlow-v0" in gymnasium.registry:
         return
     gymnasium.register("EventFlow-v0", entry_point="envs.env:EventFlowEnv", kwargs={"data": "synthetic-train"})
-    gymnasium.register("EventFlowTest-v0", entry_point="envs.env:EventFlowEnv", kwargs={"data": "synthetic-test"})
+    # synthetic-test holds 128x128 and 256x256 sequences: the registered env shows the central
+    # 128x128 of each (one frame for the spaces); scripts/evaluate.py scores each whole
+    gymnasium.register("EventFlowTest-v0", entry_point="envs.env:EventFlowEnv",
+                       kwargs={"data": "synthetic-test", "crop": (128, 128)})
 
 
 _register()

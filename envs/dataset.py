@@ -22,10 +22,12 @@ RECORDING_SUFFIXES = (".h5", ".hdf5", ".txt", ".aedat4")
 
 @dataclass
 class SequenceSource:
-    """One recording: its name and how to open it."""
+    """One recording: its name, how to open it, and its (height, width) when known without
+    opening it (synthetic splits)."""
 
     name: str
     open: Callable[[], EventReader]
+    sensor_size: tuple[int, int] | None = None
     _reader: EventReader | None = field(default=None, repr=False)
 
     def reader(self) -> EventReader:
@@ -50,7 +52,7 @@ def _synthetic_sources(split: str) -> list[SequenceSource]:
 
     specs = synthetic.list_sequences(split)
     return [
-        SequenceSource(spec.name, (lambda i=i: synthetic.load_sequence(split, i)))
+        SequenceSource(spec.name, (lambda i=i: synthetic.load_sequence(split, i)), (spec.height, spec.width))
         for i, spec in enumerate(specs)
     ]
 

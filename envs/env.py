@@ -15,7 +15,7 @@ from envs.dataset import resolve_data
 from envs.events import Events
 from envs.representations import count_image, voxel_grid
 from envs.visualize import count_image_to_rgb, flow_to_rgb
-from envs.windows import WINDOW_MODES, window_bounds
+from envs.windows import WINDOW_MODES, window_bounds, window_grid
 from losses import BORDER_RAMP, EventBatch, at_loss, check_border_ramp, hmc_loss
 
 __all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "WindowEvents", "score_flow", "NoWindowsError"]
@@ -114,6 +114,9 @@ class EventFlowEnv(gym.Env):
       Gymnasium's stacking of info arrays cannot hold): ``info["events"][i]["x"]``;
     - ``"t_start"``, ``"t_end"``: int µs, the window ``[t_start, t_end)``;
     - ``"sequence"`` (name), ``"sequence_index"``, ``"step"`` (window index in the episode);
+    - ``"windowing"``: how this episode's windows are cut: ``"ground truth"``, ``"frames"``
+      (APS frame times) or ``"time"`` (fixed 30 Hz) in ``frames`` mode, else ``"time"`` /
+      ``"count"`` (``"explicit"`` with the ``windows`` reset option);
     - ``"crop"``: int64 ``(top, left, height, width)`` of the env's frame in the recording's
       sensor frame, and ``"flips"``: bool ``(h, v, p)``, the flips applied this episode (with
       them, anything computed on the whole sensor frame maps into the env's frame);
@@ -135,12 +138,17 @@ class EventFlowEnv(gym.Env):
 
     Args:
         data: synthetic split name (default ``"synthetic-train"``), a recording path, a
-            directory, or a list of these. All recordings must share one sensor size
-            unless ``crop`` fixes the frame.
+            directory, or a list of these. All recordings must share one sensor size unless
+            ``crop`` fixes the frame (then that crop of each, centred or placed at random);
+            recordings of different sizes without ``crop`` are refused, naming the sizes (an
+            env's spaces have one shape; ``agents.evaluation.evaluate`` makes one env per
+            recording to score each whole).
         data_format (or ``format``): force a reader (``"evflow-h5"``, ``"mvsec"``, ``"dsec"``,
             ``"hagenaars"``, ``"ecd-text"``, ``"aedat4"``); default: detected from the file.
         data_options: keyword arguments for the reader, e.g. ``{"crop": "center256"}`` (MVSEC).
-        window: ``"frames"`` (ground-truth aligned), ``"time"`` or ``"count"``.
+        window: ``"frames"`` (on the ground-truth grid where the recording has one, else on
+            its APS frame times, else on fixed 30 Hz intervals; ``info["windowing"]`` says
+            which), ``"time"`` or ``"count"``.
         window_size: grid steps (``frames``, default 1), µs (``time``, default 10 000) or
             events (``count``, default 15 000); a list of sizes draws one per episode (e.g.
             ``[1, 2, 3, 4]`` frames: training on several motion magnitudes).
@@ -253,6 +261,12 @@ class EventFlowEnv(gym.Env):
         self.sequence_names = [s.name for s in self.sources]
         first = self.sources[0].reader()
         self.sensor_size = tuple(first.sensor_size)
+        self._crop_given = crop is not None
+        if crop is None:
+            known = {s.name: tuple(s.sensor_size) for s in self.sources if s.sensor_size is not None}
+            known[self.sources[0].name] = self.sensor_size
+            if len(set(known.values())) > 1:
+                raise ValueError(_sizes_differ(known))
         self._crop = self._parse_crop(crop, self.sensor_size)
         self.height, self.width = self._crop[2], self._crop[3]
         if random_crop and crop is None:
@@ -277,6 +291,7 @@ class EventFlowEnv(gym.Env):
         self.action_space = spaces.Box(-self.flow_limit, self.flow_limit, (2, h, w), np.float32)
 
         self._bounds: np.ndarray | None = None
+        self._windowing = ""
         self._seq_index = -1
         self._step = 0
         self._flips: dict[str, bool] = {}
@@ -304,6 +319,9 @@ class EventFlowEnv(gym.Env):
     def _reader(self, index: int):
         reader = self.sources[index].reader()
         if tuple(reader.sensor_size) != self.sensor_size:
+            if not self._crop_given:
+                raise ValueError(_sizes_differ({self.sources[0].name: self.sensor_size,
+                                                self.sources[index].name: tuple(reader.sensor_size)}))
             top, left, ch, cw = self._crop
             if ch > reader.sensor_size[0] or cw > reader.sensor_size[1]:
                 raise ValueError(
@@ -341,6 +359,7 @@ class EventFlowEnv(gym.Env):
             index = int(self.np_random.integers(len(self.sources)))
         reader = self._reader(index)
         if "windows" in options:  # an explicit list of windows, e.g. an evaluation protocol's
+            self._windowing = "explicit"
             spans = np.asarray(options["windows"], np.int64).reshape(-1, 2)
             idx = np.array([[reader.index_at(int(a)), reader.index_at(int(b))] for a, b in spans], np.int64).reshape(-1, 2)
             bounds = np.concatenate([spans, idx], axis=1)
@@ -348,6 +367,7 @@ class EventFlowEnv(gym.Env):
             if len(self.window_sizes) > 1:
                 self.window_size = self.window_sizes[int(self.np_random.integers(len(self.window_sizes)))]
             bounds = window_bounds(reader, self.window, self.window_size, t_from=options.get("start"))
+            self._windowing = window_grid(reader)[1] if self.window == "frames" else self.window
         if len(bounds) == 0:
             raise NoWindowsError(
                 f"recording {self.sources[index].name!r} has no {self.window} window of size "
@@ -475,6 +495,7 @@ class EventFlowEnv(gym.Env):
             "sequence": self.sequence_names[self._seq_index],
             "sequence_index": self._seq_index,
             "step": self._step,
+            "windowing": self._windowing,
             "crop": np.array(self._crop_for(self._reader(self._seq_index)), np.int64),
             "flips": np.array([self._flips.get(k, False) for k in ("h", "v", "p")], bool),
         }
@@ -494,6 +515,7 @@ class EventFlowEnv(gym.Env):
             "origin": self._origin,
             "rng": self.np_random.bit_generator.state,
             "active": self._window is not None,
+            "windowing": self._windowing,
         }
 
     def restore_episode_state(self, states: dict | Sequence[dict]) -> None:
@@ -504,6 +526,7 @@ class EventFlowEnv(gym.Env):
         self._seq_index = int(state["sequence_index"])
         self._bounds = None if state["bounds"] is None else np.asarray(state["bounds"], np.int64)
         self._step = int(state["step"])
+        self._windowing = str(state.get("windowing", ""))
         self._flips = dict(state["flips"])
         origin = state.get("origin")
         self._origin = None if origin is None else (int(origin[0]), int(origin[1]))
@@ -529,6 +552,13 @@ class EventFlowEnv(gym.Env):
     def close(self) -> None:
         for source in self.sources:
             source.close()
+
+
+def _sizes_differ(sizes: dict[str, tuple[int, int]]) -> str:
+    listed = ", ".join(f"{name!r} {h}x{w}" for name, (h, w) in sizes.items())
+    return (f"recordings of different sensor sizes (height x width): {listed}; an env has one frame: pass "
+            "crop=(height, width) to use that crop of each, or make one env per size (scripts/evaluate.py "
+            "evaluates each recording whole at its own size)")
 
 
 class WindowEvents(Mapping):

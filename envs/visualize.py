@@ -105,13 +105,18 @@ def _text_height() -> int:
     return 12
 
 
-def panel(tiles: list[tuple[str, np.ndarray]], caption: str = "", gap: int = 4) -> np.ndarray:
+def panel(tiles: list[tuple[str, np.ndarray]], caption: str = "", gap: int = 4, min_width: int = 120) -> np.ndarray:
     """Tiles side by side, each with its label above it, and ``caption`` below all of them.
 
-    tiles: (label, (h, w, 3) uint8) pairs; tiles of different heights are top-aligned on white.
-    Returns (H, W, 3) uint8. Text is drawn with Pillow's built-in bitmap font.
+    tiles: (label, (h, w, 3) uint8) pairs; tiles of different heights are top-aligned on white;
+    tiles narrower than ``min_width`` are enlarged by a whole factor (nearest neighbour) so
+    that labels fit and pixels stay sharp. Returns (H, W, 3) uint8. Text is drawn with
+    Pillow's built-in bitmap font.
     """
     from PIL import Image, ImageDraw
+
+    factor = max(1, -(-min_width // max(t.shape[1] for _, t in tiles)))
+    tiles = [(label, np.repeat(np.repeat(t, factor, 0), factor, 1)) for label, t in tiles]
 
     line = _text_height()
     height = max(t.shape[0] for _, t in tiles) + 2 * line + 3 * gap

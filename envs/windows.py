@@ -5,9 +5,12 @@ Three modes:
 - ``time``: fixed duration ``size`` in microseconds, from the recording's start;
 - ``count``: fixed number of events ``size`` (the last window may hold fewer); ``t_start`` is
   the first event's time and ``t_end`` the last event's time + 1 (end made exclusive);
-- ``frames``: ground-truth aligned, window k spans ``[T_{k*dt}, T_{(k+1)*dt})`` on the reader's
-  ground-truth grid ``T`` with ``dt = size`` (1 or 4 for MVSEC); events before ``T_0`` and from
-  the last grid time on belong to no window.
+- ``frames``: window k spans ``[T_{k*dt}, T_{(k+1)*dt})`` on a grid ``T`` with ``dt = size``
+  grid steps (1 or 4 for MVSEC); events before ``T_0`` and from the last grid time on belong to
+  no window. The grid (:func:`window_grid`) is the recording's ground-truth grid where it has
+  one ("ground truth": GT-aligned windows), else its APS frame times where it has at least two
+  frames ("frames"), else a fixed grid of ``FALLBACK_INTERVAL_US`` from its first event
+  ("time"), so this mode works on every recording and ``dt = 4`` always means four intervals.
 
 In every mode each delivered event belongs to exactly one window, and windows come in time
 order. The iterator reads window by window through the reader, never the whole recording.
@@ -23,9 +26,11 @@ import numpy as np
 from envs.events import Events
 from envs.readers.base import EventReader
 
-__all__ = ["Window", "iter_windows", "window_bounds", "WINDOW_MODES"]
+__all__ = ["Window", "iter_windows", "window_bounds", "window_grid", "WINDOW_MODES", "FALLBACK_INTERVAL_US"]
 
 WINDOW_MODES = ("time", "count", "frames")
+#: The ``frames`` grid's interval on a recording with neither ground truth nor frames (30 Hz).
+FALLBACK_INTERVAL_US = 33_333
 
 
 @dataclass(frozen=True)
@@ -52,6 +57,24 @@ def _check_mode(mode: str, size) -> None:
         raise ValueError(f"window size must be a positive integer for mode {mode!r}, got {size!r}")
 
 
+def window_grid(reader: EventReader, fallback_interval_us: int = FALLBACK_INTERVAL_US) -> tuple[np.ndarray, str]:
+    """The grid that ``frames`` windows follow and where it comes from.
+
+    Returns ((K,) int64 µs, kind): the ground-truth grid ("ground truth"), else the APS frame
+    times ("frames", at least two frames), else ``fallback_interval_us`` steps from the first
+    event to past the last one ("time").
+    """
+    grid = reader.flow_timestamps()
+    if grid is not None and len(grid) >= 2:
+        return np.asarray(grid, np.int64), "ground truth"
+    frames = reader.frame_timestamps()
+    if frames is not None and len(frames) >= 2:
+        return np.unique(np.asarray(frames, np.int64)), "frames"
+    t0, t1 = reader.t_start, reader.t_end
+    n = max(1, -(-(t1 - t0) // int(fallback_interval_us)))
+    return t0 + int(fallback_interval_us) * np.arange(n + 1, dtype=np.int64), "time"
+
+
 def window_bounds(
     reader: EventReader, mode: str, size: int, *, t_from: int | None = None
 ) -> np.ndarray:
@@ -69,13 +92,7 @@ def window_bounds(
         ends = np.minimum(starts + size, reader.t_end)
         ts = np.concatenate([starts, ends[-1:]]) if n else np.zeros(0, np.int64)
     elif mode == "frames":
-        grid = reader.flow_timestamps()
-        if grid is None:
-            raise ValueError(
-                f"{reader.name}: window mode 'frames' needs ground-truth timestamps, and this "
-                "recording has none; use mode 'time' or 'count'"
-            )
-        grid = np.asarray(grid, np.int64)
+        grid, _ = window_grid(reader)
         if t_from is not None:
             grid = grid[grid >= t_from]
         ts = grid[::size]

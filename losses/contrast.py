@@ -32,7 +32,7 @@ def contrast_maximisation_flow(
     width: int,
     *,
     grids: Sequence[int] = (4, 8),
-    steps: int = 40,
+    steps: int | Sequence[int] = 40,
     lr: float = 0.05,
     flow_scaling: float | None = None,
     lambda_1: float = 1.0,
@@ -41,44 +41,90 @@ def contrast_maximisation_flow(
     border_penalty: float | torch.Tensor = 1.0,
     border_ramp: float = BORDER_RAMP,
     return_coarse: bool = False,
+    sensor_scales: Sequence[int] | None = None,
+    lr_decay: float = 1.0,
+    base: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(B, 2, height, width) flow in pixels per window minimising L_HMC of each window.
 
     events: EventBatch of B windows (tau in [0, 1]). grids: the coarse-to-fine levels, the
     number of cells along the longer image side (the other side in proportion, at least 1).
-    steps: Adam steps per level, lr: its step size in pixels. The loss is ``hmc_loss`` with the
-    given weights; ``border_penalty`` as there, a float multiplies each window's zero-flow loss
-    (the env's border rule), ``border_ramp`` its ramp in pixels. Returns a detached tensor on the events' device, float32;
-    with ``return_coarse`` the last level's (B, 2, gh, gw) grid instead (the flow is its bilinear upsampling,
+    steps: Adam steps per level (one int for all, or one per level), lr: its step size in
+    pixels. The loss is ``hmc_loss`` with the given weights; ``border_penalty`` as there, a float
+    multiplies each window's zero-flow loss (the env's border rule), ``border_ramp`` its ramp in
+    pixels. Returns a detached tensor on the events' device, float32; with ``return_coarse``
+    the last level's (B, 2, gh, gw) grid instead (the flow is its bilinear upsampling,
     align_corners=False).
+
+    sensor_scales: one integer per level, the coarsening of the *sensor* grid at that level:
+    events are splatted at ``(x / s, y / s)`` onto a ``ceil(H / s) x ceil(W / s)`` image and
+    the flow divided by s (s = 1: the sensor's own pixels). Coarse pixels gather the events of
+    s x s sensor pixels, so the loss stops rewarding a collapse onto single pixels and sees
+    larger motions; e.g. ``grids=(4, 8, 16), sensor_scales=(4, 2, 1), steps=(40, 30, 30)``.
+    lr_decay: the step size falls geometrically from ``lr`` to ``lr / lr_decay`` over all steps.
+    base: optional (B, 2, height, width) flow in pixels that the grid is a residual on (the
+    flow is ``base + upsampled grid``, the grid starting at zero), e.g. a network's prediction
+    (test-time refinement keeps its detail and corrects it); default none.
     """
     device = events.x.device
     B = events.x.shape[0]
     scaling = float(max(height, width)) if flow_scaling is None else float(flow_scaling)
-    weights = dict(flow_scaling=scaling, lambda_1=lambda_1, lambda_2=lambda_2, alpha=alpha)
-    if not isinstance(border_penalty, torch.Tensor):
-        with torch.no_grad():
-            zero = hmc_loss(torch.zeros(B, 2, height, width, device=device), events, **weights)
-        border_penalty = float(border_penalty) * zero.per_sample
+    weights = dict(lambda_1=lambda_1, lambda_2=lambda_2, alpha=alpha)
+    scales = [1] * len(grids) if sensor_scales is None else [int(s) for s in sensor_scales]
+    per_level = [int(steps)] * len(grids) if isinstance(steps, int) else [int(k) for k in steps]
+    if len(scales) != len(grids) or len(per_level) != len(grids) or min(scales, default=1) < 1:
+        raise ValueError(f"grids {list(grids)}, steps {steps} and sensor_scales {sensor_scales} must have one "
+                         "entry per level (sensor scales integers >= 1)")
+    if base is not None and (return_coarse or tuple(base.shape) != (B, 2, height, width)):
+        raise ValueError(f"base must be (B, 2, height, width) = {(B, 2, height, width)} and excludes return_coarse, "
+                         f"got {tuple(base.shape)}")
+    total = max(1, sum(per_level))
     coarse = None
+    done = 0
     with torch.enable_grad():
-        for cells in grids:
+        for cells, scale, n_steps in zip(grids, scales, per_level):
             gh = max(1, round(cells * height / max(height, width)))
             gw = max(1, round(cells * width / max(height, width)))
             if coarse is None:
-                start = torch.zeros(B, 2, gh, gw, device=device)
+                init = torch.zeros(B, 2, gh, gw, device=device)
             else:
-                start = F.interpolate(coarse, size=(gh, gw), mode="bilinear", align_corners=False)
-            param = start.clone().requires_grad_()
+                init = F.interpolate(coarse, size=(gh, gw), mode="bilinear", align_corners=False)
+            level_events, (hs, ws) = _coarsen(events, scale), (-(-height // scale), -(-width // scale))
+            level = dict(flow_scaling=scaling / scale, **weights)
+            penalty = border_penalty
+            if not isinstance(border_penalty, torch.Tensor):
+                with torch.no_grad():
+                    zero = hmc_loss(torch.zeros(B, 2, hs, ws, device=device), level_events, **level)
+                penalty = float(border_penalty) * zero.per_sample
+            offset = None
+            if base is not None:
+                offset = base.float() if scale == 1 else F.interpolate(base.float(), size=(hs, ws), mode="area")
+                offset = offset / scale
+            param = init.clone().requires_grad_()
             optimizer = torch.optim.Adam([param], lr=lr)
-            for _ in range(steps):
-                flow = F.interpolate(param, size=(height, width), mode="bilinear", align_corners=False)
-                loss = hmc_loss(flow, events, border_penalty=border_penalty, border_ramp=border_ramp,
-                                **weights).per_sample.sum()
+            for _ in range(n_steps):
+                for group in optimizer.param_groups:
+                    group["lr"] = lr * lr_decay ** (-done / total)
+                flow = F.interpolate(param, size=(hs, ws), mode="bilinear", align_corners=False) / scale
+                if offset is not None:
+                    flow = flow + offset
+                loss = hmc_loss(flow, level_events, border_penalty=penalty, border_ramp=border_ramp / scale,
+                                **level).per_sample.sum()
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()
+                done += 1
             coarse = param.detach()
+    if coarse is None:
+        coarse = torch.zeros(B, 2, 1, 1, device=device)
     if return_coarse:
         return coarse
-    return F.interpolate(coarse, size=(height, width), mode="bilinear", align_corners=False)
+    flow = F.interpolate(coarse, size=(height, width), mode="bilinear", align_corners=False)
+    return flow if base is None else base.float().detach() + flow
+
+
+def _coarsen(events: EventBatch, scale: int) -> EventBatch:
+    """The events on a sensor grid ``scale`` times coarser (coordinates divided by it)."""
+    if scale == 1:
+        return events
+    return EventBatch(events.x / scale, events.y / scale, events.tau, events.p, events.mask)

@@ -8,10 +8,20 @@ Examples:
   python scripts/evaluate.py --checkpoint ckpt.pt --data rec1.h5 rec2.h5 --dt 4
   python scripts/evaluate.py --model mypkg.models:build --data synthetic-test     # untrained plug-in
   python scripts/evaluate.py --checkpoint ckpt.pt --mvsec /data/mvsec --dt 1      # MVSEC protocol
+  python scripts/evaluate.py --pretrained --zero --cmax --data synthetic-stress    # with the model-free row
+  python scripts/evaluate.py --pretrained --refine 30 --data rec.h5                # + test-time refinement
 
-Each sequence is rolled from its first window with the recurrent state carried across windows
-and reset between sequences. Windows are ground-truth aligned (--dt grid steps) by default;
-with --window time/count, give --dt-ratio (ground-truth interval / input window) if they differ.
+Each recording is evaluated whole at its own sensor size (the networks pad to a multiple of 16
+and crop their flow back) unless --crop is given. Each sequence is rolled from its first window
+with the recurrent state carried across windows and reset between sequences. Windows (--window
+frames, the default) follow the ground-truth grid where a recording has one, else its APS frame
+times, else fixed 30 Hz intervals, --dt of them per window (default 1 and 4 when a recording has
+ground truth, else 1); each table's title names the windowing. With --window time/count, give
+--dt-ratio (ground-truth interval / input window) if they differ.
+
+--cmax adds per-window contrast maximisation of the same loss (no network, no ground truth;
+agents/cmax.py): the reference a learned model must beat. --refine K adds, for each model, a
+row with its flow refined by K steps of that solver on the window's own events.
 """
 
 from __future__ import annotations
@@ -25,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from agents.checkpoint import load_model  # noqa: E402
-from agents.evaluation import evaluate, results_json, results_table  # noqa: E402
+from agents.evaluation import evaluate, results_json, results_table, windowing_of  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
 import agents.pretrained as pretrained_module  # noqa: E402
 from agents.registry import make_model  # noqa: E402
@@ -40,18 +50,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default=None, help="evaluate an untrained model (registry name or package.module:factory)")
     p.add_argument("--width", default="cpu")
     p.add_argument("--zero", action="store_true", help="add the zero-flow baseline row")
+    p.add_argument("--cmax", action="store_true",
+                   help="add per-window contrast maximisation (no network, no ground truth; agents/cmax.py)")
+    p.add_argument("--refine", type=int, default=None, metavar="K",
+                   help="also evaluate each model with its flow refined by K contrast-maximisation steps")
     p.add_argument("--data", nargs="+", default=["synthetic-test"], help="synthetic split, recording files or directories")
     p.add_argument("--format", default=None, help="force a reader (evflow-h5, mvsec, dsec, hagenaars, ecd-text, aedat4)")
     p.add_argument("--mvsec", default=None, metavar="DIR", help="run the MVSEC protocol on the four sequences in DIR")
     p.add_argument("--window", default="frames", choices=["frames", "time", "count"])
-    p.add_argument("--dt", type=int, nargs="+", default=[1, 4], help="ground-truth grid steps per window (frames mode); default: 1 and 4")
+    p.add_argument("--dt", type=int, nargs="+", default=None,
+                   help="grid steps per window (frames mode); default: 1 and 4 with ground truth, else 1")
     p.add_argument("--window-size", type=int, default=None, help="time: us; count: events")
     p.add_argument("--dt-ratio", type=float, default=1.0, help="scale predictions by (ground-truth interval / input window)")
     p.add_argument("--crop", type=int, nargs="+", default=None, help="H W (centred) or TOP LEFT H W")
     p.add_argument("--max-windows", type=int, default=None, help="per sequence")
     p.add_argument("--out", default="runs/eval", help="directory for table.md, results.json and pictures/")
     p.add_argument("--json", default=None, help="also write the JSON results here (default OUT/results.json)")
-    p.add_argument("--pictures", type=int, default=2, help="windows per sequence drawn as PNG (0: none)")
+    p.add_argument("--pictures", type=int, default=2, help="windows per sequence drawn as a labelled PNG panel (0: none)")
+    p.add_argument("--animate", type=int, default=0, metavar="N",
+                   help="per sequence, a GIF of count image + predicted flow over its first N windows (0: none)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -74,9 +91,11 @@ def mvsec_runs(folder: Path, dt: int) -> list:
     return runs
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    policies: dict[str, RecurrentPolicy | None] = {}
+def build_policies(args) -> dict:
+    """Row name -> policy (None: zero flow), in table order."""
+    from agents.cmax import ContrastMaximisationPolicy, RefinedPolicy
+
+    policies: dict = {}
     names = args.name or []
     for i, path in enumerate(args.checkpoint):
         model, payload = load_model(path, map_location=args.device, expect_model=args.model)
@@ -86,32 +105,55 @@ def main(argv=None) -> int:
                                          voxel_bins=cfg.get("voxel_bins", 5))
     pretrained = [] if args.pretrained is None else (args.pretrained or [pretrained_module.DEFAULT_PRETRAINED])
     for name in pretrained:
-        policy = RecurrentPolicy.from_pretrained(name, device=args.device)
-        policies[f"{name} (pretrained)"] = policy
+        policies[f"{name} (pretrained)"] = RecurrentPolicy.from_pretrained(name, device=args.device)
     if args.model and not args.checkpoint:
         width = int(args.width) if str(args.width).isdigit() else args.width
         kwargs = {"width": width} if isinstance(width, str) else {"base_width": width}
         policies[args.model] = RecurrentPolicy(make_model(args.model, **kwargs).eval(), device=args.device)
+    if args.refine:
+        for name, policy in list(policies.items()):
+            policies[f"{name} + refine {args.refine}"] = RefinedPolicy(policy, steps=args.refine)
+    if args.cmax:
+        policies["contrast maximisation (no network)"] = ContrastMaximisationPolicy(device=args.device)
     if args.zero or not policies:
         policies["zero flow"] = None
+    return policies
 
-    settings = [(f"dt{dt}", dt) for dt in args.dt] if args.window == "frames" else [(args.window, args.window_size)]
+
+def has_ground_truth(data, fmt) -> bool:
+    from envs.dataset import resolve_data
+
+    return any(source.reader().flow_timestamps() is not None for source in resolve_data(data, format=fmt))
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.refine is not None and args.refine < 0:
+        raise SystemExit(f"--refine must be >= 0 steps, got {args.refine}")
+    policies = build_policies(args)
+    data = args.data[0] if len(args.data) == 1 else args.data
+    if args.window == "frames":
+        dts = args.dt or ([1, 4] if args.mvsec or has_ground_truth(data, args.format) else [1])
+        settings = [(f"dt{dt}", dt) for dt in dts]
+    else:
+        settings = [(args.window, args.window_size)]
     out = Path(args.out)
     per_setting: dict[str, dict] = {}
     tables = []
     for key, size in settings:
-        runs = mvsec_runs(Path(args.mvsec), size) if args.mvsec else [(args.data[0] if len(args.data) == 1 else args.data, args.format, {}, None)]
+        runs = mvsec_runs(Path(args.mvsec), size) if args.mvsec else [(data, args.format, {}, None)]
         named = {name: [] for name in policies}
-        for data, fmt, options, windows_fn in runs:
+        for run_data, fmt, options, windows_fn in runs:
             for name, policy in policies.items():
-                pictures = out / "pictures" / key / name.replace(" ", "_") if args.pictures else None
+                pictures = out / "pictures" / key / name.replace(" ", "_") if args.pictures or args.animate else None
                 named[name] += evaluate(
-                    policy, data, window=args.window, window_size=size, crop=args.crop, dt_ratio=args.dt_ratio,
+                    policy, run_data, window=args.window, window_size=size, crop=args.crop, dt_ratio=args.dt_ratio,
                     data_options=options, windows_fn=windows_fn, max_windows=args.max_windows, pictures_dir=pictures,
-                    pictures_per_sequence=args.pictures, progress=not args.no_progress, data_format=fmt,
+                    pictures_per_sequence=args.pictures, animation_windows=args.animate,
+                    progress=not args.no_progress, data_format=fmt,
                 )
         per_setting[key] = named
-        tables.append(results_table(named, title=f"dt = {size} frames" if args.window == "frames" else f"{args.window} windows"))
+        tables.append(results_table(named, title=f"windows of {windowing_of(named)}"))
     table = "\n\n".join(tables)
     out.mkdir(parents=True, exist_ok=True)
     (out / "table.md").write_text(table + "\n")

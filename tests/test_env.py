@@ -261,9 +261,9 @@ def test_default_env_needs_no_files():
 
 
 def test_ground_truth_action_beats_zero_on_synthetic_test_split():
-    env = EventFlowEnv("synthetic-test")
+    env = EventFlowEnv("synthetic-test", crop=(128, 128))
     rewards = {"gt": [], "zero": []}
-    for sequence in (0, 3, 6, 9):  # slow to fast motion, both resolutions (256 ones centre-cropped)
+    for sequence in (0, 3, 6, 9):  # slow to fast motion, both resolutions (256 ones centre-cropped, as asked)
         for name in rewards:
             _, info = env.reset(options={"sequence": sequence})
             for _ in range(4):
@@ -272,6 +272,14 @@ def test_ground_truth_action_beats_zero_on_synthetic_test_split():
                 rewards[name].append(reward)
     print({k: float(np.mean(v)) for k, v in rewards.items()})
     assert np.mean(rewards["gt"]) > np.mean(rewards["zero"])
+
+
+def test_recordings_of_different_sizes_need_a_crop():
+    with pytest.raises(ValueError, match=r"different sensor sizes.*128x128.*256x256"):
+        EventFlowEnv("synthetic-test")
+    env = EventFlowEnv("synthetic-test", crop=(64, 64))  # asked for: that crop of each
+    _, info = env.reset(options={"sequence": "synthetic-test-256-00"})
+    assert tuple(info["crop"]) == (96, 96, 64, 64)
 
 
 def test_explicit_window_list(recording):

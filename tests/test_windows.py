@@ -3,7 +3,7 @@ import pytest
 
 from envs.h5format import write_h5, H5Reader
 from envs.readers import ArrayReader
-from envs.windows import iter_windows, window_bounds
+from envs.windows import iter_windows, window_bounds, window_grid
 from tests.conftest import random_events
 
 
@@ -59,9 +59,21 @@ def test_frame_windows_follow_the_grid(rng):
             np.testing.assert_array_equal(w.events.t, ev.t[(ev.t >= w.t_start) & (ev.t < w.t_end)])
 
 
-def test_frames_mode_without_ground_truth_is_a_clear_error(rng):
-    with pytest.raises(ValueError, match="ground-truth timestamps"):
-        window_bounds(ArrayReader(random_events(rng, 10)), "frames", 1)
+def test_frames_mode_falls_back_to_frame_times_then_to_a_fixed_grid(rng):
+    ev = random_events(rng, 500, t_span=(0, 100_000))
+    with_frames = ArrayReader(ev, t_range=(0, 100_000), frame_times=np.array([10_000, 40_000, 70_000, 95_000]))
+    grid, kind = window_grid(with_frames)
+    assert kind == "frames" and list(grid) == [10_000, 40_000, 70_000, 95_000]
+    assert [tuple(b[:2]) for b in window_bounds(with_frames, "frames", 2)] == [(10_000, 70_000)]
+    bare = ArrayReader(ev, t_range=(0, 100_000))
+    grid, kind = window_grid(bare)
+    assert kind == "time" and list(grid) == [0, 33_333, 66_666, 99_999, 133_332]
+    bounds = window_bounds(bare, "frames", 1)
+    assert bounds[0, 2] == 0 and bounds[-1, 3] == len(ev)  # every event in one window
+    assert list(window_bounds(bare, "frames", 4)[:, :2].ravel()) == [0, 133_332]
+    gt = ArrayReader(ev, t_range=(0, 100_000), flow_fn=lambda a, b: None, flow_times=np.array([0, 50_000]),
+                     frame_times=np.array([0, 10_000, 20_000]))
+    assert window_grid(gt)[1] == "ground truth"
 
 
 def test_bad_mode_and_size():

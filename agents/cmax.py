@@ -1,0 +1,137 @@
+"""Policies that solve each window by contrast maximisation (no network, no ground truth), and
+test-time refinement of a network's flow by the same solver.
+
+Both act on a window's *events*, not only on its observation image, so they take the window
+too: ``flow = policy.act_on_window(observation, window)`` with ``window`` a dict of numpy
+``x, y, t, p`` and ints ``t_start, t_end`` (what ``info["events"]`` plus the bounds give).
+:func:`agents.evaluation.evaluate` and ``scripts/evaluate.py`` (``--cmax``, ``--refine K``)
+use them; in an env loop::
+
+    policy = RefinedPolicy(RecurrentPolicy.from_pretrained(), steps=30)
+    obs, info = env.reset()
+    window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+    obs, reward, _, truncated, info = env.step(policy.act_on_window(obs, window))
+
+The solver is :func:`losses.contrast_maximisation_flow`: a coarse grid of flow vectors,
+bilinearly upsampled, optimised with Adam on L_HMC (with the env's border rule) of the window's
+events; coarse to fine in flow cells and in sensor pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+
+from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
+
+__all__ = ["CMaxSettings", "ContrastMaximisationPolicy", "RefinedPolicy", "FRAME_US"]
+
+#: The step size is given per 30 Hz frame of window length: a longer window moves further.
+FRAME_US = 33_333
+
+
+@dataclass(frozen=True)
+class CMaxSettings:
+    """One per-window contrast-maximisation solve.
+
+    grids: flow cells along the longer side per level (coarse to fine).
+    sensor_scales: sensor-grid coarsening per level (events splatted at x / s; 1 = sensor pixels).
+    steps: Adam steps per level. lr_per_frame: Adam's step size in pixels, times the window's
+    length in 30 Hz frames. lr_decay: the step size falls by this factor over the run.
+    The loss weights are those of the env's reward except lambda_2 (a stronger smoothness term
+    regularises the coarse grid) and a fixed flow_scaling (pixels per unit in that term).
+    max_events: windows with more events are solved on an even subsample (cost bound).
+    """
+
+    grids: tuple[int, ...] = (4, 8, 16)
+    sensor_scales: tuple[int, ...] = (4, 2, 1)
+    steps: tuple[int, ...] = (40, 30, 30)
+    lr_per_frame: float = 0.1
+    lr_decay: float = 10.0
+    lambda_1: float = 1.0
+    lambda_2: float = 1e-2
+    alpha: float = 0.6
+    border_penalty: float = 1.0
+    border_ramp: float = BORDER_RAMP
+    flow_scaling: float = 32.0
+    max_events: int = 60_000
+
+    def solve(self, window: dict, size: tuple[int, int], base: np.ndarray | None = None,
+              device: str | torch.device = "cpu") -> np.ndarray:
+        """(2, H, W) float32 flow in pixels over ``window`` (dict of x, y, t, p, t_start, t_end).
+        ``base``: optional (2, H, W) flow that the solve corrects (default: solve from zero)."""
+        height, width = size
+        n = len(window["t"])
+        if n == 0:
+            return np.zeros((2, height, width), np.float32) if base is None else np.asarray(base, np.float32)
+        if n > self.max_events:
+            pick = np.linspace(0, n - 1, self.max_events).astype(np.int64)
+            window = {**{k: np.asarray(window[k])[pick] for k in ("x", "y", "t", "p")},
+                      "t_start": window["t_start"], "t_end": window["t_end"]}
+        batch = EventBatch.from_windows([window], device=device)
+        frames = max(1.0, (int(window["t_end"]) - int(window["t_start"])) / FRAME_US)
+        offset = None if base is None else torch.as_tensor(np.asarray(base, np.float32), device=device)[None]
+        flow = contrast_maximisation_flow(
+            batch, height, width, grids=self.grids, steps=self.steps, lr=self.lr_per_frame * frames,
+            sensor_scales=self.sensor_scales, lr_decay=self.lr_decay, flow_scaling=self.flow_scaling,
+            lambda_1=self.lambda_1, lambda_2=self.lambda_2, alpha=self.alpha, border_penalty=self.border_penalty,
+            border_ramp=self.border_ramp, base=offset,
+        )
+        return flow[0].cpu().numpy().astype(np.float32)
+
+    def describe(self) -> dict:
+        return asdict(self)
+
+
+#: The plain coarse-to-fine solve on sensor pixels (the teacher targets' solver).
+PLAIN = CMaxSettings(sensor_scales=(1, 1, 1), steps=(40, 40, 40), lr_per_frame=0.05, lr_decay=1.0)
+
+
+@dataclass
+class ContrastMaximisationPolicy:
+    """Per-window contrast maximisation as a policy: no network, no state, no ground truth."""
+
+    settings: CMaxSettings = field(default_factory=CMaxSettings)
+    device: str = "cpu"
+    input_key: str = "count_image"
+    voxel_bins: int = 5
+
+    def reset(self, mask=None) -> None:
+        """Nothing to reset: every window is solved on its own."""
+
+    def act_on_window(self, obs, window: dict) -> np.ndarray:
+        size = tuple(np.asarray(obs[self.input_key]).shape[-2:])
+        return self.settings.solve(window, size, device=self.device)
+
+
+class RefinedPolicy:
+    """A recurrent policy's flow refined by contrast maximisation on the window's own events.
+
+    The solve optimises a coarse residual grid added to the network's flow (so the network's
+    detail stays); ``steps = 0`` returns the network's flow unchanged. The refinement does not
+    feed back into the network (its state carries its own prediction, as without refinement).
+    settings: the residual solve (default: one 16-cell level on sensor pixels, ``steps`` Adam
+    steps); given, its steps override ``steps``.
+    """
+
+    def __init__(self, policy, *, steps: int = 30, settings: CMaxSettings | None = None) -> None:
+        self.policy = policy
+        if int(steps) < 0:
+            raise ValueError(f"refinement steps must be >= 0, got {steps}")
+        self.settings = settings or CMaxSettings(grids=(16,), sensor_scales=(1,), steps=(int(steps),),
+                                                 lr_per_frame=0.03, lr_decay=3.0)
+        self.steps = sum(self.settings.steps)
+        self.input_key = policy.input_key
+        self.voxel_bins = policy.voxel_bins
+
+    def reset(self, mask=None) -> None:
+        self.policy.reset(mask)
+
+    def act_on_window(self, obs, window: dict) -> np.ndarray:
+        flow = self.policy.act(obs)
+        if self.steps == 0:
+            return flow
+        size = tuple(flow.shape[-2:])
+        return self.settings.solve(window, size, base=flow, device=self.policy.device)
