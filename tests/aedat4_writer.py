@@ -303,7 +303,7 @@ def _data_table(entries: list[tuple[int, int, int, Packet]]) -> bytes:
     """FileDataTable (FTAB): per packet its byte offset, PacketHeader struct (stream id, size),
     element count and time span."""
     definitions = [
-        [_Scalar("<q", offset), _Scalar("<iI", stream_id, size), _Scalar("<q", p.num_elements),
+        [_Scalar("<q", offset), _Scalar("<ii", stream_id, size), _Scalar("<q", p.num_elements),
          _Scalar("<q", p.t_first), _Scalar("<q", p.t_last)]
         for offset, stream_id, size, p in entries
     ]
@@ -331,7 +331,7 @@ def write_aedat4(
     for stream_id, packet in packets:
         data = _compress(packet.flatbuffer, compression)
         entries.append((start + len(body), stream_id, len(data), packet))
-        body.extend(struct.pack("<iI", stream_id, len(data)) + data)
+        body.extend(struct.pack("<ii", stream_id, len(data)) + data)
     position = start + len(body) if data_table else -1
     with open(path, "wb") as f:
         f.write(MAGIC)
