@@ -361,6 +361,35 @@ def test_dsec_rectification_and_flow_pngs(tmp_path, rng):
         assert r.events_range(0, 10).x.dtype == np.int16
 
 
+def test_dsec_of_another_sensor_size_takes_it_from_its_files(tmp_path, rng):
+    """A 346x260 recording in the DSEC layout: the size comes from the rectify map and the flow
+    PNGs; files that disagree, or events outside the stated size, are refused by name."""
+    x, y, t, p = _stream(rng, 3_000, (260, 346), 200_000)
+    folder = tmp_path / "davis"
+    write_dsec(folder, x, y, t, p)
+    ys, xs = np.mgrid[0:260, 0:346].astype(np.float32)
+    with h5py.File(folder / "rectify_map.h5", "w") as f:
+        f.create_dataset("rectify_map", data=np.stack([xs, ys], axis=-1))
+    flow_dir = tmp_path / "flow"
+    flow_dir.mkdir()
+    flow = np.round(rng.normal(0, 3, (2, 260, 346)) * 128) / 128
+    encode_flow_png(flow_dir / "000002.png", flow, np.ones((260, 346), bool))
+    (flow_dir / "timestamps.txt").write_text(f"# from_us, to_us\n{T_OFFSET + 50_000}, {T_OFFSET + 150_000}\n")
+    with DSECReader(folder / "events.h5", flow_dir=flow_dir) as r:
+        assert r.sensor_size == (260, 346) and r.rectified
+        _assert_events(r.events_range(0, r.num_events), x, y, t + T_OFFSET, p)
+        got, valid = r.flow_between(T_OFFSET + 50_000, T_OFFSET + 150_000)
+        assert valid.all() and np.allclose(got, flow, atol=1 / 256)
+    env = EventFlowEnv(str(folder), data_options={"flow_dir": str(flow_dir)})
+    obs, info = env.reset(options={"sequence": 0})
+    assert obs["count_image"].shape == (2, 260, 346) and info["windowing"] == "ground truth"
+    encode_flow_png(flow_dir / "000002.png", flow[:, :200], np.ones((200, 346), bool))
+    with pytest.raises(FormatError, match=r"disagree.*260x346.*200x346"):
+        DSECReader(folder / "events.h5", flow_dir=flow_dir)
+    with pytest.raises(FormatError, match=r"outside the 300x200 sensor"):
+        DSECReader(folder / "events.h5", rectify=False, sensor_size=(200, 300))
+
+
 def test_dsec_without_hdf5plugin_says_install_the_extra(tmp_path, rng, monkeypatch):
     x, y, t, p = _stream(rng, 100, (480, 640), 5_000)
     path = write_dsec(tmp_path / "d", x, y, t, p)

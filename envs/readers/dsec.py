@@ -3,15 +3,15 @@ ground truth (16-bit PNGs + timestamps file). REFERENCE section 8.
 
 Layout read:
 
-    events/x, events/y   (N,) uint16    pixel (unrectified), 640 x 480 sensor
+    events/x, events/y   (N,) uint16    pixel (unrectified); DSEC's sensor is 640 x 480
     events/t             (N,) uint32    µs relative to t_offset
     events/p             (N,) uint8     0 = OFF, 1 = ON
     ms_to_idx            (M,) uint64    ms_to_idx[m] = first event with t >= 1000 * m
     t_offset             () int64       µs; absolute time = t_offset + t
     (the event datasets are Blosc/zstd compressed: reading needs ``import hdf5plugin``)
 
-    rectify_map.h5:  rectify_map (480, 640, 2) float32, [y, x] -> (x_rect, y_rect)
-    flow PNGs:       (480, 640, 3) uint16 RGB: x = (R - 2^15) / 128, y = (G - 2^15) / 128,
+    rectify_map.h5:  rectify_map (H, W, 2) float32, [y, x] -> (x_rect, y_rect)
+    flow PNGs:       (H, W, 3) uint16 RGB: x = (R - 2^15) / 128, y = (G - 2^15) / 128,
                      valid = B > 0; pixels of displacement over [from_us, to_us)
     timestamps file: "# from_timestamp_us, to_timestamp_us" then one "from, to" line per PNG,
                      in the sorted order of the PNG file names (absolute µs, t_offset's clock)
@@ -35,7 +35,7 @@ from envs.events import Events
 from envs.h5format import FormatError
 from envs.readers._common import SortedColumn, missing_extra, nonbuiltin_filters, open_h5, require
 from envs.readers.base import EventReader, FlowGT
-from envs.readers.png16 import read_png
+from envs.readers.png16 import png_size, read_png
 
 __all__ = ["DSECReader", "DSEC_SENSOR_SIZE", "decode_flow_png", "encode_flow_png", "require_hdf5plugin"]
 
@@ -102,7 +102,10 @@ class DSECReader(EventReader):
     path: ``events.h5``. rectify: None (auto), True (needs ``rectify_map``/the file beside),
     False. rectify_map: path of ``rectify_map.h5``. flow_dir: folder of the flow PNGs;
     flow_timestamps: the ``forward_timestamps.txt`` file (default: ``<flow_dir>/../forward_timestamps.txt``
-    or ``<flow_dir>/timestamps.txt`` when present).
+    or ``<flow_dir>/timestamps.txt`` when present). sensor_size: (height, width) for a
+    recording in this layout from another camera that has neither rectify map nor flow PNGs;
+    otherwise the size comes from those files (they must agree with each other and with the
+    events), and is DSEC's 480 x 640 when there are none.
     """
 
     layout = "dsec"
@@ -115,6 +118,7 @@ class DSECReader(EventReader):
         rectify_map: str | os.PathLike | None = None,
         flow_dir: str | os.PathLike | None = None,
         flow_timestamps: str | os.PathLike | None = None,
+        sensor_size: tuple[int, int] | None = None,
         validate: bool = True,
     ) -> None:
         self.path = Path(path)
@@ -141,7 +145,7 @@ class DSECReader(EventReader):
         self._ms_to_idx = f["ms_to_idx"]
         self.t_offset = int(np.asarray(f["t_offset"][()]).ravel()[0])
         self.num_events = lengths["t"]
-        self.sensor_size = DSEC_SENSOR_SIZE
+        self.sensor_size = DSEC_SENSOR_SIZE  # until the rectify map or the flow PNGs say otherwise
         self._times = SortedColumn(lambda i0, i1: self._ds["t"][i0:i1].astype(np.int64) + self.t_offset, self.num_events)
         try:
             self._check_index()
@@ -156,13 +160,42 @@ class DSECReader(EventReader):
             rectify = map_path.exists()
         self.rectified = bool(rectify)
         self._rect = None
+        sizes: dict[str, tuple[int, int]] = {}  # what each file (or the caller) says the sensor is
+        if sensor_size is not None:
+            sizes["sensor_size="] = (int(sensor_size[0]), int(sensor_size[1]))
         if self.rectified:
             self._rect = self._load_rectify_map(map_path)
+            sizes[str(map_path)] = tuple(self._rect.shape[:2])
         # ground truth
         self._flow_files: list[Path] = []
         self._flow_t = None
         if flow_dir is not None:
             self._open_flow(Path(flow_dir), None if flow_timestamps is None else Path(flow_timestamps))
+            if self._flow_files:
+                sizes[str(self._flow_files[0])] = png_size(self._flow_files[0])
+        if len(set(sizes.values())) > 1:
+            f.close()
+            raise FormatError("DSEC files disagree on the sensor size (height x width): " +
+                              ", ".join(f"{k}: {h}x{w}" for k, (h, w) in sizes.items()))
+        if sizes:
+            self.sensor_size = next(iter(sizes.values()))
+        self._check_event_extent()
+
+    def _check_event_extent(self, samples: int = 65_536) -> None:
+        """The events must fit the sensor size the files state: checked on an even sample of
+        events on open (every window is checked again when read)."""
+        n = self.num_events
+        if not n:
+            return
+        pick = np.unique(np.linspace(0, n - 1, min(n, samples)).astype(np.int64))
+        xs, ys = self._ds["x"][pick], self._ds["y"][pick]
+        h, w = self.sensor_size
+        if int(xs.max()) >= w or int(ys.max()) >= h:
+            self._file.close()
+            raise FormatError(
+                f"{self.path}: events reach x = {int(xs.max())}, y = {int(ys.max())}, outside the {w}x{h} sensor "
+                "(width x height) that the rectify map / flow PNGs state"
+            )
 
     def _load_rectify_map(self, path: Path) -> np.ndarray:
         if not path.exists():
@@ -173,8 +206,8 @@ class DSECReader(EventReader):
             rect = mf["rectify_map"][:]
         finally:
             mf.close()
-        if rect.shape != DSEC_SENSOR_SIZE + (2,):
-            raise FormatError(f"{path}: dataset '/rectify_map' has shape {rect.shape}, expected (480, 640, 2)")
+        if rect.ndim != 3 or rect.shape[2] != 2 or min(rect.shape[:2]) < 1:
+            raise FormatError(f"{path}: dataset '/rectify_map' has shape {rect.shape}, expected (height, width, 2)")
         return rect.astype(np.float32)
 
     def _open_flow(self, flow_dir: Path, ts_path: Path | None) -> None:
@@ -264,7 +297,8 @@ class DSECReader(EventReader):
             inside = (x < w) & (y < h)
             if self.validate and not inside.all():
                 bad = int(np.flatnonzero(~inside)[0])
-                raise FormatError(f"{source}: event {i_start + bad} at (x={x[bad]}, y={y[bad]}) is outside the 640x480 sensor")
+                raise FormatError(f"{source}: event {i_start + bad} at (x={x[bad]}, y={y[bad]}) is outside the {w}x{h} "
+                                  "sensor (width x height, from the rectify map)")
             xy = self._rect[y, x]
             xr, yr = xy[:, 0], xy[:, 1]
             keep = np.isfinite(xr) & np.isfinite(yr) & (xr >= 0) & (xr <= w - 1) & (yr >= 0) & (yr <= h - 1)

@@ -15,7 +15,7 @@ import zlib
 
 import numpy as np
 
-__all__ = ["read_png", "write_png", "PNGError"]
+__all__ = ["read_png", "write_png", "png_size", "PNGError"]
 
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # colour type -> channels (gray, RGB, gray+alpha, RGBA)
@@ -23,6 +23,16 @@ _CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}  # colour type -> channels (gray, RGB, gray
 
 class PNGError(ValueError):
     """A PNG this codec cannot read; the message names the file and the reason."""
+
+
+def png_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(height, width) from a PNG's header, without decoding the image."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if head[:8] != _SIGNATURE or head[12:16] != b"IHDR":
+        raise PNGError(f"{path}: not a PNG file")
+    width, height = struct.unpack(">II", head[16:24])
+    return int(height), int(width)
 
 
 def read_png(path: str | os.PathLike) -> np.ndarray:
