@@ -33,6 +33,11 @@ def _packets(t, x, y, on, sizes):
     return [(0, event_packet(t[a:b], x[a:b], y[a:b], on[a:b])) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def _at(path) -> str:
+    """A regular expression for the start of an error message naming ``path``."""
+    return "^" + re.escape(str(path))
+
+
 def _assert_events(ev, t, x, y, on):
     np.testing.assert_array_equal(ev.t, t)
     np.testing.assert_array_equal(ev.x, x)
@@ -114,7 +119,8 @@ def test_a_chosen_event_stream(tmp_path, rng):
         _assert_events(r.events_range(0, r.num_events), t, x, y, on)
     with open_recording(path, cache_dir=tmp_path, stream_id=7) as r:
         _assert_events(r.events_range(0, r.num_events), t2, x2, y2, on2)
-    with pytest.raises(FormatError, match=rf"{re.escape(str(path))}: stream 8 is not a polarity event stream.*stream 8: imus"):
+    message = r": stream 8 is not a polarity event stream; the file holds .*stream 8: imus$"
+    with pytest.raises(FormatError, match=_at(path) + message):
         open_recording(path, cache_dir=tmp_path, stream_id=8)
 
 
@@ -150,7 +156,7 @@ def test_a_cut_file_names_the_file(tmp_path, cache, compression):
     cut = tmp_path / "cut.aedat4"
     for size in (len(MAGIC) + 2, packets_start - 100, packets_start + 30, table_start // 2, table_start - 1):
         cut.write_bytes(data[:size])
-        with pytest.raises(FormatError, match=rf"^{re.escape(str(cut))}: .*cannot be read \(.*\).*the file is cut short or damaged"):
+        with pytest.raises(FormatError, match=_at(cut) + rf": .*cannot be read \(.+\).*the file is cut short"):
             open_recording(cut, cache_dir=cache)
     cut.write_bytes(data[: table_start + 10])  # only the data table is cut: every packet is there
     with open_recording(cut, cache_dir=cache) as r:
@@ -182,7 +188,7 @@ def test_a_file_cut_at_a_packet_boundary_without_data_table_keeps_its_whole_pack
 def test_not_aedat4_with_the_extension_names_the_file(tmp_path, cache, content, kind):
     path = tmp_path / "renamed.aedat4"
     path.write_bytes(content)
-    with pytest.raises(FormatError, match=rf"^{re.escape(str(path))}: {kind}: it starts with .*an AEDAT4 file starts with"):
+    with pytest.raises(FormatError, match=_at(path) + rf": {kind}: it starts with .*, an AEDAT4 file starts with"):
         open_recording(path, cache_dir=cache)
 
 
@@ -192,8 +198,8 @@ def test_a_damaged_header_names_the_file(tmp_path, rng, cache):
     data = path.read_bytes()
     # same size, but the description's root is no longer the dv node
     path.write_bytes(data.replace(b"<dv ", b"<xx ", 1).replace(b"</dv>", b"</xx>", 1))
-    with pytest.raises(FormatError, match=rf"^{re.escape(str(path))}: the AEDAT4 header cannot be read \(.+\); "
-                                          rf"the file is cut short or damaged$"):
+    message = r": the AEDAT4 header cannot be read \(.+\); the file is cut short or damaged$"
+    with pytest.raises(FormatError, match=_at(path) + message):
         open_recording(path, cache_dir=cache)
 
 
@@ -204,8 +210,8 @@ def test_no_polarity_stream_names_the_file(tmp_path, rng, cache):
     packets = [(0, frame_packet(T0, np.zeros(SENSOR, np.uint8))),
                (1, imu_packet(t, np.zeros((4, 3), np.float32), np.zeros((4, 3), np.float32)))]
     path = write_aedat4(tmp_path / "frames_only.aedat4", streams, packets)
-    with pytest.raises(FormatError, match=rf"^{re.escape(str(path))}: no polarity event stream \(EVTS\); the file holds "
-                                          rf"stream 0: frame {w}x{h}, stream 1: imus$"):
+    message = rf": no polarity event stream \(EVTS\); the file holds stream 0: frame {w}x{h}, stream 1: imus$"
+    with pytest.raises(FormatError, match=_at(path) + message):
         open_recording(path, cache_dir=cache)
 
 
@@ -215,8 +221,8 @@ def test_unsorted_packets_name_the_file_not_the_copy(tmp_path, rng, cache):
     order = [(0, 200), (400, 600), (200, 400)]  # the third packet goes back in time
     packets = [(0, event_packet(t[a:b], x[a:b], y[a:b], on[a:b])) for a, b in order]
     path = write_aedat4(tmp_path / "unsorted.aedat4", {0: Stream("EVTS", w, h)}, packets, compression="lz4")
-    with pytest.raises(EventError, match=rf"^{re.escape(str(path))} \(stream 0, packet 2\): events go back in time: "
-                                         rf"t={t[200]} us follows t={t[599]} us") as err:
+    message = rf" \(stream 0, packet 2\): events go back in time: t={t[200]} us follows t={t[599]} us"
+    with pytest.raises(EventError, match=_at(path) + message) as err:
         open_recording(path, cache_dir=cache)
     assert str(cache) not in str(err.value)
 
@@ -226,8 +232,8 @@ def test_unsorted_events_inside_a_packet_name_the_file(tmp_path, rng, cache):
     t, x, y, on = _events(rng, 300, T0, T0 + 30_000)
     t[150], t[151] = t[151] + 5, t[151]
     path = write_aedat4(tmp_path / "unsorted.aedat4", {0: Stream("EVTS", w, h)}, _packets(t, x, y, on, (100, 200)))
-    with pytest.raises(EventError, match=rf"^{re.escape(str(path))} \(stream 0, packet 1\): field 't' must be non-decreasing; "
-                                         rf"index 51 ") as err:
+    message = r" \(stream 0, packet 1\): field 't' must be non-decreasing; index 51 "
+    with pytest.raises(EventError, match=_at(path) + message) as err:
         open_recording(path, cache_dir=cache)
     assert str(cache) not in str(err.value)
 
@@ -238,8 +244,8 @@ def test_unsorted_frames_name_the_file(tmp_path, rng, cache):
     image = np.zeros(SENSOR, np.uint8)
     packets = [(1, frame_packet(T0 + 500, image)), (0, event_packet(t, x, y, on)), (1, frame_packet(T0 + 100, image))]
     path = write_aedat4(tmp_path / "frames.aedat4", {0: Stream("EVTS", w, h), 1: Stream("FRME", w, h)}, packets)
-    with pytest.raises(EventError, match=rf"^{re.escape(str(path))} \(stream 1, packet 2\): frame at t={T0 + 100} us follows "
-                                         rf"a frame at t={T0 + 500} us"):
+    message = rf" \(stream 1, packet 2\): frame at t={T0 + 100} us follows a frame at t={T0 + 500} us"
+    with pytest.raises(EventError, match=_at(path) + message):
         open_recording(path, cache_dir=cache)
 
 
