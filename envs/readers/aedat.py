@@ -1,7 +1,7 @@
 """AEDAT4 recordings (iniVation DAVIS / DVXplorer cameras, DV software) through the ``aedat``
 package (the project's optional ``aedat`` extra: ``pip install evflow-gym[aedat]``).
 
-API used (``aedat`` 2.x, documented in its README): ``aedat.Decoder(path)`` is an iterator of
+API used (``aedat`` 2.3, documented in its README): ``aedat.Decoder(path)`` is an iterator of
 packets with ``id_to_stream() -> {stream_id: {"type": "events" | "frame" | "imus" | "triggers",
 "width", "height"}}``; each packet is a dict with ``"stream_id"`` and one of ``"events"`` (a
 structured array with fields t (u8, µs), x (u2), y (u2), on (bool)), ``"frame"`` (a dict with
@@ -13,6 +13,10 @@ packet, into a temporary project h5 file (``cache_dir``, default the system temp
 removed on ``close``) and streams windows from there: memory stays one packet deep. Times are
 the camera's absolute µs. Frames (if the file has a frame stream) are converted to (H, W) uint8
 gray (16-bit samples >> 8, colour averaged over channels) and placed at their offset.
+
+Errors name the user's file, never the decoded copy: a file that does not start with the AEDAT4
+line, a header or packet the decoder cannot read (a cut or damaged file), no polarity event
+stream, events or frames going back in time. A failed or interrupted open removes the copy.
 """
 
 from __future__ import annotations
