@@ -48,7 +48,7 @@ class CMaxSettings:
     grids: tuple[int, ...] = (4, 8, 16)
     sensor_scales: tuple[int, ...] = (4, 2, 1)
     steps: tuple[int, ...] = (40, 30, 30)
-    lr_per_frame: float = 0.1
+    lr_per_frame: float = 0.3
     lr_decay: float = 10.0
     lambda_1: float = 1.0
     lambda_2: float = 1e-2
@@ -121,7 +121,7 @@ class RefinedPolicy:
         if int(steps) < 0:
             raise ValueError(f"refinement steps must be >= 0, got {steps}")
         self.settings = settings or CMaxSettings(grids=(16,), sensor_scales=(1,), steps=(int(steps),),
-                                                 lr_per_frame=0.03, lr_decay=3.0)
+                                                 lr_per_frame=0.1, lr_decay=3.0)
         self.steps = sum(self.settings.steps)
         self.input_key = policy.input_key
         self.voxel_bins = policy.voxel_bins

@@ -1,0 +1,138 @@
+"""agents.evaluation and scripts/evaluate.py: every recording whole at its own size, the
+windowing of recordings without ground truth, the contrast-maximisation row and refinement."""
+
+import json
+import sys
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+
+import envs  # noqa: F401  (registers EventFlow-v0)
+from agents.cmax import CMaxSettings, ContrastMaximisationPolicy, RefinedPolicy
+from agents.evaluation import evaluate, results_table
+from agents.policy import RecurrentPolicy
+from agents.registry import make_model
+from envs.env import EventFlowEnv
+from losses import EventBatch, hmc_loss
+from tests.recordings import translating_dots, write_translating_recording
+from tests.test_readers import _stream, write_hagenaars
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+import evaluate as evaluate_script  # noqa: E402
+
+
+def _policy(seed=0):
+    torch.manual_seed(seed)
+    return RecurrentPolicy(make_model("ev-flownet", base_width=4).eval())
+
+
+def _rows(results):
+    return [r.as_dict() for r in results]
+
+
+def test_recordings_of_different_sizes_score_as_each_alone(tmp_path, rng):
+    small = write_translating_recording(tmp_path / "small.h5", rng, sensor_size=(32, 32))
+    large = write_translating_recording(tmp_path / "large.h5", rng, sensor_size=(64, 48), velocity=(-90.0, 300.0))
+    policy = _policy()
+    together = evaluate(policy, [str(small), str(large)], progress=False, max_windows=4)
+    alone = evaluate(policy, str(small), progress=False, max_windows=4) + evaluate(policy, str(large), progress=False,
+                                                                                  max_windows=4)
+    assert [r.size for r in together] == [(32, 32), (64, 48)]  # each whole, nothing cropped
+    for a, b in zip(_rows(together), _rows(alone)):
+        assert a.pop("size") == b.pop("size") and a.pop("windowing") == b.pop("windowing")
+        a.pop("ms"), b.pop("ms")
+        assert a == pytest.approx(b, nan_ok=True)
+
+
+def test_a_size_off_the_networks_stride_is_evaluated_whole(tmp_path, rng):
+    path = write_translating_recording(tmp_path / "odd.h5", rng, sensor_size=(37, 45))
+    (result,) = evaluate(_policy(), str(path), progress=False, max_windows=3, pictures_dir=tmp_path / "pics",
+                         pictures_per_sequence=1, animation_windows=3)
+    assert result.size == (37, 45) and result.windows == 3 and np.isfinite(result.mean("aee"))
+    assert (tmp_path / "pics" / "odd_w000.png").exists() and (tmp_path / "pics" / "odd.gif").exists()
+
+
+def test_a_recording_without_ground_truth_gives_one_table_and_runs_in_the_env(tmp_path, rng):
+    x, y, t, p = _stream(rng, 4_000, (20, 30), 200_000)
+    path = write_hagenaars(tmp_path / "nogt.h5", x, y, t - t[0], p)
+    env = gymnasium.make("EventFlow-v0", data=str(path))  # default window mode
+    obs, info = env.reset(seed=0)
+    assert info["windowing"] == "time" and info["t_end"] - info["t_start"] == 33_333
+    env.close()
+    evaluate_script.main(["--zero", "--data", str(path), "--out", str(tmp_path / "ev"), "--no-progress",
+                          "--pictures", "0"])
+    table = (tmp_path / "ev" / "table.md").read_text()
+    assert table.count("| method |") == 1 and "fixed 33333 us intervals" in table
+    results = json.loads((tmp_path / "ev" / "results.json").read_text())
+    n = results["overall"]["dt1"]["windows"]
+    assert list(results["overall"]) == ["dt1", "fwl", "rsat"] and n == -(-(int(t[-1]) - int(t[0]) + 1) // 33_333)
+    evaluate_script.main(["--zero", "--data", str(path), "--out", str(tmp_path / "ev4"), "--no-progress",
+                          "--pictures", "0", "--dt", "4"])  # asked for: 4 intervals per window
+    results = json.loads((tmp_path / "ev4" / "results.json").read_text())
+    assert results["overall"]["dt4"]["windows"] == n // 4
+
+
+def _translation_window(rng, velocity=(150.0, -60.0), size=(48, 64)):
+    events, (t0, t1) = translating_dots(rng, sensor_size=size, velocity=velocity, duration_us=33_333,
+                                        num_dots=150, events_per_s=300_000)
+    window = {**events.as_dict(), "t_start": t0, "t_end": t1}
+    truth = np.array(velocity) * (t1 - t0) / 1e6
+    return window, truth
+
+
+def test_cmax_finds_an_analytic_translation(rng):
+    window, truth = _translation_window(rng)
+    flow = ContrastMaximisationPolicy().act_on_window({"count_image": np.zeros((2, 48, 64))}, window)
+    mean = flow.reshape(2, -1).mean(1)
+    assert np.abs(mean - truth).max() < 0.6, (mean, truth)  # 5 px and 2 px of motion, found within 0.6 px
+
+
+class _Constant:
+    """A 'network' that always predicts the same flow."""
+
+    input_key, voxel_bins, device = "count_image", 5, "cpu"
+
+    def __init__(self, flow):
+        self.flow = flow
+
+    def reset(self, mask=None):
+        pass
+
+    def act(self, obs):
+        return self.flow.copy()
+
+
+def test_refinement_lowers_the_loss_honours_zero_steps_and_converges(rng):
+    window, truth = _translation_window(rng)
+    start = np.zeros((2, 48, 64), np.float32)
+    start[0], start[1] = truth[0] * 0.5, truth[1] * 0.5  # a network half way there
+    obs = {"count_image": np.zeros((2, 48, 64), np.float32)}
+    assert np.array_equal(RefinedPolicy(_Constant(start), steps=0).act_on_window(obs, window), start)
+    refined = RefinedPolicy(_Constant(start), steps=60).act_on_window(obs, window)
+    batch = EventBatch.from_windows([window])
+
+    def loss(f):
+        return float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=64).loss)
+
+    assert loss(refined) < loss(start)
+    assert np.abs(refined.reshape(2, -1).mean(1) - truth).max() < 0.5 < np.abs(start[:, 0, 0] - truth).max()
+
+
+def test_table_counts_sequences_below_zero_flow(tmp_path, rng):
+    path = write_translating_recording(tmp_path / "rec.h5", rng, sensor_size=(32, 32))
+    named = {"cmax": evaluate(ContrastMaximisationPolicy(CMaxSettings(steps=(10, 10, 10))), str(path),
+                              progress=False, max_windows=2),
+             "zero flow": evaluate(None, str(path), progress=False, max_windows=2)}
+    table = results_table(named)
+    assert "| zero flow |" in table and "0/1" in table and "ms/win" in table
+
+
+def test_env_refuses_mixed_sizes_but_evaluation_takes_them(tmp_path, rng):
+    a = write_translating_recording(tmp_path / "a.h5", rng, sensor_size=(32, 32))
+    b = write_translating_recording(tmp_path / "b.h5", rng, sensor_size=(40, 32))
+    with pytest.raises(ValueError, match=r"'a' 32x32.*'b' 40x32"):
+        env = EventFlowEnv([str(a), str(b)])
+        env.reset(options={"sequence": 1})
