@@ -342,3 +342,25 @@ def test_geometry_too_small_for_the_events_names_the_file(tmp_path, rng):
     with pytest.raises(FormatError, match=r"small\.raw: event [xy]=\d+ outside the 100x100 sensor"):
         open_recording(path, index_dir=tmp_path)
     assert not list(tmp_path.glob("*.npz"))  # nothing half-written
+
+
+@pytest.mark.parametrize("fmt", ["EVT2", "EVT3"])
+def test_benchmark_encoders_agree_with_the_reader(tmp_path, fmt):
+    """The vectorised encoders of scripts/bench_prophesee.py write what the reader reads back."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("bench_prophesee", Path(__file__).parents[1] / "scripts" / "bench_prophesee.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    path = bench.write_raw(tmp_path / "b.raw", fmt, 30_000, 2e6, chunk=7_000)
+    rng = np.random.default_rng(0)  # the same draws as write_raw(seed=0)
+    parts = []
+    for k, i0 in enumerate(range(0, 30_000, 7_000)):
+        n = min(7_000, 30_000 - i0)
+        span = 7_000 / 2e6 * 1e6
+        t = np.sort(rng.integers(int(k * span), int(k * span + span * n / 7_000), n))
+        parts.append((rng.integers(0, 1280, n), rng.integers(0, 720, n), rng.integers(0, 2, n), t))
+    x, y, p, t = (np.concatenate(c) for c in zip(*parts))
+    with PropheseeRawReader(path, index_dir=tmp_path) as r:
+        assert_events(r.events_range(0, r.num_events), x, y, t, p)

@@ -148,15 +148,6 @@ _EVT3_STATE = ("time_high", "time_low", "y", "base_x", "polarity", "last_t")
 _DAT_STATE = ("time", "last_t")  # time: full (unwrapped) time of the last record
 
 
-def _latest(values: np.ndarray, is_update: np.ndarray, before: int) -> np.ndarray:
-    """For every word, the value of the last update word at or before it (``before`` if none).
-
-    values: (N,) int64 payloads, read where is_update; returns (N,) int64.
-    """
-    table = np.concatenate([np.array([before], np.int64), values[is_update].astype(np.int64)])
-    return table[np.cumsum(is_update)]
-
-
 def _unwrap(values: np.ndarray, previous: int, bits: int) -> np.ndarray:
     """Unfold a counter of ``bits`` bits that wraps around: a value below the one before it
     starts a new period. previous: the full value before these (-1: none). Returns int64."""
@@ -202,52 +193,87 @@ def _decode_evt2(words: np.ndarray, state: np.ndarray):
 
 
 _BIT = np.arange(12, dtype=np.uint16)
+_POPCOUNT = np.array([bin(m).count("1") for m in range(1 << 12)], np.int64)  # events per vector mask
+
+
+def _at(where: np.ndarray, is_update: np.ndarray, values: np.ndarray, before: int) -> np.ndarray:
+    """At the word positions ``where``: the value of the last update word at or before each
+    (``before`` if none in this chunk). values: payloads of the update words, in order."""
+    table = np.concatenate([np.array([before], np.int64), values.astype(np.int64)])
+    return table[np.cumsum(is_update, dtype=np.int32)[where]]
 
 
 def _decode_evt3(words: np.ndarray, state: np.ndarray):
-    """words: (N,) uint16. Returns (x, y, t, p, state, reordered)."""
+    """words: (N,) uint16. Returns (x, y, t, p, state, reordered).
+
+    Only the event-carrying words (ADDR_X, VECT_12, VECT_8) are expanded: each gets the time,
+    row and vector base in force at its position; a vector word then yields one event per set
+    bit of its mask, in pixel order, at its place in the stream.
+    """
     time_high, time_low, y_state, base_state, pol_state, last_t = (int(v) for v in state)
-    kind = words >> 12
-    payload = (words & 0x0FFF).astype(np.int64)
-    is_th = kind == 0x8
+    kind = (words >> 12).astype(np.uint8)
+    payload = words & np.uint16(0x0FFF)
+    is_th, is_tl, is_y, is_x = kind == 0x8, kind == 0x6, kind == 0x0, kind == 0x2
+    is_v12, is_v8, is_base = kind == 0x4, kind == 0x5, kind == 0x3
     th_full = _unwrap(payload[is_th], time_high, 12)
-    th_table = np.concatenate([np.array([time_high], np.int64), th_full])
-    th = th_table[np.cumsum(is_th)]
-    tl = _latest(payload, kind == 0x6, time_low)
-    y = _latest(payload & 0x7FF, kind == 0x0, y_state)
-    # vector base: the last VECT_BASE_X, advanced by 12 / 8 for every VECT_12 / VECT_8 since it
-    is_base = kind == 0x3
-    step = np.where(kind == 0x4, 12, np.where(kind == 0x5, 8, 0)).astype(np.int64)
-    advanced = np.cumsum(step)  # inclusive
-    base_word = np.concatenate([np.array([base_state], np.int64), payload[is_base] & 0x7FF])
-    base_mark = np.concatenate([np.array([0], np.int64), advanced[is_base]])
-    base_pol = np.concatenate([np.array([pol_state], np.int64), payload[is_base] >> 11])
-    which = np.cumsum(is_base)
-    base = base_word[which] + (advanced - step) - base_mark[which]
-    pol = base_pol[which]
-    # every event-carrying word as (first x, validity mask, polarity)
-    single = kind == 0x2
-    vector = (kind == 0x4) | (kind == 0x5)
-    known = (th >= 0) & (tl >= 0) & (y >= 0)
-    sel = np.flatnonzero((single | (vector & (base_word[which] >= 0))) & known)
-    is_single = single[sel]
-    first_x = np.where(is_single, payload[sel] & 0x7FF, base[sel])
-    mask = np.where(is_single, 1, np.where(kind[sel] == 0x4, payload[sel], payload[sel] & 0xFF)).astype(np.uint16)
-    polarity = np.where(is_single, payload[sel] >> 11, pol[sel])
-    row, col = np.nonzero((mask[:, None] >> _BIT) & 1)  # word order, then pixel order
-    word = sel[row]
-    x = (first_x[row] + col).astype(np.int16)
-    t = (th[word] << 12) | tl[word]
+    carrying = np.flatnonzero(is_x | is_v12 | is_v8)
+    th = _at(carrying, is_th, th_full, time_high)
+    tl = _at(carrying, is_tl, payload[is_tl], time_low)
+    row = _at(carrying, is_y, payload[is_y] & 0x7FF, y_state)
+    pay = payload[carrying].astype(np.int64)
+    single = is_x[carrying]
+    first_x = pay & 0x7FF
+    polarity = pay >> 11
+    count = np.ones(len(carrying), np.int64)
+    has_vectors = bool(is_v12.any() or is_v8.any())
+    end_base, end_pol = base_state, pol_state
+    if has_vectors or is_base.any():
+        # vector base: the last VECT_BASE_X, advanced by 12 / 8 for every VECT_12 / VECT_8 since it
+        step = is_v12 * np.int64(12) + is_v8 * np.int64(8)
+        advanced = np.cumsum(step)  # inclusive
+        which = np.cumsum(is_base, dtype=np.int32)
+        base_word = np.concatenate([np.array([base_state], np.int64), payload[is_base].astype(np.int64) & 0x7FF])
+        base_mark = np.concatenate([np.array([0], np.int64), advanced[is_base]])
+        base_pol = np.concatenate([np.array([pol_state], np.int64), payload[is_base].astype(np.int64) >> 11])
+        w = which[carrying]
+        vec = ~single
+        first_x[vec] = base_word[w[vec]] + (advanced[carrying[vec]] - step[carrying[vec]]) - base_mark[w[vec]]
+        polarity[vec] = base_pol[w[vec]]
+        mask = np.where(is_v12[carrying], pay, pay & 0xFF)
+        count[vec] = _POPCOUNT[mask[vec]]
+        count[vec & (base_word[w] < 0)] = 0  # vectors before any VECT_BASE_X: no known x
+        end_base = int(base_word[-1] + advanced[-1] - base_mark[-1]) if base_word[-1] >= 0 else -1
+        end_pol = int(base_pol[-1])
+    count[(th < 0) | (tl < 0) | (row < 0)] = 0  # before the first time base / row: no known time or y
+    if not has_vectors:  # one event per ADDR_X word
+        source = np.flatnonzero(count > 0)  # which carrying word each event comes from
+        x = first_x[source]
+    else:
+        offset = np.cumsum(count) - count
+        total = int(offset[-1] + count[-1]) if len(count) else 0
+        x = np.empty(total, np.int64)
+        source = np.empty(total, np.int64)
+        keep_single = single & (count > 0)
+        x[offset[keep_single]] = first_x[keep_single]
+        source[offset[keep_single]] = np.flatnonzero(keep_single)
+        vec = np.flatnonzero(~single & (count > 0))
+        r, c = np.nonzero((mask[vec, None].astype(np.uint16) >> _BIT) & 1)  # word order, then pixel order
+        rank = np.arange(len(r)) - (np.cumsum(count[vec]) - count[vec])[r]
+        at = offset[vec][r] + rank
+        x[at] = first_x[vec][r] + c
+        source[at] = vec[r]
+    t = (th[source] << 12) | tl[source]
     t, reordered = _monotonic(t, last_t)
     n = len(words)
-    end_base = int(base_word[-1] + advanced[-1] - base_mark[-1]) if n else base_state
-    if n and base_word[-1] < 0:
-        end_base = -1
     new_state = np.array([
-        th_table[-1], int(tl[-1]) if n else time_low, int(y[-1]) if n else y_state, end_base,
-        int(pol[-1]) if n else pol_state, int(t[-1]) if len(t) else last_t,
+        th_full[-1] if len(th_full) else time_high,
+        int(payload[is_tl][-1]) if is_tl.any() else time_low,
+        int(payload[is_y][-1] & 0x7FF) if is_y.any() else y_state,
+        end_base if n else base_state, end_pol if n else pol_state,
+        int(t[-1]) if len(t) else last_t,
     ], np.int64)
-    return x, y[word].astype(np.int16), t, polarity.astype(np.int8)[row], new_state, reordered
+    return (x.astype(np.int16), row[source].astype(np.int16), t, polarity[source].astype(np.int8), new_state,
+            reordered)
 
 
 def _decode_dat(records: np.ndarray, state: np.ndarray):
