@@ -15,7 +15,8 @@ File (h5), one group per recording, named by the recording::
     /<name>/bounds  (K, 2) int64 µs: the windows [t_start, t_end)
     /<name>/grid    (K, 2, gh, gw) float32 pixels per window: the solved coarse flow; the
                     target is its bilinear upsampling to the sensor frame (align_corners=False)
-    attrs: "config" (JSON: data, window sizes, solver settings, sensor size), "complete" (bool)
+    /<name> attrs:  "sensor_size" (height, width) of that recording (recordings may differ)
+    attrs: "config" (JSON: data, window sizes, solver settings, first sensor size), "complete" (bool)
 
 A run's windows are looked up by (recording, t_start, t_end); the env's crop and flips
 (``info["crop"]``, ``info["flips"]``) map the full-frame target into the env's frame. The
@@ -35,6 +36,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from envs.dataset import resolve_data
 from envs.env import EventFlowEnv
 from envs.windows import window_bounds
 from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
@@ -54,8 +56,10 @@ class TeacherSettings:
     """The contrast-maximisation solve (``losses.contrast_maximisation_flow``) of every window."""
 
     grids: tuple = (4, 8, 16)  # coarse-to-fine cells along the longer side (16: finer than the per-update default)
-    steps: int = 40  # Adam steps per level
+    steps: int | tuple = 40  # Adam steps per level (one for all, or one per level)
     lr_per_frame: float = 0.05  # Adam step size in pixels, times the window's length in frames
+    sensor_scales: tuple | None = None  # sensor-grid coarsening per level (None: sensor pixels throughout)
+    lr_decay: float = 1.0  # the step size falls by this factor over the solve
     lambda_1: float = 1.0
     lambda_2: float = 1e-2
     alpha: float = 0.6
@@ -77,11 +81,12 @@ def _windows_of(env: EventFlowEnv, sequence: int) -> list[dict]:
 
 def count_windows(data, window_sizes: Sequence[int]) -> int:
     """How many ``frames`` windows ``compute_teacher_targets`` solves for ``data``."""
-    env = EventFlowEnv(data, window="frames", compute_reward=False)
+    sources = resolve_data(data)
     try:
-        return sum(len(window_bounds(source.reader(), "frames", int(k))) for source in env.sources for k in set(window_sizes))
+        return sum(len(window_bounds(source.reader(), "frames", int(k))) for source in sources for k in set(window_sizes))
     finally:
-        env.close()
+        for source in sources:
+            source.close()
 
 
 def compute_teacher_targets(
@@ -106,11 +111,12 @@ def compute_teacher_targets(
     sizes = sorted({int(k) for k in window_sizes})
     if not sizes or sizes[0] < 1:
         raise ValueError(f"window_sizes must be positive frame counts, got {list(window_sizes)}")
-    envs = {k: EventFlowEnv(data, window="frames", window_size=k, compute_reward=False) for k in sizes}
-    first = envs[sizes[0]]
+    names = [source.name for source in resolve_data(data)]
+    first_env = EventFlowEnv(data, window="frames", compute_reward=False, sequences=[0])
     config = {"format": FORMAT, "data": data if isinstance(data, str) else [str(d) for d in np.atleast_1d(data)],
-              "window_sizes": sizes, "sensor_size": list(first.sensor_size), **asdict(settings)}
-    config["grids"] = list(config["grids"])
+              "window_sizes": sizes, "sensor_size": list(first_env.sensor_size), **asdict(settings)}
+    first_env.close()
+    config = json.loads(json.dumps(config))  # tuples as lists, as they read back
     partial = out.with_name(out.name + ".partial")
     out.parent.mkdir(parents=True, exist_ok=True)
     with h5py.File(partial, "a") as f:
@@ -119,15 +125,18 @@ def compute_teacher_targets(
                                     f"the same settings ({json.loads(f.attrs['config'])})")
         f.attrs["config"] = json.dumps(config)
         f.attrs["complete"] = False
-        H, W = first.sensor_size
-        for index, name in enumerate(first.sequence_names):
+        for index, name in enumerate(names):
             if name in f:  # done by an earlier, interrupted run
                 if progress is not None:
                     progress(len(f[name]["bounds"]), name)
                 continue
+            # one env per recording and window length: each recording in its own frame
+            envs = {k: EventFlowEnv(data, window="frames", window_size=k, compute_reward=False, sequences=[index])
+                    for k in sizes}
+            H, W = envs[sizes[0]].sensor_size
             bounds, grids = [], []
             for k in sizes:  # one solve per window length: each has its own step size
-                windows = _windows_of(envs[k], index)
+                windows = _windows_of(envs[k], 0)
                 for start in range(0, len(windows), batch_size):
                     chunk = windows[start : start + batch_size]
                     batch = EventBatch.from_windows(chunk, device=device)
@@ -135,13 +144,14 @@ def compute_teacher_targets(
                     if progress is not None:
                         progress(len(chunk), name)
                 bounds += [[w["t_start"], w["t_end"]] for w in windows]
+            for env in envs.values():
+                env.close()
             group = f.create_group(name)
+            group.attrs["sensor_size"] = (H, W)
             group["bounds"] = np.array(bounds, np.int64).reshape(-1, 2)
             group["grid"] = torch.stack(grids).numpy().astype(np.float32)
             f.flush()
         f.attrs["complete"] = True
-    for env in envs.values():
-        env.close()
     os.replace(partial, out)
     return out
 
@@ -149,9 +159,10 @@ def compute_teacher_targets(
 def _solve_coarse(batch: EventBatch, height: int, width: int, s: TeacherSettings, *, lr: float) -> torch.Tensor:
     """(B, 2, gh, gw) the last level's coarse flow (its upsampling is the target)."""
     flow = contrast_maximisation_flow(
-        batch, height, width, grids=s.grids, steps=s.steps, lr=lr, flow_scaling=s.flow_scaling, lambda_1=s.lambda_1,
-        lambda_2=s.lambda_2, alpha=s.alpha, border_penalty=s.border_penalty, border_ramp=s.border_ramp,
-        return_coarse=True,
+        batch, height, width, grids=s.grids, steps=s.steps if isinstance(s.steps, int) else tuple(s.steps), lr=lr,
+        flow_scaling=s.flow_scaling, lambda_1=s.lambda_1, lambda_2=s.lambda_2, alpha=s.alpha,
+        border_penalty=s.border_penalty, border_ramp=s.border_ramp, return_coarse=True,
+        sensor_scales=s.sensor_scales, lr_decay=s.lr_decay,
     )
     return flow.cpu()
 
@@ -176,7 +187,10 @@ class TeacherTargets:
             self.config = config
             self.sensor_size = tuple(config["sensor_size"])
             self._index: dict[tuple[str, int, int], torch.Tensor] = {}
+            self._sizes: dict[str, tuple[int, int]] = {}
             for name, group in f.items():
+                size = group.attrs.get("sensor_size", self.sensor_size)
+                self._sizes[name] = (int(size[0]), int(size[1]))
                 grid = torch.from_numpy(group["grid"][()])
                 for (t0, t1), g in zip(group["bounds"][()].tolist(), grid):
                     self._index[(name, int(t0), int(t1))] = g
@@ -195,7 +209,7 @@ class TeacherTargets:
                 f"teacher targets {self.path}: no window [{t_start}, {t_end}) of recording {sequence!r} (the file "
                 f"holds data {self.config['data']!r} at window sizes {self.config['window_sizes']} frames); "
                 "make targets for the run's data and window sizes")
-        H, W = self.sensor_size
+        H, W = self._sizes.get(str(sequence), self.sensor_size)
         top, left, h, w = (0, 0, H, W) if crop is None else (int(v) for v in crop)
         flow = F.interpolate(self._index[key][None], size=(H, W), mode="bilinear", align_corners=False)[0]
         flow = flow[:, top : top + h, left : left + w]
