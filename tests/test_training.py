@@ -3,8 +3,10 @@ the evaluation script writes its table."""
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +71,48 @@ def test_resume_reproduces_uninterrupted_run(recording, tmp_path):
     a, b = _losses(full), _losses(part)
     assert len(a) == len(b) == 6
     np.testing.assert_allclose(b, a, rtol=1e-6)  # episodes cross a sequence boundary in 6 x 3 windows
+
+
+def test_sigterm_mid_run_saves_and_resume_matches_the_uninterrupted_run(recording, tmp_path):
+    """What a scheduler or `timeout` does: SIGTERM while training. The run finishes its step, saves
+    and exits cleanly; --resume then gives the uninterrupted run's losses, each step logged once."""
+    common = ["--data", str(recording), "--model", "convgru-ev-flownet", "--width", "4", "--num-envs", "2",
+              "--unroll", "3", "--val-data", "", "--no-progress", "--lr", "1e-3", "--ckpt-every", "1000"]
+    part, full = tmp_path / "part", tmp_path / "full"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, str(ROOT / "scripts" / "train.py"), *common, "--steps", "100000",
+                             "--out", str(part)], env=env, stderr=subprocess.PIPE, text=True)
+    metrics = part / "metrics.jsonl"
+    deadline = time.time() + 240
+    while proc.poll() is None and time.time() < deadline:
+        if metrics.exists() and len(metrics.read_text().splitlines()) >= 2:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=240)
+    assert proc.returncode == 0 and "SIGTERM: stopped at step" in err, err[-3000:]
+    stopped = load_checkpoint(part / "checkpoint.pt")["step"]  # no periodic save yet: written on SIGTERM
+    assert 2 <= stopped < 100000
+    total = stopped + 3
+    train_script.main(["--resume", "--steps", str(total), "--out", str(part), "--val-data", "", "--no-progress"])
+    train_script.main(common + ["--steps", str(total), "--out", str(full)])
+    steps = [json.loads(line)["step"] for line in metrics.read_text().splitlines()]
+    assert steps == list(range(1, total + 1))
+    np.testing.assert_allclose(_losses(part), _losses(full), rtol=1e-6)
+
+
+def test_resume_cuts_the_log_back_to_the_checkpoint(recording, tmp_path):
+    """A run killed between checkpoints logged steps the checkpoint does not hold (and maybe half
+    a line): the resumed run logs them again, so they are cut first and every step appears once."""
+    common = ["--data", str(recording), "--width", "4", "--num-envs", "1", "--unroll", "1", "--val-data", "",
+              "--no-progress"]
+    train_script.main(common + ["--steps", "2", "--out", str(tmp_path / "run")])
+    metrics = tmp_path / "run" / "metrics.jsonl"
+    with open(metrics, "a") as log:  # steps 3 and 4 after the step-2 checkpoint, then a kill mid-line
+        log.write(json.dumps({"step": 3, "loss": 9.0}) + "\n" + json.dumps({"step": 4, "loss": 9.0}) + "\n" + '{"step": 5, "lo')
+    train_script.main(["--resume", "--steps", "5", "--out", str(tmp_path / "run"), "--val-data", "", "--no-progress"])
+    rows = [json.loads(line) for line in metrics.read_text().splitlines()]
+    assert [row["step"] for row in rows] == [1, 2, 3, 4, 5] and all(row["loss"] != 9.0 for row in rows)
 
 
 def test_border_ramp_reaches_the_config_and_old_checkpoints_keep_the_plain_rule(recording, tmp_path):
