@@ -20,7 +20,8 @@ interrupted run leaves nothing under the final name):
   window order, and ``event_offsets`` (K + 1,) int64: window k's rows are
   ``event_offsets[k]:event_offsets[k+1]``;
 - attributes: ``format``, ``sensor_size`` (H, W of the flow frame), ``crop`` (its place in the
-  recording's sensor), ``recording``, ``reader``, ``window``, ``window_size``, ``model`` (JSON
+  recording's sensor), ``recording``, ``reader``, ``window`` and ``window_size`` (the mode and
+  size that cut the windows: "time" when frames fell back for want of ground truth), ``model`` (JSON
   provenance), ``units``.
 """
 
@@ -107,15 +108,16 @@ def load_policy(model: str | None = None, *, device: str = "cpu", width: str | i
     return RecurrentPolicy(net, device=device), {"kind": "untrained", "name": model, **kwargs}
 
 
-def _windows(env: EventFlowEnv, reader, window: str, start_us, end_us, no_gt_window_us) -> np.ndarray:
-    """(K, 2) µs rows [t_start, t_end): the env's windows of the recording inside [start, end)."""
+def _windows(env: EventFlowEnv, reader, window: str, start_us, end_us, no_gt_window_us) -> tuple[np.ndarray, str, int]:
+    """(K, 2) µs rows [t_start, t_end): the env's windows of the recording inside [start, end);
+    and the mode and size that cut them."""
     mode, size = window, env.window_size
     if window == "frames" and reader.flow_timestamps() is None:
         mode, size = "time", no_gt_window_us
     bounds = window_bounds(reader, mode, size, t_from=start_us)[:, :2]
     if end_us is not None:
         bounds = bounds[bounds[:, 1] <= end_us]
-    return bounds
+    return bounds, mode, size
 
 
 def _preview(count: np.ndarray, flow: np.ndarray, t_start: int, t_end: int, max_width: int) -> np.ndarray:
@@ -178,7 +180,7 @@ def predict(
     reader = env.sources[index].reader()
     start_us = None if start_s is None else reader.t_start + int(round(start_s * 1e6))
     end_us = None if end_s is None else reader.t_start + int(round(end_s * 1e6))
-    bounds = _windows(env, reader, window, start_us, end_us, no_gt_window_us)
+    bounds, mode, size = _windows(env, reader, window, start_us, end_us, no_gt_window_us)
     if len(bounds) == 0:
         env.close()
         raise ValueError(f"{recording}: no {window} window of size {env.window_size} inside the span "
@@ -197,7 +199,7 @@ def predict(
         with h5py.File(tmp, "w") as f:
             f.attrs.update(format=FLOW_FORMAT, version=1, sensor_size=(h, w),
                            recording=str(Path(recording).resolve()) if Path(recording).exists() else str(recording),
-                           reader=type(reader).__name__, window=window, window_size=env.window_size,
+                           reader=type(reader).__name__, window=mode, window_size=size,
                            model=json.dumps(provenance or {}, default=str),
                            units="flow: pixels of displacement over the window, channel 0 = x (right), 1 = y (down)")
             flow_ds = f.create_dataset("flow", (k_total, 2, h, w), np.float16, chunks=(1, 2, h, w),

@@ -159,7 +159,7 @@ def bench_reading(report, num_events: int, rate: float, max_windows: int, workdi
     return results
 
 
-def bench_predict(report, workdir: str | None, windows_full: int = 3) -> None:
+def bench_predict(report, workdir: str | None, windows_full: int = 10) -> None:
     from agents.predict import load_policy, predict
 
     policy, _ = load_policy(None, device="cpu")

@@ -6,7 +6,8 @@
   python scripts/benchmark.py --quick              # fewer repetitions
 
 Sections: foundation (project h5 windows + count images), simulator, losses, agents, env,
-training, readers. Timings are wall-clock on whatever machine runs them; compare rows of one run.
+training, readers, prophesee (RAW reading at 1280x720), predict (scripts/predict.py end to end).
+Timings are wall-clock on whatever machine runs them; compare rows of one run.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-SECTIONS = ("foundation", "simulator", "losses", "agents", "env", "training", "readers")
+SECTIONS = ("foundation", "simulator", "losses", "agents", "env", "training", "readers", "prophesee", "predict")
 
 
 def report(section: str, row: str, value: float, unit: str) -> None:
@@ -164,6 +165,11 @@ def main(argv=None) -> int:
             import bench_readers
 
             bench_readers.run(report)
+        elif section in ("prophesee", "predict"):
+            import bench_prophesee
+
+            bench_prophesee.run(report, num_events=4_000_000 if args.quick else bench_prophesee.DEFAULT_EVENTS,
+                                sections=(section,))
     return 0
 
 

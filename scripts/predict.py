@@ -50,12 +50,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--per-event", action="store_true", help="also store the flow at every event")
     p.add_argument("--json", default=None, help="also write the summary as JSON here")
     p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1...")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice; 1 on a busy machine)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
     width = int(args.width) if str(args.width).isdigit() else args.width
     policy, provenance = load_policy(args.model, device=args.device, width=width)
     stem = Path(args.recording).name.split(".")[0] or "recording"

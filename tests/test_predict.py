@@ -98,3 +98,33 @@ def test_an_interrupted_prediction_leaves_no_file(tmp_path, plugin_path, monkeyp
         predict(policy, "synthetic-mini", out, window="time", window_size=20_000, video=tmp_path / "out" / "v.gif",
                 progress=False)
     assert len(calls) == 3 and list((tmp_path / "out").iterdir()) == []
+
+
+def test_predict_script_on_a_prophesee_file_with_per_event_flow(tmp_path, plugin_path, monkeypatch, rng):
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from envs.readers import open_recording
+    from test_prophesee import evt3_words, raw_header, sorted_events, write
+
+    monkeypatch.setenv("EVFLOW_CACHE", str(tmp_path / "cache"))
+    x, y, t, p = sorted_events(rng, 5000, (48, 64), 1_000, 300_000, clustered=True)
+    raw = write(tmp_path / "cam.raw", raw_header("EVT3", (48, 64)), evt3_words(x, y, t, p)[0])
+    spec = importlib.util.spec_from_file_location("predict_script", Path(__file__).parents[1] / "scripts" / "predict.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = tmp_path / "out" / "cam.flow.h5"
+    assert script.main([str(raw), "--model", "plugin_example.tiny_flow:build", "--out", str(out), "--per-event",
+                        "--window", "time", "--window-size", "25000", "--start", "0.05", "--json",
+                        str(tmp_path / "out" / "summary.json"), "--no-progress"]) == 0
+    assert sorted(f.name for f in out.parent.iterdir()) == ["cam.flow.h5", "cam.gif", "summary.json"]
+    summary = json.loads((out.parent / "summary.json").read_text())
+    assert summary["model"]["kind"] == "untrained" and summary["aee"] is None and summary["hmc"] > 0
+    with h5py.File(out, "r") as f, open_recording(raw) as reader:
+        assert f.attrs["window"] == "time" and f.attrs["window_size"] == 25_000
+        assert f["t_start"][0] == t[0] + 50_000  # --start counts from the recording's first event
+        flows, offsets, per_event = f["flow"][:], f["event_offsets"][:], f["event_flow"][:]
+        for k, (t0, t1) in enumerate(zip(f["t_start"][:], f["t_end"][:])):
+            ev = reader.events_between(int(t0), int(t1))
+            np.testing.assert_array_equal(per_event[offsets[k] : offsets[k + 1]], flows[k][:, ev.y, ev.x].T)

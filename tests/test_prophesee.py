@@ -117,7 +117,7 @@ def sorted_events(rng, n, sensor, t0, span, *, clustered: bool = False):
     """n distinct events sorted by (t, y, p, x); clustered: many share t, y and p (vector material)."""
     h, w = sensor
     if clustered:
-        m = max(1, n // 6)
+        m = max(1, -(-n // 6))
         t = np.repeat(np.sort(rng.integers(t0, t0 + span, m)), 6)[:n]
         y = np.repeat(rng.integers(0, h, m), 6)[:n]
         p = np.repeat(rng.integers(0, 2, m), 6)[:n]
