@@ -509,9 +509,10 @@ def _make_forward_warp(parallel: bool):
                         acc[cy, cx, 2] += w * uy
 
     @numba.njit(parallel=parallel, **_OPTIONS)
-    def normalize(partial, acc, out):
+    def normalize(partial, acc, out, min_weight):
         """acc (B, H, W, 3) out: the strips of partial summed; out (B, 2, H, W) out: the splatted
-        flow over the splatted weight, 0 where no weight arrived. One task per image row."""
+        flow over the splatted weight, 0 (a hole) where the weight is not above ``min_weight``
+        (>= 0). One task per image row."""
         B, S, H, W, _ = partial.shape
         for task in loop(B * H):
             b = task // H
@@ -527,7 +528,7 @@ def _make_forward_warp(parallel: bool):
                 acc[b, r, q, 0] = a0
                 acc[b, r, q, 1] = a1
                 acc[b, r, q, 2] = a2
-                if a0 > 0:
+                if a0 > min_weight:
                     out[b, 0, r, q] = a1 / a0
                     out[b, 1, r, q] = a2 / a0
                 else:
@@ -535,17 +536,17 @@ def _make_forward_warp(parallel: bool):
                     out[b, 1, r, q] = 0.0
 
     @numba.njit(parallel=parallel, **_OPTIONS)
-    def target_gradients(acc, out, grad_out, target):
-        """target (B, H, W, 3) out: per target pixel with weight A0 > 0, d/dA0 = -(g . out) / A0
-        and d/dA_c = g_c / A0 (0 elsewhere), from acc (B, H, W, 3), out and grad_out
-        (B, 2, H, W). One task per image row."""
+    def target_gradients(acc, out, grad_out, target, min_weight):
+        """target (B, H, W, 3) out: per target pixel with weight A0 > min_weight,
+        d/dA0 = -(g . out) / A0 and d/dA_c = g_c / A0 (0 at holes), from acc (B, H, W, 3), out
+        and grad_out (B, 2, H, W). One task per image row."""
         B, H, W, _ = acc.shape
         for task in loop(B * H):
             b = task // H
             r = task - b * H
             for q in range(W):
                 a = acc[b, r, q, 0]
-                if a > 0:
+                if a > min_weight:
                     g0 = grad_out[b, 0, r, q]
                     g1 = grad_out[b, 1, r, q]
                     target[b, r, q, 0] = -(g0 * out[b, 0, r, q] + g1 * out[b, 1, r, q]) / a

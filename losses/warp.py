@@ -12,7 +12,14 @@ try:  # compiled CPU kernel; without numba the torch path serves CPU too
 except ImportError:  # pragma: no cover
     _kernels = None
 
-__all__ = ["warp_events", "forward_warp_flow", "outside_distance", "beyond_image"]
+__all__ = ["warp_events", "forward_warp_flow", "outside_distance", "beyond_image", "HOLE_WEIGHT"]
+
+#: Target pixels of the forward warp (eq. 9) whose splatted weight A0 is at most this are holes,
+#: as zero-weight ones are. The backward divides by A0, so sources landing with a tiny total
+#: weight (far corners of their splats) gave gradients growing as 1 / A0 without bound. 1e-5 of
+#: one source's full weight: on the shipped models' rollouts no pixel lies in (0, 1e-5], so their
+#: flows are unchanged (1e-4 already changed some), and the gradient's 1 / A0 stays below 1e5.
+HOLE_WEIGHT = 1e-5
 
 
 def warp_events(
@@ -63,16 +70,18 @@ class _ForwardWarpCompiled(torch.autograd.Function):
     """The compiled CPU kernel of :func:`forward_warp_flow` (same arithmetic as its torch path)."""
 
     @staticmethod
-    def forward(ctx, flow):
+    def forward(ctx, flow, min_weight):
         f = np.ascontiguousarray(flow.detach().numpy())
         B, _, H, W = f.shape
+        threshold = f.dtype.type(min_weight)  # compared in the flow's dtype, as the torch path does
         splat, normalize, _, _ = _kernels.forward_warp_kernels(_kernels.use_threads())
         partial = np.empty((B, _kernels.warp_strips(B), H, W, 3), f.dtype)
         splat(f, partial)
         acc = np.empty((B, H, W, 3), f.dtype)
         out = np.empty_like(f)
-        normalize(partial, acc, out)
+        normalize(partial, acc, out, threshold)
         ctx.arrays = (f, acc, out)
+        ctx.threshold = threshold
         return torch.from_numpy(out)
 
     @staticmethod
@@ -81,24 +90,30 @@ class _ForwardWarpCompiled(torch.autograd.Function):
         _, _, target_gradients, gather = _kernels.forward_warp_kernels(_kernels.use_threads())
         g = np.ascontiguousarray(grad_out.detach().numpy(), dtype=f.dtype)
         target = np.empty_like(acc)
-        target_gradients(acc, out, g, target)
+        target_gradients(acc, out, g, target, ctx.threshold)
         grad = np.empty_like(f)
         gather(f, target, grad)
-        return torch.from_numpy(grad)
+        return torch.from_numpy(grad), None
 
 
-def forward_warp_flow(flow: torch.Tensor) -> torch.Tensor:
+def forward_warp_flow(flow: torch.Tensor, min_weight: float = HOLE_WEIGHT) -> torch.Tensor:
     """Prior flow alignment of FGD-Net (REFERENCE eq. 9): ``ubar(x + u(x)) = u(x)``.
 
     flow: (B, 2, H, W) float, pixels per window at the flow's own resolution.
+    min_weight: a target pixel whose splatted weight A0 is not above this is a hole
+        (default :data:`HOLE_WEIGHT`; 0 keeps every pixel that receives any weight).
     Returns (B, 2, H, W): each pixel's flow vector bilinearly splatted to its displaced position,
-    divided by the splatted weight there; pixels that receive no weight (holes) are 0.
+    divided by the splatted weight A0 there; holes (A0 <= min_weight) are 0 and pass no
+    gradient, so the backward's 1 / A0 stays below 1 / min_weight.
     Corners that land outside the image are dropped. Differentiable in flow.
     """
     if flow.ndim != 4 or flow.shape[1] != 2:
         raise ValueError(f"forward_warp_flow: flow must be (B, 2, H, W), got {tuple(flow.shape)}")
+    min_weight = float(min_weight)
+    if not min_weight >= 0:
+        raise ValueError(f"forward_warp_flow: min_weight must be >= 0, got {min_weight!r}")
     if _kernels is not None and flow.device.type == "cpu" and flow.dtype in (torch.float32, torch.float64):
-        return _ForwardWarpCompiled.apply(flow)
+        return _ForwardWarpCompiled.apply(flow, min_weight)
     B, _, H, W = flow.shape
     rows, cols = torch.meshgrid(
         torch.arange(H, dtype=flow.dtype, device=flow.device),
@@ -111,5 +126,5 @@ def forward_warp_flow(flow: torch.Tensor) -> torch.Tensor:
     values = torch.cat([torch.ones_like(u[..., :1]), u], dim=-1)  # (B, HW, 3): weight, u_x, u_y
     out = bilinear_splat(x, y, values, H, W)  # (B, 3, H, W)
     weight, moved = out[:, :1], out[:, 1:]
-    hit = weight > 0
+    hit = weight > min_weight  # holes: no weight, or too little to divide by (HOLE_WEIGHT)
     return torch.where(hit, moved / torch.where(hit, weight, torch.ones_like(weight)), 0.0)

@@ -369,6 +369,51 @@ def test_forward_warp_flow_compiled_equals_torch_path(monkeypatch, threads):
         torch.testing.assert_close(grad_c, grad_t, rtol=tol, atol=tol)
 
 
+def _tiny_weight_collision(eps: float) -> torch.Tensor:
+    """A 5x5 flow whose only sources reaching pixel (row 2, col 2) are (1, 1), moved by
+    (eps, eps), and (4, 4), moved by (-1 - eps, -1 - eps): each leaves weight eps^2 there (the
+    far corner of its splat), with flows a pixel apart. Every other pixel leaves the image."""
+    flow = torch.full((1, 2, 5, 5), 40.0, dtype=torch.float64)
+    flow[0, :, 1, 1] = eps
+    flow[0, :, 4, 4] = -1.0 - eps
+    return flow
+
+
+@pytest.mark.parametrize("min_weight", [warp.HOLE_WEIGHT, 0.0])
+def test_forward_warp_gradient_bounded_at_tiny_weight_collisions(backend, min_weight):
+    """Eq. 9's backward divides by the target's splatted weight A0: with no threshold the
+    gradient at a tiny-weight collision grows as 1 / eps; with HOLE_WEIGHT the pixel is a hole
+    (as a zero-weight one is) and the gradient stays bounded however small eps gets."""
+    largest = []
+    for eps in (1e-3, 1e-4, 1e-6):
+        flow = _tiny_weight_collision(eps).requires_grad_()
+        out = forward_warp_flow(flow, min_weight=min_weight)
+        a0 = 2 * eps**2  # the target's weight, written out
+        assert a0 < warp.HOLE_WEIGHT
+        if min_weight > 0:
+            assert torch.all(out[0, :, 2, 2] == 0)  # a hole
+        else:
+            mean = (eps + (-1.0 - eps)) / 2  # two sources of equal weight: their mean
+            assert out[0, 0, 2, 2].item() == pytest.approx(mean, rel=1e-6)
+        out[0, 0, 2, 2].backward()
+        largest.append(flow.grad.abs().max().item())
+    if min_weight > 0:
+        assert max(largest) == 0.0  # nothing else reaches the hole
+    else:
+        # d out / d u_x of a source = wy * (u_src - out) / A0 * d wx / dx ~ 1 / (2 eps)
+        assert largest[0] > 100 and largest[2] > 1e5 and largest[2] > 500 * largest[0]
+
+
+def test_forward_warp_threshold_leaves_ordinary_pixels(backend):
+    """Above the threshold nothing changes: a smooth flow warps to the same field with
+    min_weight = 0 and with HOLE_WEIGHT (every pixel's weight is far above it or exactly 0)."""
+    rows, cols = torch.meshgrid(torch.arange(12.0), torch.arange(15.0), indexing="ij")
+    flow = torch.stack([0.3 * torch.sin(rows / 3) + 1.7, 0.2 * cols / 5 - 0.6])[None].double()
+    torch.testing.assert_close(forward_warp_flow(flow, min_weight=0.0), forward_warp_flow(flow), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="min_weight"):
+        forward_warp_flow(flow, min_weight=-1.0)
+
+
 def test_event_pixel_mask_rounds_and_ignores_padding(backend):
     x = torch.tensor([[0.0, 2.4, 2.6, -0.7, 3.0]])
     y = torch.tensor([[0.0, 1.0, 1.0, 0.0, 9.0]])
