@@ -56,16 +56,20 @@ class SequenceResult:
     counts: dict = field(default_factory=lambda: {k: 0 for k in METRICS})
 
     def add(self, key: str, value: float) -> None:
-        if value is not None and math.isfinite(value):
-            self.sums[key] += float(value)
-            self.counts[key] += 1
+        if value is not None and math.isfinite(value):  # a protocol's own metrics (e.g. DSEC's 1PE) join METRICS
+            self.sums[key] = self.sums.get(key, 0.0) + float(value)
+            self.counts[key] = self.counts.get(key, 0) + 1
 
     def mean(self, key: str) -> float:
-        return self.sums[key] / self.counts[key] if self.counts[key] else float("nan")
+        return self.sums[key] / self.counts[key] if self.counts.get(key) else float("nan")
+
+    def keys(self) -> list[str]:
+        """METRICS, then any further metric a scorer added."""
+        return list(METRICS) + [k for k in self.sums if k not in METRICS]
 
     def as_dict(self) -> dict[str, Any]:
         return {"sequence": self.name, "windows": self.windows, "size": list(self.size), "windowing": self.windowing,
-                **{k: self.mean(k) for k in METRICS}}
+                **{k: self.mean(k) for k in self.keys()}}
 
 
 class _EventView:
@@ -122,6 +126,8 @@ def evaluate(
     data_format: str | None = None,
     data_options: dict | None = None,
     windows_fn: Callable | None = None,
+    scorer_fn: Callable | None = None,
+    flow_sink: Callable | None = None,
 ) -> list[SequenceResult]:
     """Roll ``policy`` through every sequence of ``data``, each at its own sensor size.
 
@@ -143,6 +149,13 @@ def evaluate(
     data_format, data_options: reader choice and options (see EventFlowEnv).
     windows_fn: reader -> (K, 2) µs ``[t_start, t_end)`` rows, the windows to evaluate (an
     evaluation protocol's valid range); default: all windows of the chosen mode.
+    scorer_fn: reader -> score, a benchmark's scoring of that recording (``agents.benchmarks``):
+    ``score(flow, info, window, size, dt_ratio) -> (metrics, mask)`` with metrics a dict of floats
+    ("aee" and any others, plus "n_pixels") and mask the (H, W) bool pixels scored; it replaces
+    the default AEE / outlier % over pixels with events and valid ground truth, and is also
+    called on windows without events. flow_sink: ``(reader, window, flow)`` called with every
+    window's predicted flow (window: t_start, t_end and the events), e.g. a benchmark submission
+    writer.
     Per window the time the policy takes to produce its flow is measured (``ms``).
     """
     sources = resolve_data(data, format=data_format, options=data_options)
@@ -158,20 +171,22 @@ def evaluate(
             results.append(_evaluate_sequence(
                 env, policy, index, total, window=window, windows_fn=windows_fn, dt_ratio=dt_ratio,
                 max_windows=max_windows, pictures_dir=pictures_dir, pictures_per_sequence=pictures_per_sequence,
-                animation_windows=animation_windows, progress=progress))
+                animation_windows=animation_windows, progress=progress, scorer_fn=scorer_fn, flow_sink=flow_sink))
         finally:
             env.close()
     return results
 
 
 def _evaluate_sequence(env: EventFlowEnv, policy, index: int, total: int, *, window, windows_fn, dt_ratio,
-                       max_windows, pictures_dir, pictures_per_sequence, animation_windows, progress) -> SequenceResult:
+                       max_windows, pictures_dir, pictures_per_sequence, animation_windows, progress,
+                       scorer_fn=None, flow_sink=None) -> SequenceResult:
     size = (env.height, env.width)
     reader = env.sources[0].reader()
     options: dict[str, Any] = {"sequence": 0}
     grid_kind = window_grid(reader)[1] if window == "frames" else None
     if windows_fn is not None:
         options["windows"] = windows_fn(reader)
+    score = scorer_fn(reader) if scorer_fn is not None else None
     name = env.sequence_names[0]
     described = _describe_windows(window, env.window_size, grid_kind)
     try:
@@ -189,6 +204,8 @@ def _evaluate_sequence(env: EventFlowEnv, policy, index: int, total: int, *, win
         began = time.perf_counter()
         flow = _act(policy, obs, win, size)
         result.add("ms", 1e3 * (time.perf_counter() - began))
+        if flow_sink is not None:
+            flow_sink(reader, win, flow)
         n_events = len(win["t"])
         aee = None
         if n_events:
@@ -198,14 +215,19 @@ def _evaluate_sequence(env: EventFlowEnv, policy, index: int, total: int, *, win
                     result.add(key, float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=env.flow_scaling).loss))
             result.add("fwl", fwl(flow, win, size))
             result.add("rsat", rsat(flow, win, size))
-        if "flow_gt" in info and n_events:
-            events_mask = event_mask(_EventView(win), size)
-            err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], events_mask, dt_ratio=dt_ratio)
+        if "flow_gt" in info and (n_events or score is not None):
+            if score is None:
+                scored = event_mask(_EventView(win), size)
+                err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], scored, dt_ratio=dt_ratio)
+                scored = scored & info["flow_gt_valid"]
+            else:
+                err, scored = score(flow, info, win, size, dt_ratio)
             if err["n_pixels"] > 0:
                 aee = err["aee"]
-                result.add("aee", err["aee"])
-                result.add("outlier_pct", err["outlier_pct"])
-                result.add("cosine", flow_cosine(flow, info["flow_gt"], events_mask & info["flow_gt_valid"]))
+                for key, value in err.items():
+                    if key != "n_pixels":
+                        result.add(key, value)
+                result.add("cosine", flow_cosine(flow, info["flow_gt"], scored))
         if pictures_dir is not None and result.windows < pictures_per_sequence and n_events:
             path = Path(pictures_dir) / f"{info['sequence']}_w{result.windows:03d}.png"
             save_png(path, window_panel(obs["count_image"], flow, win, info.get("flow_gt"), aee=aee))
@@ -249,21 +271,23 @@ def _fmt(value: float, digits: int = 3) -> str:
 
 def results_table(named_results: dict[str, list[SequenceResult]], title: str = "",
                   per_sequence: bool | None = None) -> str:
-    """Markdown table, paper layout: one row per method; per sequence AEE / outlier % (with
-    ``per_sequence``; default when there are at most 6 sequences), then the mean of the
+    """Markdown table, paper layout: one row per method; per sequence AEE / outlier % and the
+    number of windows the AEE averages (with ``per_sequence``; default when there are at most 6
+    sequences), then the mean of the
     sequences' AEE, the cosine, L_HMC and zero flow's over all windows, in how many sequences
     the method's L_HMC is below zero flow's, FWL, RSAT and the milliseconds per window."""
     methods = list(named_results)
     sequences = [r.name for r in named_results[methods[0]]]
     per_sequence = len(sequences) <= 6 if per_sequence is None else per_sequence
-    head = ["method"] + ([f"{s} AEE / %Out" for s in sequences] if per_sequence else [])
+    head = ["method"] + ([f"{s} AEE / %Out (windows)" for s in sequences] if per_sequence else [])
     head += ["mean AEE", "cos", "L_HMC", "L_HMC zero", "seq. L_HMC < zero", "FWL", "RSAT", "ms/win"]
     lines = ([f"**{title}**", ""] if title else []) + ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for method in methods:
         rows = named_results[method]
         cells = [method]
         if per_sequence:
-            cells += [f"{_fmt(r.mean('aee'), 2)} / {_fmt(r.mean('outlier_pct'), 2)}" for r in rows]
+            cells += [f"{_fmt(r.mean('aee'), 2)} / {_fmt(r.mean('outlier_pct'), 2)} ({r.counts.get('aee', 0)})"
+                      for r in rows]
         pooled = {k: _pooled(rows, k) for k in METRICS}
         aees = [r.mean("aee") for r in rows if math.isfinite(r.mean("aee"))]
         scored = [r for r in rows if r.counts["hmc"]]
@@ -288,8 +312,8 @@ def windowing_of(named_results: dict[str, list[SequenceResult]]) -> str:
 
 
 def _pooled(rows: list[SequenceResult], key: str) -> float:
-    total = sum(r.counts[key] for r in rows)
-    return sum(r.sums[key] for r in rows) / total if total else float("nan")
+    total = sum(r.counts.get(key, 0) for r in rows)
+    return sum(r.sums.get(key, 0.0) for r in rows) / total if total else float("nan")
 
 
 def _clean(value):
@@ -298,7 +322,8 @@ def _clean(value):
 
 def _metrics(rows: list[SequenceResult]) -> dict:
     """Metrics pooled over the windows of ``rows`` (one row: that sequence's means)."""
-    out = {key: _clean(_pooled(rows, key)) for key in METRICS}
+    keys = list(dict.fromkeys(k for r in rows for k in r.keys())) if rows else list(METRICS)
+    out = {key: _clean(_pooled(rows, key)) for key in keys}
     out["windows"] = sum(r.windows for r in rows)
     return out
 

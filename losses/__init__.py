@@ -12,7 +12,7 @@ from .events import EventBatch
 from .hmc import (BORDER_RAMP, LossOutput, accumulated_hmc_loss, at_loss, check_border_ramp, hmc_loss,
                   to_full_resolution)
 from .iwe import average_timestamp_images, warped_corners, warped_event_images
-from .metrics import flow_error, flow_error_torch, fwl, fwl_torch, rsat, rsat_torch
+from .metrics import dense_flow_error, dense_flow_error_torch, flow_error, flow_error_torch, fwl, fwl_torch, rsat, rsat_torch
 from .sampling import sample_flow
 from .smoothness import charbonnier_smoothness, event_pixel_mask
 from .image_terms import event_image_terms
@@ -42,6 +42,8 @@ __all__ = [
     "event_count_loss",
     "charbonnier_smoothness",
     "event_pixel_mask",
+    "dense_flow_error",
+    "dense_flow_error_torch",
     "flow_error",
     "flow_error_torch",
     "fwl",

@@ -16,7 +16,8 @@ from .events import EventBatch
 from .sampling import sample_flow
 from .warp import warp_events
 
-__all__ = ["flow_error", "flow_error_torch", "fwl", "fwl_torch", "rsat", "rsat_torch"]
+__all__ = ["dense_flow_error", "dense_flow_error_torch", "flow_error", "flow_error_torch", "fwl", "fwl_torch",
+           "rsat", "rsat_torch"]
 
 
 def _central_crop(a: torch.Tensor, crop) -> torch.Tensor:
@@ -99,6 +100,51 @@ def flow_error(
     )
     return {"aee": float(out["aee"][0]), "outlier_pct": float(out["outlier_pct"][0]),
             "n_pixels": int(out["n_pixels"][0])}
+
+
+def dense_flow_error_torch(flow: torch.Tensor, flow_gt: torch.Tensor, valid_gt: torch.Tensor) -> dict:
+    """The DSEC benchmark's scores per batch element: every pixel with valid ground truth counts,
+    with or without events (no event mask).
+
+    flow, flow_gt: (B, 2, H, W) float, pixels of displacement over the same interval.
+    valid_gt: (B, H, W) bool. Returns dict of (B,) tensors: "epe" (mean endpoint error, px),
+    "1pe" / "2pe" / "3pe" (% of pixels with endpoint error > 1 / 2 / 3 px), "ae" (mean angular
+    error in degrees between the space-time vectors (u, v, 1) and (u_gt, v_gt, 1), Barron et al.
+    1994), "n_pixels" (int64). Elements without a valid pixel get NaN scores.
+    """
+    if flow.shape != flow_gt.shape or flow.ndim != 4 or flow.shape[1] != 2:
+        raise ValueError(f"flow {tuple(flow.shape)} and flow_gt {tuple(flow_gt.shape)} must both be (B, 2, H, W)")
+    B, _, H, W = flow.shape
+    if tuple(valid_gt.shape) != (B, H, W):
+        raise ValueError(f"valid_gt has shape {tuple(valid_gt.shape)}, expected {(B, H, W)}")
+    if not bool(torch.isfinite(flow).all()):
+        raise ValueError("flow contains NaN or inf")
+    valid = valid_gt.bool() & torch.isfinite(flow_gt).all(dim=1)
+    gt = torch.where(valid.unsqueeze(1), flow_gt, torch.zeros_like(flow_gt))
+    epe = torch.linalg.vector_norm(flow - gt, dim=1)
+    dot = (flow * gt).sum(dim=1) + 1.0
+    norms = torch.sqrt(((flow * flow).sum(dim=1) + 1.0) * ((gt * gt).sum(dim=1) + 1.0))
+    ae = torch.rad2deg(torch.arccos(torch.clamp(dot / norms, -1.0, 1.0)))
+    n = valid.sum(dim=(1, 2))
+    nf = n.to(epe.dtype).clamp_min(1)
+    nan = torch.full_like(nf, float("nan"))
+
+    def mean(values: torch.Tensor) -> torch.Tensor:
+        return torch.where(n > 0, torch.where(valid, values, torch.zeros_like(values)).sum(dim=(1, 2)) / nf, nan)
+
+    out = {"epe": mean(epe), "ae": mean(ae)}
+    for k in (1, 2, 3):
+        out[f"{k}pe"] = 100.0 * mean((epe > k).to(epe.dtype))
+    out["n_pixels"] = n
+    return out
+
+
+def dense_flow_error(flow: np.ndarray, flow_gt: np.ndarray, valid_gt: np.ndarray) -> dict:
+    """DSEC scores of one flow map (see ``dense_flow_error_torch``): flow, flow_gt (2, H, W)
+    float pixels, valid_gt (H, W) bool -> dict of floats (epe, 1pe, 2pe, 3pe, ae) and n_pixels."""
+    t = lambda a: torch.as_tensor(np.asarray(a)).unsqueeze(0)  # noqa: E731
+    out = dense_flow_error_torch(t(flow).double(), t(flow_gt).double(), t(valid_gt))
+    return {k: (int(v[0]) if k == "n_pixels" else float(v[0])) for k, v in out.items()}
 
 
 def _nearest_images(flow: torch.Tensor, events: EventBatch, values: torch.Tensor) -> torch.Tensor:

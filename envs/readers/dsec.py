@@ -37,7 +37,8 @@ from envs.readers._common import SortedColumn, missing_extra, nonbuiltin_filters
 from envs.readers.base import EventReader, FlowGT
 from envs.readers.png16 import png_size, read_png
 
-__all__ = ["DSECReader", "DSEC_SENSOR_SIZE", "decode_flow_png", "encode_flow_png", "require_hdf5plugin"]
+__all__ = ["DSECReader", "DSEC_SENSOR_SIZE", "decode_flow_png", "encode_flow_png", "read_test_timestamps",
+           "require_hdf5plugin"]
 
 DSEC_SENSOR_SIZE = (480, 640)
 
@@ -93,6 +94,35 @@ def _read_flow_timestamps(path: Path) -> np.ndarray:
     bad = np.flatnonzero(arr[:, 1] <= arr[:, 0])
     if len(bad):
         raise FormatError(f"{path}: interval {bad[0]} has to_us <= from_us: {arr[bad[0]].tolist()}")
+    return arr
+
+
+def read_test_timestamps(path: str | os.PathLike) -> np.ndarray:
+    """The benchmark's test timestamps, ``test_forward_optical_flow_timestamps/<sequence>.csv``:
+    "# from_timestamp_us, to_timestamp_us, file_index" then one row per flow to predict.
+
+    Returns (K, 3) int64 rows ``(from_us, to_us, file_index)``: the window (absolute µs, the
+    events' clock) and the index that names its submission file (``<file_index:06d>.png``).
+    """
+    path = Path(path)
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = [part for part in line.replace(",", " ").split()]
+        if len(parts) != 3:
+            raise FormatError(f"{path}: line {n} must be 'from_us, to_us, file_index', got {line!r}")
+        try:
+            rows.append(tuple(int(part) for part in parts))
+        except ValueError:
+            raise FormatError(f"{path}: line {n} holds a non-integer field: {line!r}") from None
+    arr = np.asarray(rows, np.int64).reshape(-1, 3)
+    bad = np.flatnonzero(arr[:, 1] <= arr[:, 0])
+    if len(bad):
+        raise FormatError(f"{path}: row {bad[0]} has to_us <= from_us: {arr[bad[0], :2].tolist()}")
+    if len(np.unique(arr[:, 2])) != len(arr):
+        raise FormatError(f"{path}: file indices repeat (each names one submission PNG)")
     return arr
 
 

@@ -16,7 +16,10 @@ is at t = 0 and the outdoor_day1 cut "222.4-240.4 s" means t in [222.4e6, 240.4e
 
 Ground truth (``flow_between``): from the 20 Hz displacement maps by linear scaling inside one
 interval or by chaining the maps with nearest-neighbour lookups across intervals
-(:mod:`envs.readers.flowgt`). The frames-mode grid (``flow_timestamps``) is the grayscale image
+(:mod:`envs.readers.flowgt`), ``gt_mode="chain"`` (the default). ``gt_mode="zhu"`` follows the
+EV-FlowNet evaluation (Zhu et al. 2018): a window shorter than the 20 Hz interval holding its
+start gets that interval's map scaled by ``(t_end - t_start) / gt_dt``, even where the window
+reaches into the next interval; longer windows are chained as above. The frames-mode grid (``flow_timestamps``) is the grayscale image
 timestamps (the EV-FlowNet protocol: dt = 1 spans two consecutive images, dt = 4 five), or the
 ground-truth timestamps with ``grid="gt"`` or when the file has no images.
 
@@ -51,12 +54,16 @@ from envs.readers.flowgt import flow_from_displacements, valid_of
 
 __all__ = [
     "MVSECReader",
+    "MVSEC_GT_MODES",
+    "MVSEC_HOOD_ROW",
     "MVSEC_SEQUENCES",
     "MVSEC_VALID_FRAMES",
     "OUTDOOR_DAY1_CUT_S",
     "MVSEC_CROP",
     "MVSEC_SENSOR_SIZE",
     "mvsec_eval_windows",
+    "mvsec_hood_row",
+    "mvsec_scored_span",
     "sequence_name",
 ]
 
@@ -74,6 +81,11 @@ MVSEC_VALID_FRAMES = {
 OUTDOOR_DAY1_CUT_S = (222.4, 240.4)
 #: the central 256 x 256 crop used for evaluation (as Hagenaars)
 MVSEC_CROP = "center256"
+#: the car's hood: rows >= 190 of the central 256 x 256 crop (sensor rows >= 192) are left out of
+#: the scores of the outdoor (car) sequences, as the EV-FlowNet evaluation does
+MVSEC_HOOD_ROW = 190
+#: how ``flow_between`` makes a window's ground truth (module docstring)
+MVSEC_GT_MODES = ("chain", "zhu")
 
 
 def sequence_name(path: str | os.PathLike) -> str:
@@ -151,7 +163,8 @@ class MVSECReader(EventReader):
     path: ``<seq>_data.hdf5``. gt: the ``_gt_flow_dist.npz`` path; default: the file of that name
     beside ``path`` when it exists; False for none. camera: "left" or "right".
     crop: None, (top, left, height, width) or "center256". grid: "images" or "gt" (frames-mode
-    grid; see module docstring). validate: check every window's events (bounds, time order).
+    grid; see module docstring). gt_mode: "chain" or "zhu" (module docstring). validate: check
+    every window's events (bounds, time order).
     """
 
     layout = "mvsec"
@@ -164,8 +177,12 @@ class MVSECReader(EventReader):
         camera: str = "left",
         crop=None,
         grid: str = "images",
+        gt_mode: str = "chain",
         validate: bool = True,
     ) -> None:
+        if gt_mode not in MVSEC_GT_MODES:
+            raise ValueError(f"gt_mode must be one of {MVSEC_GT_MODES}, got {gt_mode!r}")
+        self.gt_mode = gt_mode
         self.path = Path(path)
         self.name = sequence_name(self.path)
         self.sequence = self.name
@@ -333,10 +350,15 @@ class MVSECReader(EventReader):
         """Flow over [t_start, t_end) µs: (2, H, W) float32 px, valid (H, W) bool; cropped like the events.
 
         None outside the ground-truth span. Scaled inside one 20 Hz interval, chained across
-        intervals (module docstring)."""
+        intervals; with ``gt_mode="zhu"`` a window shorter than the interval holding its start is
+        that interval's map scaled (module docstring)."""
         if self._gt_t is None:
             return None
-        out = flow_from_displacements(self._map, self._gt_t, t_start, t_end, lambda i: valid_of(self._map(i)))
+        out = None
+        if self.gt_mode == "zhu":
+            out = self._zhu_flow(int(t_start), int(t_end))
+        if out is None:
+            out = flow_from_displacements(self._map, self._gt_t, t_start, t_end, lambda i: valid_of(self._map(i)))
         if out is None:
             return None
         flow, valid = out
@@ -344,6 +366,23 @@ class MVSECReader(EventReader):
             top, left, h, w = self.crop
             flow, valid = flow[:, top : top + h, left : left + w], valid[top : top + h, left : left + w]
         return np.ascontiguousarray(flow), np.ascontiguousarray(valid)
+
+    def _zhu_flow(self, t_start: int, t_end: int) -> FlowGT | None:
+        """EV-FlowNet's ground truth for a window shorter than the 20 Hz interval holding its
+        start: that interval's map times (t_end - t_start) / gt_dt (full frame); None otherwise."""
+        times = self._gt_t
+        if t_end <= t_start or t_start < times[0] or t_end > times[-1]:
+            return None
+        i = int(np.searchsorted(times, t_start, side="right")) - 1
+        if i >= len(times) - 1:
+            return None
+        gt_dt = int(times[i + 1] - times[i])
+        if t_end - t_start >= gt_dt:  # as long as the interval or longer: chained instead
+            return None
+        d = self._map(i)
+        valid = valid_of(d)
+        flow = np.where(valid, d * ((t_end - t_start) / float(gt_dt)), 0.0).astype(np.float32)
+        return flow, valid
 
     # -- frames -------------------------------------------------------------------------------
     def frame_timestamps(self) -> np.ndarray | None:
@@ -366,33 +405,78 @@ class MVSECReader(EventReader):
             self._file.close()
 
 
-def mvsec_eval_windows(reader: MVSECReader, dt: int, sequence: str | None = None, *, outdoor_cut: str = "time") -> np.ndarray:
-    """The evaluation windows of the MVSEC protocol: (K, 2) int64 ``[t_start, t_end)`` µs.
+def _gt_grid(reader) -> np.ndarray:
+    """The 20 Hz ground-truth timestamps (µs) the valid ranges index."""
+    gt = reader.gt_timestamps() if hasattr(reader, "gt_timestamps") else reader.flow_timestamps()
+    if gt is None:
+        raise ValueError(f"{reader.name}: no ground truth (pass gt=<seq>_gt_flow_dist.npz)")
+    return np.asarray(gt, np.int64)
 
-    Windows span ``dt`` steps of ``reader.flow_timestamps()`` (dt = 1 or 4), non-overlapping:
-    ``[T_k, T_{k+dt})`` for k = first, first + dt, ... with ``k + dt <= last`` where
-    (first, last) = MVSEC_VALID_FRAMES[sequence]. For outdoor_day1 the span is, by default
-    (``outdoor_cut="time"``), the time cut OUTDOOR_DAY1_CUT_S in seconds after the first event
-    (windows with T_k >= 222.4 s and T_{k+dt} <= 240.4 s); ``outdoor_cut="frames"`` uses the grid
-    indices 4356-4706 instead. Unknown sequences use the whole grid.
+
+def mvsec_scored_span(reader: MVSECReader, sequence: str | None = None, *, outdoor_cut: str = "time") -> tuple[int, int]:
+    """The time span ``(t_first, t_last)`` µs that the MVSEC protocol scores.
+
+    Indoor: MVSEC_VALID_FRAMES index the 20 Hz ground-truth timestamps (not the image
+    timestamps): the span is ``[gt_t[first], gt_t[last]]`` (last clamped to the file).
+    outdoor_day1: by default (``outdoor_cut="time"``) OUTDOOR_DAY1_CUT_S, seconds after the first
+    event, from Zhu et al. 2018 ("the outdoor_day1 sequence spans between 222.4 s and 240.4 s");
+    ``outdoor_cut="frames"`` uses the ground-truth indices 4356-4706 instead (the same cut as
+    other evaluations state it). Unknown sequences: the whole ground-truth grid.
     """
-    if dt not in (1, 4):
-        raise ValueError(f"MVSEC evaluates dt = 1 or 4 frames, got {dt}")
     if outdoor_cut not in ("time", "frames"):
         raise ValueError(f"outdoor_cut must be 'time' or 'frames', got {outdoor_cut!r}")
-    grid = reader.flow_timestamps()
-    if grid is None:
-        raise ValueError(f"{reader.name}: no ground truth (pass gt=<seq>_gt_flow_dist.npz)")
-    grid = np.asarray(grid, np.int64)
+    gt = _gt_grid(reader)
     sequence = sequence or getattr(reader, "sequence", reader.name)
     if sequence == "outdoor_day1" and outdoor_cut == "time":
         lo, hi = (int(round(s * 1e6)) for s in OUTDOOR_DAY1_CUT_S)
-        inside = np.flatnonzero((grid >= lo) & (grid <= hi))
-        first, last = (int(inside[0]), int(inside[-1])) if len(inside) else (0, -1)
+        return lo, hi
+    first, last = MVSEC_VALID_FRAMES.get(sequence, (0, len(gt) - 1))
+    last = min(last, len(gt) - 1)
+    if first > last:
+        raise ValueError(f"{reader.name}: the valid range {first}-{last} of {sequence} is past the "
+                         f"{len(gt)} ground-truth timestamps of the file")
+    return int(gt[first]), int(gt[last])
+
+
+def mvsec_hood_row(sequence: str, crop: tuple[int, int, int, int] | None) -> int | None:
+    """First row (in the frame of ``crop``, (top, left, h, w) or None for the full sensor) of the
+    car's hood for the outdoor sequences (rows >= MVSEC_HOOD_ROW of the central 256 crop); None
+    for sequences without a hood (indoor)."""
+    if not sequence.startswith("outdoor"):
+        return None
+    central_top = (MVSEC_SENSOR_SIZE[0] - 256) // 2
+    top = crop[0] if crop is not None else 0
+    return MVSEC_HOOD_ROW + central_top - top
+
+
+def mvsec_eval_windows(reader: MVSECReader, dt: int, sequence: str | None = None, *, outdoor_cut: str = "time",
+                       stride: int | None = None, grid: str | None = None) -> np.ndarray:
+    """The evaluation windows of the MVSEC protocol: (K, 2) int64 ``[t_start, t_end)`` µs.
+
+    Windows span ``dt`` steps of the evaluation grid, ``[T_k, T_{k+dt})`` for k = k0, k0 +
+    stride, k0 + 2 stride, ... from the first grid time inside :func:`mvsec_scored_span`
+    (``T_k0 >= t_first``), kept while ``T_{k+dt} <= t_last``. grid: ``"images"`` (the grayscale image timestamps, EV-FlowNet's
+    dt = 1 / dt = 4 frames), ``"gt"`` (the 20 Hz ground-truth timestamps: the E-RAFT / idnet
+    "20 Hz" evaluation), or None for ``reader.flow_timestamps()``. stride: grid steps between
+    window starts, default ``dt`` (contiguous, as Hagenaars); 1 with dt = 4 gives the overlapping
+    windows of Zhu, Spike-FlowNet and tub-rip.
+    """
+    if dt not in (1, 4):
+        raise ValueError(f"MVSEC evaluates dt = 1 or 4 frames, got {dt}")
+    stride = dt if stride is None else int(stride)
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1 grid step, got {stride}")
+    if grid not in (None, "images", "gt"):
+        raise ValueError(f"grid must be None, 'images' or 'gt', got {grid!r}")
+    lo, hi = mvsec_scored_span(reader, sequence, outdoor_cut=outdoor_cut)
+    if grid == "gt":
+        times = _gt_grid(reader)
     else:
-        first, last = MVSEC_VALID_FRAMES.get(sequence, (0, len(grid) - 1))
-        last = min(last, len(grid) - 1)
-    starts = np.arange(first, last - dt + 1, dt)
-    if len(starts) == 0:
-        return np.zeros((0, 2), np.int64)
-    return np.stack([grid[starts], grid[starts + dt]], axis=1).astype(np.int64)
+        times = reader.frame_timestamps() if grid == "images" else reader.flow_timestamps()
+        if times is None:
+            raise ValueError(f"{reader.name}: no {'image' if grid else 'flow'} timestamps to cut windows on")
+        times = np.unique(np.asarray(times, np.int64))
+    first = int(np.searchsorted(times, lo, side="left"))
+    starts = np.arange(first, len(times) - dt, stride)
+    rows = np.stack([times[starts], times[starts + dt]], axis=1).astype(np.int64).reshape(-1, 2)
+    return rows[(rows[:, 0] >= lo) & (rows[:, 1] <= hi)]
