@@ -68,7 +68,8 @@ def test_predict_writes_the_flows_the_evaluation_produces(tmp_path, plugin_path,
 
 
 def test_predict_carries_the_recurrent_state(tmp_path, plugin_path):
-    """Window 2's flow depends on window 1 (state carried), unlike a fresh start there."""
+    """A window's flow depends on the windows before it (the state is carried): the same window
+    predicted as the first of a cut span (--start/--end, fresh state) differs."""
     policy = tiny_policy()
     out = tmp_path / "all.h5"
     predict(policy, "synthetic-mini", out, window="time", window_size=20_000, progress=False)
