@@ -12,6 +12,14 @@ one frame interval, spread geometrically over each split, so windows range from 
 - ``synthetic-train``: 32 sequences, 128x128, 2 s each, max_flow_px 0.5-14.
 - ``synthetic-test``: 8 sequences at 128x128 and 3 at 256x256, 1 s each, max_flow_px 0.5-14.
 - ``synthetic-mini``: 3 sequences, 64x64, 1 s each, max_flow_px 1, 3, 8 (tests and demos).
+- ``synthetic-dr-train``: domain-randomised training data (:mod:`envs.simulator.randomize`):
+  every scene, motion, sensor and size factor drawn per sequence; 1 s each, 64x64 to 260x346.
+  256 sequences by name; ``synthetic-dr-train:N`` is the first N of the same endless series
+  (any N; sequence i is the same whatever N, and shares its cache file).
+- ``synthetic-stress``: held out, never for training or tuning: 4 groups of 3 sequences
+  (1 s, native size), each with one factor group outside the training ranges: ``texture``
+  (dots and plaid families), ``fast`` (camera 16-22, objects 22-30 px per frame), ``noise``
+  (3-6 Hz per pixel), ``size`` (480x640).
 
 Measured over the 30 Hz windows (per-pixel ground-truth magnitude): per train sequence the
 median is 0.2-6.2 px and the maximum 0.4-12 px. Simulation time on one shared CPU core: a
@@ -29,6 +37,7 @@ in-memory reader.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -41,14 +50,18 @@ import numpy as np
 from envs.h5format import H5Reader
 from envs.readers.base import EventReader, FlowGT
 from envs.simulator import SIMULATOR_VERSION, Scene, SceneConfig, SimulatedSequence, simulate
+from envs.simulator.randomize import STRESS_FACTORS, TRAIN_FACTORS, FactorRanges, draw_scene, draw_size
 
 __all__ = [
     "SequenceSpec",
+    "RandomizedSpec",
     "SyntheticH5Reader",
     "SPLITS",
     "list_splits",
     "list_sequences",
     "get_spec",
+    "dr_train_specs",
+    "cache_path",
     "load_sequence",
     "clear_cache",
     "cache_root",
@@ -84,6 +97,67 @@ class SequenceSpec:
         return hashlib.sha1(blob.encode()).hexdigest()[:10]
 
 
+@dataclass(frozen=True)
+class RandomizedSpec:
+    """One domain-randomised sequence: its scene is drawn by
+    :func:`envs.simulator.randomize.draw_scene` from the factor ranges named by ``factors``
+    ("train" or a key of ``STRESS_FACTORS``). height, width: the drawn size (stored so a split
+    lists its sizes without drawing the scenes)."""
+
+    name: str
+    seed: int
+    height: int
+    width: int
+    duration_s: float
+    factors: str = "train"
+    fps: float = 30.0
+
+    def ranges(self) -> FactorRanges:
+        return TRAIN_FACTORS if self.factors == "train" else STRESS_FACTORS[self.factors]
+
+    def config(self) -> SceneConfig:
+        return draw_scene(self.seed, self.ranges(), duration_s=self.duration_s, fps=self.fps)
+
+    def simulate(self) -> SimulatedSequence:
+        return simulate(self.config(), self.duration_s, fps=self.fps)
+
+    def cache_key(self) -> str:
+        """Hash of everything that determines the output (spec, config, simulator version)."""
+        blob = json.dumps([asdict(self), self.config().to_dict(), SIMULATOR_VERSION], sort_keys=True)
+        return hashlib.sha1(blob.encode()).hexdigest()[:10]
+
+
+DR_TRAIN = "synthetic-dr-train"
+DR_TRAIN_DEFAULT_SIZE = 256
+DR_TRAIN_SEED = 10_000_000  # sequence i has seed DR_TRAIN_SEED + i (i below 10^7)
+STRESS_SEED = 20_000_000
+STRESS_PER_GROUP = 3
+
+
+def dr_train_specs(n: int) -> list[RandomizedSpec]:
+    """The first n sequences of ``synthetic-dr-train`` (sequence i does not depend on n)."""
+    if not 0 < n < 10_000_000:
+        raise ValueError(f"{DR_TRAIN}: the number of sequences must be in 1..9999999, got {n}")
+    return list(_dr_train_specs(n))
+
+
+@functools.lru_cache(maxsize=8)
+def _dr_train_specs(n: int) -> tuple[RandomizedSpec, ...]:
+    return tuple(
+        RandomizedSpec(f"{DR_TRAIN}-{i:05d}", DR_TRAIN_SEED + i, *draw_size(DR_TRAIN_SEED + i, TRAIN_FACTORS), 1.0)
+        for i in range(n)
+    )
+
+
+def _stress_specs() -> list[RandomizedSpec]:
+    specs = []
+    for g, group in enumerate(STRESS_FACTORS):
+        for i in range(STRESS_PER_GROUP):
+            seed = STRESS_SEED + 100 * g + i
+            specs.append(RandomizedSpec(f"synthetic-stress-{group}-{i}", seed, *draw_size(seed, STRESS_FACTORS[group]), 1.0, group))
+    return specs
+
+
 def _spread(n: int, low: float, high: float, seed: int) -> list[float]:
     """n motion bounds spread geometrically over [low, high], in a fixed shuffled order."""
     values = np.geomspace(low, high, n)
@@ -104,20 +178,37 @@ def _build_splits() -> dict[str, list[SequenceSpec]]:
         for i, m in enumerate((1.0, 4.0, 12.0))
     ]
     mini = [SequenceSpec(f"synthetic-mini-{i}", 3000 + i, 64, 64, 1.0, m) for i, m in enumerate((1.0, 3.0, 8.0))]
-    return {"synthetic-train": train, "synthetic-test": test, "synthetic-mini": mini}
+    return {
+        "synthetic-train": train,
+        "synthetic-test": test,
+        "synthetic-mini": mini,
+        DR_TRAIN: dr_train_specs(DR_TRAIN_DEFAULT_SIZE),
+        "synthetic-stress": _stress_specs(),
+    }
 
 
-SPLITS: dict[str, list[SequenceSpec]] = _build_splits()
+SPLITS: dict[str, list[SequenceSpec | RandomizedSpec]] = _build_splits()
 
 
 def list_splits() -> list[str]:
     return list(SPLITS)
 
 
-def list_sequences(split: str) -> list[SequenceSpec]:
-    """The specs of a split, in order. Unknown split -> ValueError listing the known ones."""
+def _split_folder(split: str) -> str:
+    """The cache folder of a split: ``synthetic-dr-train:N`` shares ``synthetic-dr-train``'s."""
+    return split.split(":", 1)[0]
+
+
+def list_sequences(split: str) -> list[SequenceSpec | RandomizedSpec]:
+    """The specs of a split, in order; ``synthetic-dr-train:N`` gives that split's first N.
+    Unknown split -> ValueError listing the known ones."""
+    if split.startswith(DR_TRAIN + ":"):
+        count = split[len(DR_TRAIN) + 1 :]
+        if not count.isdigit():
+            raise ValueError(f"{split!r}: the number after {DR_TRAIN}: must be a positive integer")
+        return dr_train_specs(int(count))
     if split not in SPLITS:
-        raise ValueError(f"unknown synthetic split {split!r}; known splits: {', '.join(SPLITS)}")
+        raise ValueError(f"unknown synthetic split {split!r}; known splits: {', '.join(SPLITS)} (and {DR_TRAIN}:N for N sequences)")
     return list(SPLITS[split])
 
 
@@ -160,6 +251,11 @@ class SyntheticH5Reader(H5Reader):
         return self._scene.flow(t_start * 1e-6, t_end * 1e-6), np.ones(self.sensor_size, bool)
 
 
+def cache_path(split: str, spec: SequenceSpec | RandomizedSpec, root: Path) -> Path:
+    """Where the disk cache keeps one sequence of a split (module docstring)."""
+    return root / "synthetic" / _split_folder(split) / f"{spec.name}-v{SIMULATOR_VERSION}-{spec.cache_key()}.h5"
+
+
 # in-process cache, by (split, name, disk cache on): a disk-cached sequence's file path and config (each call opens its own
 # handle, so a caller may close its reader), or an in-memory reader (close() is a no-op there)
 _MEMORY: dict[tuple[str, str, bool], tuple[Path, SceneConfig] | EventReader] = {}
@@ -180,7 +276,7 @@ def load_sequence(split: str, index_or_name: int | str, *, disk_cache: bool = Tr
     """
     spec = get_spec(split, index_or_name)
     root = cache_root() if disk_cache else None
-    key = (split, spec.name, root is not None)
+    key = (_split_folder(split), spec.name, root is not None)
     cached = _MEMORY.get(key)
     if isinstance(cached, EventReader):
         return cached
@@ -191,7 +287,7 @@ def load_sequence(split: str, index_or_name: int | str, *, disk_cache: bool = Tr
         _MEMORY[key] = reader
         return reader
     config = spec.config()
-    path = root / "synthetic" / split / f"{spec.name}-v{SIMULATOR_VERSION}-{spec.cache_key()}.h5"
+    path = cache_path(split, spec, root)
     if path.exists():
         try:
             reader = SyntheticH5Reader(path, config)
@@ -201,7 +297,7 @@ def load_sequence(split: str, index_or_name: int | str, *, disk_cache: bool = Tr
             warnings.warn(f"ignoring unreadable cache file {path}: {err}")
     sequence = spec.simulate()
     try:
-        sequence.to_h5(path, name=spec.name, provenance={"split": split, "spec": asdict(spec)})
+        sequence.to_h5(path, name=spec.name, provenance={"split": _split_folder(split), "spec": asdict(spec)})
     except OSError as err:
         warnings.warn(f"could not write the synthetic cache {path} ({err}); keeping {spec.name} in memory")
         reader = sequence.reader(spec.name)

@@ -13,8 +13,10 @@ event fires each time a pixel's log intensity crosses its reference by its contr
     seq.frames, seq.frame_times     # (F,H,W) uint8, (F,) int64 us
     reader = seq.reader("demo")     # an ArrayReader for the rest of the project
 
-Modules: ``motion`` (affine layer motion), ``textures`` (dead leaves), ``scene`` (configs,
-rendering, exact flow), ``emulator`` (the event camera model), ``simulate`` (the loop).
+Modules: ``motion`` (affine layer motion), ``textures`` (dead leaves and other procedural
+families), ``scene`` (configs, rendering, exact flow), ``emulator`` (the event camera model),
+``simulate`` (the loop), ``randomize`` (scenes drawn from ranges of every factor: the
+domain-randomised and the held-out stress splits).
 """
 
 from envs.simulator.emulator import EventEmulator

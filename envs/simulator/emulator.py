@@ -14,7 +14,21 @@ resets to the current level once it wakes up.
 
 Noise (optional): background-activity events, Poisson in space-time with ``noise_rate_hz`` per
 pixel and random polarity, and hot pixels, a few fixed pixels firing at ``hot_pixel_rate_hz``
-with a fixed polarity. Noise does not touch the references.
+with a fixed polarity. Noise does not touch the references. With ``noise_refractory`` the
+refractory period applies to every event, noise included, in time order per pixel.
+
+Optional sensor effects (all off by default):
+
+- ON/OFF imbalance: mean thresholds ``C sqrt(r)`` (ON) and ``C / sqrt(r)`` (OFF), r = ``on_off_ratio``.
+- Leak: the reference sinks at ``leak_rate_hz * C_on`` per second (per-pixel rate x0.5-1.5,
+  random initial phase), so a still pixel fires ON events at about ``leak_rate_hz``. Within a
+  step the reference is linear in time, like the intensity, so crossing times stay exact.
+- Bandwidth: the sensed log intensity ``F`` follows the rendered ``L`` through a first-order
+  low-pass, ``dF/dt = (L - F) / tau``, with ``tau = bandwidth_tau_us * min(exp(-L), 100)``
+  (``L`` clipped at 0 from above: bandwidth grows with intensity up to its bright value).
+  Over a step ``L`` is linear with slope ``k`` and ``tau`` is taken at the step's start, so
+  ``F(t_b) = L_b - k tau + (F(t_a) - L_a + k tau) exp(-dt / tau)`` exactly; the crossings are
+  then found on ``F`` as above.
 
 All work is vectorised over pixels; the only Python loop is over the crossing rank ``j``
 (at most a handful per sub-step when the sub-steps are small).
@@ -42,12 +56,19 @@ class EventEmulator:
         n = log_intensity.size
         self.ref = log_intensity.astype(np.float32).ravel().copy()
         c = sensor.contrast_threshold
-        self.c_on = np.maximum(rng.normal(c, sensor.threshold_sigma, n), sensor.min_threshold).astype(np.float32)
-        self.c_off = np.maximum(rng.normal(c, sensor.threshold_sigma, n), sensor.min_threshold).astype(np.float32)
+        imbalance = np.sqrt(sensor.on_off_ratio)  # exactly 1.0 when balanced: C itself
+        self.c_on = np.maximum(rng.normal(c * imbalance, sensor.threshold_sigma, n), sensor.min_threshold).astype(np.float32)
+        self.c_off = np.maximum(rng.normal(c / imbalance, sensor.threshold_sigma, n), sensor.min_threshold).astype(np.float32)
         self.last_event_us = np.full(n, -np.inf)
         self.rng = rng
         self.hot_index = rng.choice(n, size=min(sensor.hot_pixels, n), replace=False)
         self.hot_polarity = rng.choice(np.array([-1, 1], np.int8), size=len(self.hot_index))
+        # the optional effects draw only when on, so a sensor without them keeps its random stream
+        self.leak_per_us = None
+        if sensor.leak_rate_hz > 0:
+            self.leak_per_us = (sensor.leak_rate_hz * 1e-6 * rng.uniform(0.5, 1.5, n) * self.c_on).astype(np.float32)
+            self.ref -= (rng.uniform(0.0, 1.0, n) * self.c_on).astype(np.float32)  # random leak phase
+        self.sensed = log_intensity.astype(np.float64).ravel().copy() if sensor.bandwidth_tau_us > 0 else None
 
     def step(self, previous: np.ndarray, current: np.ndarray, t_a: int, t_b: int):
         """Events fired while the log intensity goes from ``previous`` at t_a to ``current`` at
@@ -56,6 +77,15 @@ class EventEmulator:
         previous, current: (H, W) float32 log intensities.
         Returns (x, y, t, p): int16, int16, int64 us in [t_a, t_b), int8; sorted by t.
         """
+        span = float(t_b - t_a)
+        if self.sensed is not None:
+            previous, current = self._low_pass(previous, current, span)
+        leak = None
+        if self.leak_per_us is not None:
+            # in the frame of the reference at t_a: the intensity gains what the reference loses
+            leak = self.leak_per_us * np.float32(span)
+            current = current.ravel() + leak
+        joint_refractory = self.sensor.noise_refractory and self.sensor.refractory_us > 0
         diff = current.ravel() - self.ref
         n_on = np.floor(diff / self.c_on)
         n_off = np.floor(-diff / self.c_off)
@@ -71,8 +101,8 @@ class EventEmulator:
             ref = self.ref[active]
             last = self.last_event_us[active]
             sign = np.where(on, 1, -1).astype(np.int8)
-            refractory = float(self.sensor.refractory_us)
-            span = float(t_b - t_a)
+            # with a joint refractory period every candidate passes here and is filtered below
+            refractory = 0.0 if joint_refractory else float(self.sensor.refractory_us)
             for j in range(1, int(count.max()) + 1):
                 pending = np.flatnonzero(count >= j)
                 frac = np.clip((ref[pending] + j * step_c[pending] - start[pending]) / change[pending], 0.0, 1.0)
@@ -84,7 +114,10 @@ class EventEmulator:
                 times.append(t[fire])
                 polarity.append(sign[firing])
             self.ref[active] = ref + count * step_c
-            self.last_event_us[active] = last
+            if not joint_refractory:
+                self.last_event_us[active] = last
+        if leak is not None:
+            self.ref -= leak
 
         # background activity and hot pixels (do not touch the references)
         dt_s = (t_b - t_a) * 1e-6
@@ -107,6 +140,9 @@ class EventEmulator:
             return _empty()
         times = np.concatenate(times)
         polarity = np.concatenate(polarity)
+        if joint_refractory:
+            keep = self._refractory_filter(pixels, times)
+            pixels, times, polarity = pixels[keep], times[keep], polarity[keep]
         order = np.argsort(times, kind="stable")
         t_us = np.clip(np.floor(times[order]).astype(np.int64), t_a, t_b - 1)
         pixels = pixels[order]
@@ -116,6 +152,41 @@ class EventEmulator:
             t_us,
             polarity[order].astype(np.int8),
         )
+
+    def _low_pass(self, previous: np.ndarray, current: np.ndarray, span_us: float) -> tuple[np.ndarray, np.ndarray]:
+        """The sensed log intensity at the step's start and end (module docstring): (N,) float32 each."""
+        start = previous.ravel().astype(np.float64)
+        end = current.ravel().astype(np.float64)
+        tau = self.sensor.bandwidth_tau_us * np.minimum(np.exp(-np.minimum(start, 0.0)), BANDWIDTH_DARK_FACTOR)
+        slope = (end - start) / span_us
+        sensed_a = self.sensed
+        sensed_b = end - slope * tau + (sensed_a - start + slope * tau) * np.exp(-span_us / tau)
+        self.sensed = sensed_b
+        return sensed_a.astype(np.float32), sensed_b.astype(np.float32)
+
+    def _refractory_filter(self, pixels: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """Which candidate events fire when every event of a pixel silences it for
+        refractory_us: (N,) bool. Goes through each pixel's candidates in time order, one
+        rank (first, second, ... candidate of its pixel) at a time, updating last_event_us."""
+        keep = np.zeros(len(pixels), bool)
+        if len(pixels) == 0:
+            return keep
+        order = np.lexsort((times, pixels))
+        sorted_pixels = pixels[order]
+        first = np.r_[True, sorted_pixels[1:] != sorted_pixels[:-1]]
+        rank = np.arange(len(order)) - np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
+        refractory = float(self.sensor.refractory_us)
+        for r in range(int(rank.max()) + 1):
+            chosen = order[rank == r]
+            pix, t = pixels[chosen], times[chosen]
+            fire = t >= self.last_event_us[pix] + refractory
+            keep[chosen[fire]] = True
+            self.last_event_us[pix[fire]] = t[fire]
+        return keep
+
+
+# longest bandwidth time constant, as a multiple of the bright one (very dark pixels)
+BANDWIDTH_DARK_FACTOR = 100.0
 
 
 def _empty():

@@ -10,9 +10,14 @@ A layer carries its own 2-D coordinates ``q`` (pixels, origin at the layer's cen
         ``anchor`` (the image centre), so rotation and zoom speeds stay bounded in view;
 
 with
-    T(t)     = velocity * t + trans_amp * sin(2 pi trans_freq t + trans_phase)   (per axis)
+    T(t)     = velocity * t + acceleration * t^2 / 2
+               + trans_amp * sin(2 pi trans_freq t + trans_phase)
+               + shake_amp * sin(2 pi shake_freq t + shake_phase)                  (per axis)
     theta(t) = angle0 + angular_velocity * t + rot_amp * sin(2 pi rot_freq t + rot_phase)
-    s(t)     = scale0 * exp(zoom_amp * sin(2 pi zoom_freq t + zoom_phase))
+    s(t)     = scale0 * exp(zoom_rate * t + zoom_amp * sin(2 pi zoom_freq t + zoom_phase))
+
+(the second sinusoid is a fast "shake"; acceleration and zoom_rate give speeds that change
+within a window and a steady zoom in or out; all default to zero),
 
 so the map from layer to image at time t is the affine matrix ``A(t)`` (3x3, homogeneous) and
 the exact displacement of the point seen at pixel ``p`` at ``t0`` is ``A(t1) A(t0)^-1 p - p``.
@@ -54,6 +59,11 @@ class AffineMotion:
     zoom_freq: float = 0.0
     zoom_phase: float = 0.0
     camera: bool = False
+    acceleration: Pair = (0.0, 0.0)
+    shake_amp: Pair = (0.0, 0.0)
+    shake_freq: Pair = (0.0, 0.0)
+    shake_phase: Pair = (0.0, 0.0)
+    zoom_rate: float = 0.0
 
     @classmethod
     def from_dict(cls, d: dict) -> "AffineMotion":
@@ -66,7 +76,17 @@ class AffineMotion:
         tx = self.velocity[0] * t + self.trans_amp[0] * np.sin(two_pi * self.trans_freq[0] * t + self.trans_phase[0])
         ty = self.velocity[1] * t + self.trans_amp[1] * np.sin(two_pi * self.trans_freq[1] * t + self.trans_phase[1])
         theta = self.angle0 + self.angular_velocity * t + self.rot_amp * np.sin(two_pi * self.rot_freq * t + self.rot_phase)
-        scale = self.scale0 * np.exp(self.zoom_amp * np.sin(two_pi * self.zoom_freq * t + self.zoom_phase))
+        # the terms added later are skipped at zero, so older configs compute bit for bit as before
+        if self.acceleration != (0.0, 0.0):
+            tx = tx + 0.5 * self.acceleration[0] * t * t
+            ty = ty + 0.5 * self.acceleration[1] * t * t
+        if self.shake_amp != (0.0, 0.0):
+            tx = tx + self.shake_amp[0] * np.sin(two_pi * self.shake_freq[0] * t + self.shake_phase[0])
+            ty = ty + self.shake_amp[1] * np.sin(two_pi * self.shake_freq[1] * t + self.shake_phase[1])
+        log_scale = self.zoom_amp * np.sin(two_pi * self.zoom_freq * t + self.zoom_phase)
+        if self.zoom_rate != 0.0:
+            log_scale = log_scale + self.zoom_rate * t
+        scale = self.scale0 * np.exp(log_scale)
         return float(tx), float(ty), float(theta), float(scale)
 
     def matrix(self, t: float) -> np.ndarray:

@@ -40,6 +40,16 @@ class SensorConfig:
         polarity, uniform in space and time).
     hot_pixels: number of hot pixels (fixed random pixels and polarities firing at
         hot_pixel_rate_hz each, Poisson).
+    on_off_ratio: mean ON threshold over mean OFF threshold (their geometric mean stays C):
+        1 is balanced; > 1 makes OFF events more frequent than ON.
+    leak_rate_hz: leak events: every pixel's reference sinks by C_on * leak_rate_hz per second
+        (each pixel's rate spread x0.5-1.5), so a still pixel fires ON events at about that rate.
+    bandwidth_tau_us: first-order pixel low-pass: the sensed log intensity follows the true one
+        with time constant tau = bandwidth_tau_us * exp(-L) for L < 0 (L the log intensity,
+        bandwidth proportional to intensity, capped at 100x), tau = bandwidth_tau_us at L >= 0;
+        0 disables it.
+    noise_refractory: whether noise and hot-pixel events obey the refractory period too (and
+        silence the pixel like any event); False keeps the first model, where they do not.
     """
 
     contrast_threshold: float = 0.25
@@ -49,6 +59,10 @@ class SensorConfig:
     noise_rate_hz: float = 0.0
     hot_pixels: int = 0
     hot_pixel_rate_hz: float = 100.0
+    on_off_ratio: float = 1.0
+    leak_rate_hz: float = 0.0
+    bandwidth_tau_us: float = 0.0
+    noise_refractory: bool = False
 
 
 @dataclass(frozen=True)
@@ -57,12 +71,14 @@ class ObjectSpec:
 
     shape: "disc" (radius) or "polygon" (convex; vertices in counter-clockwise angle order,
     all within radius of the origin). motion: its :class:`AffineMotion` (camera=False).
+    texture: its own texture; None: the scene's, shifted by a random brightness offset.
     """
 
     shape: str
     radius: float
     motion: AffineMotion
     vertices: tuple[tuple[float, float], ...] = ()
+    texture: TextureConfig | None = None
 
 
 def _next_pow2(n: float) -> int:
@@ -170,19 +186,49 @@ class SceneConfig:
 
     # -- (de)serialisation ---------------------------------------------------------------
     def to_dict(self) -> dict:
-        """A JSON-able dict (tuples become lists); :meth:`from_dict` inverts it."""
-        return dataclasses.asdict(self)
+        """A JSON-able dict (tuples become lists); :meth:`from_dict` inverts it. Fields added
+        after the first splits were cached are left out while at their defaults, so an older
+        config serialises (and hashes into its cache key) exactly as before."""
+        return _as_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "SceneConfig":
         objects = tuple(
-            ObjectSpec(o["shape"], float(o["radius"]), AffineMotion.from_dict(o["motion"]), tuple(tuple(v) for v in o["vertices"]))
+            ObjectSpec(
+                o["shape"], float(o["radius"]), AffineMotion.from_dict(o["motion"]), tuple(tuple(v) for v in o["vertices"]),
+                TextureConfig(**o["texture"]) if o.get("texture") is not None else None,
+            )
             for o in d["objects"]
         )
         return cls(
             int(d["seed"]), int(d["height"]), int(d["width"]), AffineMotion.from_dict(d["camera"]), objects,
             TextureConfig(**d["texture"]), SensorConfig(**d["sensor"]),
         )
+
+
+# per class, the fields added after SIMULATOR_VERSION 2's splits were cached (see to_dict)
+_ADDED_FIELDS = {
+    AffineMotion: {"acceleration", "shake_amp", "shake_freq", "shake_phase", "zoom_rate"},
+    TextureConfig: {"family", "scale", "orientation", "orientation_spread", "exponent"},
+    SensorConfig: {"on_off_ratio", "leak_rate_hz", "bandwidth_tau_us", "noise_refractory"},
+    ObjectSpec: {"texture"},
+}
+
+
+def _as_dict(value):
+    """dataclasses.asdict, less the added fields that hold their defaults."""
+    if dataclasses.is_dataclass(value):
+        added = _ADDED_FIELDS.get(type(value), set())
+        out = {}
+        for f in dataclasses.fields(value):
+            item = getattr(value, f.name)
+            if f.name in added and item == f.default:
+                continue
+            out[f.name] = _as_dict(item)
+        return out
+    if isinstance(value, (tuple, list)):
+        return type(value)(_as_dict(v) for v in value)
+    return value
 
 
 def _random_motion(
@@ -294,6 +340,9 @@ class Scene:
             textures = [make_texture(np.random.default_rng([cfg.seed, 1, 0]), big, cfg.texture)]
             for k, obj in enumerate(cfg.objects, start=1):
                 rng = np.random.default_rng([cfg.seed, 1, k])
+                if obj.texture is not None:
+                    textures.append(make_texture(rng, _next_pow2(2.6 * obj.radius), obj.texture))
+                    continue
                 # each object its own brightness range, so it stands out from what it covers
                 shift = rng.uniform(-0.5, 0.5)
                 tex_cfg = dataclasses.replace(cfg.texture, log_min=cfg.texture.log_min + shift, log_max=cfg.texture.log_max + shift)

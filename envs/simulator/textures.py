@@ -8,15 +8,26 @@ the other at uniform random positions, each with a uniform random log intensity.
 low-frequency ``1/f`` shading field is added (smooth illumination changes inside leaves), and
 the result is blurred once with a Gaussian so that sampling it at sub-pixel positions and
 moderate minification does not alias (aliasing would dominate the events).
+
+Other families (``TextureConfig.family``; the domain-randomised splits draw them): ``noise``
+(Gaussian noise with a ``1/f^exponent`` amplitude spectrum), ``edges`` (opaque oriented bars
+around one orientation), ``lines`` (thin oriented lines on a plain ground), ``checker``
+(square cells, each its own level), ``glyphs`` (rows of random 3x5 stroke glyphs, text-like),
+``gradient`` (very smooth, ``1/f^3``), ``flat`` (one level: a blank wall or a dark ground),
+``dots`` (sparse discs on a plain ground) and ``plaid`` (two sine gratings). Each draws a
+pattern in [0, 1] that is mapped onto [log_min, log_max]; shading and blur follow as above.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 
-__all__ = ["TextureConfig", "PeriodicTexture", "dead_leaves", "make_texture", "sample_wrapped"]
+__all__ = ["TextureConfig", "TextureFamily", "PeriodicTexture", "dead_leaves", "make_texture", "sample_wrapped"]
+
+TextureFamily = Literal["dead_leaves", "noise", "edges", "lines", "checker", "glyphs", "gradient", "flat", "dots", "plaid"]
 
 
 @dataclass(frozen=True)
@@ -28,6 +39,11 @@ class TextureConfig:
     coverage: expected number of leaves covering a point (4 leaves: 98 % covered).
     shading: standard deviation of the low-frequency shading field, log units.
     blur_sigma: Gaussian anti-aliasing blur, texture pixels.
+    family: the pattern (module docstring); r_min, r_max and coverage apply to dead leaves.
+    scale: the other families' feature size, texture pixels (bar width, line spacing, cell,
+        glyph stroke x 4, dot radius x 2, grating period / 2).
+    orientation, orientation_spread: edges' and lines' mean angle and its normal spread, rad.
+    exponent: the amplitude-spectrum exponent of ``noise`` (1 = natural-image-like).
     """
 
     r_min: float = 2.0
@@ -37,6 +53,15 @@ class TextureConfig:
     coverage: float = 4.0
     shading: float = 0.15
     blur_sigma: float = 0.8
+    family: TextureFamily = "dead_leaves"
+    scale: float = 8.0
+    orientation: float = 0.0
+    orientation_spread: float = 0.3
+    exponent: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.family not in get_args(TextureFamily):
+            raise ValueError(f"TextureConfig.family must be one of {get_args(TextureFamily)}, got {self.family!r}")
 
 
 def _leaf_radii(rng: np.random.Generator, n: int, r_min: float, r_max: float) -> np.ndarray:
@@ -82,8 +107,13 @@ def dead_leaves(rng: np.random.Generator, size: int, config: TextureConfig = Tex
 
 
 def make_texture(rng: np.random.Generator, size: int, config: TextureConfig = TextureConfig()) -> np.ndarray:
-    """Dead leaves + 1/f shading, Gaussian-blurred: (size, size) float32 periodic log intensity."""
-    leaves = dead_leaves(rng, size, config)
+    """The family's pattern (dead leaves by default) + 1/f shading, Gaussian-blurred:
+    (size, size) float32 periodic log intensity."""
+    if config.family == "dead_leaves":
+        leaves = dead_leaves(rng, size, config)
+    else:
+        pattern = _PATTERNS[config.family](rng, size, config)
+        leaves = (config.log_min + pattern * (config.log_max - config.log_min)).astype(np.float32)
     fy = np.fft.fftfreq(size)[:, None]
     fx = np.fft.rfftfreq(size)[None, :]
     f2 = fx**2 + fy**2
@@ -96,6 +126,160 @@ def make_texture(rng: np.random.Generator, size: int, config: TextureConfig = Te
         spectrum += np.fft.rfft2(shading * (config.shading / max(shading.std(), 1e-12)))
     spectrum *= np.exp(-2.0 * np.pi**2 * config.blur_sigma**2 * f2)  # Gaussian blur (periodic)
     return np.fft.irfft2(spectrum, s=(size, size)).astype(np.float32)
+
+
+def _paint(size: int, cx: np.ndarray, cy: np.ndarray, half: np.ndarray, inside) -> np.ndarray:
+    """Paint shapes back to front on a periodic (size, size) canvas: (size * size,) int64, the
+    index of the last shape covering each pixel (-1: none).
+
+    cx, cy: (n,) centres; half: (n,) int64 half-size of each shape's bounding square;
+    inside(ids, dx, dy): bool (len(ids), K), whether the offsets (dx, dy) from the centres of
+    shapes ``ids`` lie inside them.
+    """
+    mask = size - 1
+    owner = np.full(size * size, -1, np.int64)
+    for h in np.unique(half):
+        shapes = np.flatnonzero(half == h)
+        offsets = np.arange(-h, h + 1)
+        dy, dx = (a.ravel() for a in np.meshgrid(offsets, offsets, indexing="ij"))
+        per_chunk = max(1, (1 << 22) // len(dx))  # bound the temporaries to ~4M entries
+        for i0 in range(0, len(shapes), per_chunk):
+            ids = shapes[i0 : i0 + per_chunk]
+            px = np.rint(cx[ids]).astype(np.int64)[:, None] + dx
+            py = np.rint(cy[ids]).astype(np.int64)[:, None] + dy
+            hit = inside(ids, px - cx[ids, None], py - cy[ids, None])
+            flat = ((py & mask) * size + (px & mask))[hit]
+            np.maximum.at(owner, flat, np.broadcast_to(ids[:, None], hit.shape)[hit])
+    return owner
+
+
+def _bars(rng: np.random.Generator, size: int, config: TextureConfig, *, thin: bool) -> np.ndarray:
+    """Oriented rectangles around config.orientation: wide opaque bars covering the canvas
+    (edges) or thin lines on a plain ground covering ~15 % of it (lines). Pattern in [0, 1]."""
+    s = config.scale
+    if thin:
+        half_len = s * rng.uniform(2.0, 8.0, 1 << 16)
+        half_wid = rng.uniform(0.35, 0.9, 1 << 16)
+        density = 0.15
+    else:
+        half_len = s * rng.uniform(1.5, 6.0, 1 << 16)
+        half_wid = s * rng.uniform(0.25, 1.0, 1 << 16)
+        density = 3.0
+    area = 4.0 * half_len * half_wid
+    n = int(np.searchsorted(np.cumsum(area), density * size * size)) + 1
+    half_len, half_wid = half_len[:n], half_wid[:n]
+    angle = config.orientation + config.orientation_spread * rng.standard_normal(n)
+    cx, cy = rng.uniform(0, size, (2, n))
+    values = rng.uniform(0.0, 1.0, n)
+    cos, sin = np.cos(angle), np.sin(angle)
+    half = np.minimum(np.ceil(np.hypot(half_len, half_wid)), size // 2 - 1).astype(np.int64)
+
+    def inside(ids, dx, dy):
+        along = dx * cos[ids, None] + dy * sin[ids, None]
+        across = -dx * sin[ids, None] + dy * cos[ids, None]
+        return (np.abs(along) <= half_len[ids, None]) & (np.abs(across) <= half_wid[ids, None])
+
+    owner = _paint(size, cx, cy, half, inside)
+    ground = float(rng.uniform(0.0, 1.0)) if thin else 0.5
+    if thin:  # lines stand out from the ground: the far half of the range
+        values = np.where(ground < 0.5, rng.uniform(0.6, 1.0, n), rng.uniform(0.0, 0.4, n))
+    return np.where(owner >= 0, values[np.maximum(owner, 0)], ground).reshape(size, size)
+
+
+def _edges(rng, size, config):
+    return _bars(rng, size, config, thin=False)
+
+
+def _lines(rng, size, config):
+    return _bars(rng, size, config, thin=True)
+
+
+def _spectral(rng: np.random.Generator, size: int, exponent: float) -> np.ndarray:
+    """Periodic Gaussian noise with a 1/f^exponent amplitude spectrum, its 1st-99th
+    percentiles mapped onto [0, 1] (clipped)."""
+    f = np.sqrt(np.fft.fftfreq(size)[:, None] ** 2 + np.fft.rfftfreq(size)[None, :] ** 2)
+    f[0, 0] = np.inf
+    field = np.fft.irfft2(np.fft.rfft2(rng.standard_normal((size, size))) * f**-exponent, s=(size, size))
+    low, high = np.percentile(field, [1.0, 99.0])
+    return np.clip((field - low) / max(high - low, 1e-12), 0.0, 1.0)
+
+
+def _noise(rng, size, config):
+    return _spectral(rng, size, config.exponent)
+
+
+def _gradient(rng, size, config):
+    return _spectral(rng, size, 3.0)
+
+
+def _flat(rng, size, config):
+    return np.full((size, size), 0.5)
+
+
+def _cell(size: int, scale: float) -> int:
+    """The power of two nearest to scale that divides size (>= 2 and <= size / 4)."""
+    return int(np.clip(2 ** np.rint(np.log2(max(scale, 1.0))), 2, size // 4))
+
+
+def _checker(rng, size, config):
+    cell = _cell(size, config.scale)
+    n = size // cell
+    levels = rng.uniform(0.0, 1.0, (n, n))
+    if rng.random() < 0.5:  # the classic two-level board
+        levels = ((np.arange(n)[:, None] + np.arange(n)[None, :]) % 2).astype(float)
+    return np.kron(levels, np.ones((cell, cell)))
+
+
+def _glyphs(rng, size, config):
+    """Rows of random 3x5 glyphs with a stroke of scale / 4 px, a one-stroke gap between
+    glyphs and rows (the canvas edge may cut the last row and column: still periodic)."""
+    stroke = max(1, int(round(config.scale / 4)))
+    rows, cols = size // (6 * stroke), size // (4 * stroke)
+    bitmaps = rng.random((rows, cols, 5, 3)) < 0.5
+    bitmaps[rng.random((rows, cols)) < 0.15] = False  # spaces between words
+    cell = np.zeros((rows, cols, 6, 4), bool)
+    cell[:, :, :5, :3] = bitmaps
+    ink = cell.transpose(0, 2, 1, 3).reshape(rows * 6, cols * 4).repeat(stroke, 0).repeat(stroke, 1)
+    canvas = np.zeros((size, size), bool)
+    canvas[: ink.shape[0], : ink.shape[1]] = ink
+    paper, pen = (0.9, 0.1) if rng.random() < 0.7 else (0.1, 0.9)
+    return np.where(canvas, pen, paper)
+
+
+def _dots(rng, size, config):
+    """Sparse discs (radius 0.3-0.7 scale) covering ~8 % of a plain ground."""
+    radius = config.scale * rng.uniform(0.3, 0.7, 1 << 16)
+    n = int(np.searchsorted(np.cumsum(np.pi * radius**2), 0.08 * size * size)) + 1
+    radius = radius[:n]
+    cx, cy = rng.uniform(0, size, (2, n))
+    owner = _paint(size, cx, cy, np.ceil(radius).astype(np.int64), lambda ids, dx, dy: dx**2 + dy**2 <= radius[ids, None] ** 2)
+    values = rng.uniform(0.6, 1.0, n)
+    return np.where(owner >= 0, values[np.maximum(owner, 0)], 0.1).reshape(size, size)
+
+
+def _plaid(rng, size, config):
+    """Two sine gratings, period ~2 scale, wave vectors on the integer lattice (periodic)."""
+    y, x = np.mgrid[0:size, 0:size] / size
+    pattern = np.full((size, size), 0.5)
+    for _ in range(2):
+        k = size / (2.0 * config.scale)
+        angle = rng.uniform(0, np.pi)
+        kx, ky = np.rint(k * np.cos(angle)), np.rint(k * np.sin(angle))
+        pattern += 0.25 * np.sin(2 * np.pi * (kx * x + ky * y) + rng.uniform(0, 2 * np.pi))
+    return pattern
+
+
+_PATTERNS = {
+    "noise": _noise,
+    "edges": _edges,
+    "lines": _lines,
+    "checker": _checker,
+    "glyphs": _glyphs,
+    "gradient": _gradient,
+    "flat": _flat,
+    "dots": _dots,
+    "plaid": _plaid,
+}
 
 
 def sample_wrapped(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
