@@ -268,3 +268,62 @@ def test_submission_pngs_in_the_benchmark_layout_decode_back_to_the_flows(tmp_pa
         writer(types.SimpleNamespace(name="interlaken_00_b"), {"t_start": 0, "t_end": 1}, np.zeros((2,) + size))
     with pytest.raises(ValueError, match="test timestamps"):
         DSECSubmissionWriter(tmp_path / "x", DSECProtocol())
+
+
+# --------------------------------------------------------------------------- scripts/evaluate.py
+def _evaluate_script():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import evaluate as evaluate_script
+
+    return evaluate_script
+
+
+def test_evaluate_script_mvsec_tables_dt1_dt4_both_strides_with_window_counts(tmp_path, rng, monkeypatch):
+    import json
+
+    from envs.readers import mvsec as mvsec_module
+
+    size = (260, 346)
+    gt_t = np.arange(12, dtype=np.int64) * GT_DT
+    fx = rng.normal(0, 1, (12,) + size).astype(np.float32)
+    fy = rng.normal(0, 1, (12,) + size).astype(np.float32)
+    image_t = 5_000 + np.arange(17, dtype=np.int64) * IMAGE_DT
+    x, y, t, p = _events(rng, 40_000, size, int(gt_t[-1]))
+    write_mvsec(tmp_path, "indoor_flying2", x, y, t, p, images=np.zeros((17,) + size, np.uint8), image_t_us=image_t,
+                gt=(gt_t, fx, fy))
+    monkeypatch.setitem(mvsec_module.MVSEC_VALID_FRAMES, "indoor_flying2", (2, 10))  # a valid range this file holds
+    out = tmp_path / "eval"
+    _evaluate_script().main(["--zero", "--mvsec", str(tmp_path), "--out", str(out), "--no-progress", "--pictures", "0"])
+    results = json.loads((out / "results.json").read_text())
+    with MVSECReader(tmp_path / "indoor_flying2_data.hdf5") as r:
+        expected = {"dt1": len(mvsec_eval_windows(r, 1, grid="images")),
+                    "dt4": len(mvsec_eval_windows(r, 4, grid="images")),
+                    "dt4_stride1": len(mvsec_eval_windows(r, 4, grid="images", stride=1))}
+    assert expected["dt4_stride1"] > expected["dt4"] > 0
+    for key, n in expected.items():
+        assert results["overall"][key]["windows"] == n, key
+    table = (out / "table.md").read_text()
+    assert "MVSEC dt = 4 image frames, stride 1, zhu ground truth" in table
+    assert f"({expected['dt4_stride1']})" in table and f"({expected['dt1']})" in table
+
+
+def test_evaluate_script_writes_a_dsec_submission(tmp_path, rng):
+    size = (480, 640)
+    x, y, t, p = _events(rng, 2_000, size, 300_000)
+    path = write_dsec(tmp_path / "test" / "thun_01_a" / "events" / "left", x, y, t, p)
+    stamps = tmp_path / "stamps"
+    stamps.mkdir()
+    (stamps / "thun_01_a.csv").write_text("# from_timestamp_us, to_timestamp_us, file_index\n"
+                                          f"{T_OFFSET + 10_000}, {T_OFFSET + 110_000}, 4\n"
+                                          f"{T_OFFSET + 150_000}, {T_OFFSET + 250_000}, 14\n")
+    _evaluate_script().main(["--zero", "--protocol", "dsec", "--format", "dsec", "--data", str(path),
+                             "--dsec-test-timestamps", str(stamps), "--dsec-submission", str(tmp_path / "sub"),
+                             "--out", str(tmp_path / "eval"), "--no-progress", "--pictures", "0"])
+    for k in (4, 14):
+        flow, valid = decode_flow_png(tmp_path / "sub" / "thun_01_a" / f"{k:06d}.png")
+        assert flow.shape == (2,) + size and valid.all() and not flow.any()  # zero flow, every pixel predicted
+    with pytest.raises(SystemExit, match="--dsec-test-timestamps"):
+        _evaluate_script().main(["--zero", "--protocol", "dsec", "--data", str(path), "--dsec-submission", str(tmp_path)])
