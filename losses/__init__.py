@@ -9,8 +9,8 @@ from .average_timestamp import average_timestamp_loss
 from .contrast import contrast_maximisation_flow
 from .event_count import event_count_loss
 from .events import EventBatch
-from .hmc import (BORDER_RAMP, LossOutput, accumulated_hmc_loss, at_loss, check_border_ramp, hmc_loss,
-                  to_full_resolution)
+from .hmc import (AT_NORMALISATIONS, BORDER_RAMP, REFERENCE_TIMES, UPSAMPLINGS, LossOutput, accumulated_hmc_loss,
+                  at_loss, check_border_ramp, hmc_loss, rebase_to_events, to_full_resolution)
 from .iwe import average_timestamp_images, warped_corners, warped_event_images
 from .metrics import dense_flow_error, dense_flow_error_torch, flow_error, flow_error_torch, fwl, fwl_torch, rsat, rsat_torch
 from .sampling import sample_flow
@@ -27,6 +27,10 @@ __all__ = [
     "at_loss",
     "accumulated_hmc_loss",
     "to_full_resolution",
+    "rebase_to_events",
+    "UPSAMPLINGS",
+    "REFERENCE_TIMES",
+    "AT_NORMALISATIONS",
     "sample_flow",
     "warp_events",
     "forward_warp_flow",

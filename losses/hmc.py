@@ -18,20 +18,29 @@ window's zero-flow loss, so that pushing events out never pays, however dense th
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Literal, Sequence, get_args
 
 import torch
 import torch.nn.functional as F
 
 from ._validation import check_events, check_flow
 from .events import EventBatch
-from .image_terms import event_image_terms
+from .image_terms import AT_NORMALISATIONS, AtNormalisation, event_image_terms
 from .sampling import sample_flow
 from .smoothness import charbonnier_smoothness, event_pixel_mask
 from .warp import beyond_image, outside_distance, warp_events
 
 __all__ = ["LossOutput", "hmc_loss", "at_loss", "accumulated_hmc_loss", "to_full_resolution",
-           "ramped_dropped_share", "check_border_ramp", "BORDER_RAMP"]
+           "ramped_dropped_share", "check_border_ramp", "BORDER_RAMP", "Upsampling", "ReferenceTimes",
+           "UPSAMPLINGS", "REFERENCE_TIMES", "AtNormalisation", "AT_NORMALISATIONS"]
+
+#: How a coarse scale's flow is brought to full resolution for the loss (the paper does not say).
+Upsampling = Literal["bilinear", "nearest"]
+UPSAMPLINGS = get_args(Upsampling)
+#: Where the two reference times sit: the window's bounds (tau = 0 and 1; with K accumulated
+#: windows 0 and K), or the first and last valid event of the window(s).
+ReferenceTimes = Literal["window", "events"]
+REFERENCE_TIMES = get_args(ReferenceTimes)
 
 #: The border rule's ramp (pixels) that the env's reward and the learner use by default
 #: (docs/results.md, fifth round); the loss functions themselves default to 0 (the plain share).
@@ -52,16 +61,24 @@ class LossOutput:
     components: dict
 
 
-def to_full_resolution(flow: FlowInput) -> list[torch.Tensor]:
+def _check_choice(name: str, value, allowed: tuple) -> None:
+    if value not in allowed:
+        raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
+
+
+def to_full_resolution(flow: FlowInput, upsampling: Upsampling = "bilinear") -> list[torch.Tensor]:
     """Validate and bring every scale to full resolution.
 
     flow: (B, 2, H, W) tensor, or a list of such tensors at several resolutions, all in pixels
     per window at FULL sensor resolution (REFERENCE sec. 1). Full resolution = the largest H and
-    largest W in the list. Coarser scales are bilinearly upsampled (``F.interpolate``,
-    ``align_corners=False``) without rescaling the values, since they are already in full-
-    resolution pixels. Returns a list of (B, 2, H, W) tensors.
-    Raises ValueError for an empty list, a bad shape, NaN/inf, or differing batch sizes.
+    largest W in the list. Coarser scales are upsampled without rescaling the values, since they
+    are already in full-resolution pixels: ``upsampling`` "bilinear" (default,
+    ``F.interpolate(..., align_corners=False)``) or "nearest" (each coarse cell's vector over
+    the pixels it covers). Returns a list of (B, 2, H, W) tensors.
+    Raises ValueError for an empty list, a bad shape, NaN/inf, differing batch sizes or an
+    unknown ``upsampling``.
     """
+    _check_choice("upsampling", upsampling, UPSAMPLINGS)
     flows = [flow] if isinstance(flow, torch.Tensor) else list(flow)
     if not flows:
         raise ValueError("flow: empty list of scales")
@@ -72,11 +89,34 @@ def to_full_resolution(flow: FlowInput) -> list[torch.Tensor]:
         raise ValueError(f"flow scales have different batch sizes {[f.shape[0] for f in flows]}")
     H = max(f.shape[2] for f in flows)
     W = max(f.shape[3] for f in flows)
+    if upsampling == "nearest":
+        return [f if f.shape[2:] == (H, W) else F.interpolate(f, size=(H, W), mode="nearest") for f in flows]
     return [
         f if f.shape[2:] == (H, W)
         else F.interpolate(f, size=(H, W), mode="bilinear", align_corners=False)
         for f in flows
     ]
+
+
+def rebase_to_events(t: torch.Tensor, u: torch.Tensor, mask: torch.Tensor, span: float):
+    """Move the reference times from the window bounds (0 and ``span``) to the first and last
+    valid event of each batch element, keeping the flow's units (pixels per window).
+
+    t: (B, N) event times in windows; u: (B, N, 2) pixels per window; mask: (B, N) bool.
+    With a = first and b = last event time, returns ``t' = (t - a) span / (b - a)`` and
+    ``u' = u (b - a) / span``: then ``(s' - t') u'`` at s' = 0 and s' = span is ``(a - t) u`` and
+    ``(b - t) u`` (eq. 12 to the first and last event), and ``1 - |s' - t'| / span`` is the
+    closeness ``1 - |s - t| / (b - a)``. Elements whose events all share one time keep the
+    window bounds. Differentiable in u.
+    """
+    big = torch.finfo(t.dtype).max
+    first = torch.where(mask, t, big).amin(dim=1, keepdim=True)
+    last = torch.where(mask, t, -big).amax(dim=1, keepdim=True)
+    spread = last - first
+    ok = spread > 0
+    first = torch.where(ok, first, torch.zeros_like(first))
+    ratio = torch.where(ok, spread / span, torch.ones_like(spread))  # (B, 1)
+    return (t - first) / ratio, u * ratio.unsqueeze(-1).to(u.dtype)
 
 
 def ramped_dropped_share(x, y, t, u, mask, height, width, references, ramp) -> torch.Tensor:
@@ -103,9 +143,11 @@ def ramped_dropped_share(x, y, t, u, mask, height, width, references, ramp) -> t
 def _terms(
     x, y, t, p, mask, u, flow_for_smooth: Sequence[torch.Tensor], masks_for_smooth,
     height, width, references, span, alpha, flow_scaling, need_ec, border_ramp=0.0,
+    at_normalisation: AtNormalisation = "event_pixels",
 ) -> dict:
     """(B,) tensors at, ec, smooth, dropped for one set of (possibly accumulated) events."""
-    at, ec, kept = event_image_terms(x, y, t, p, mask, u, height, width, references, span, alpha)
+    at, ec, kept = event_image_terms(x, y, t, p, mask, u, height, width, references, span, alpha,
+                                     at_normalisation)
     at = at.sum(dim=1)  # L_AT(s0) + L_AT(s1)
     ec = ec.sum(dim=1) if need_ec else ec.sum(dim=1).detach()
     n_valid = mask.sum(dim=1).to(u.dtype)  # (B,)
@@ -140,8 +182,10 @@ def _combine(terms_per_scale, lambda_1, lambda_2, border_penalty, use_ec) -> Los
 
 
 def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_penalty, use_ec,
-                border_ramp=0.0):
-    flows = to_full_resolution(flow)
+                border_ramp=0.0, upsampling="bilinear", reference_times="window", at_normalisation="event_pixels"):
+    _check_choice("reference_times", reference_times, REFERENCE_TIMES)
+    _check_choice("at_normalisation", at_normalisation, AT_NORMALISATIONS)
+    flows = to_full_resolution(flow, upsampling)
     B, _, H, W = flows[0].shape
     check_events(events, batch_size=B)
     scaling = float(max(H, W)) if flow_scaling is None else float(flow_scaling)
@@ -150,9 +194,12 @@ def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_pe
     terms = []
     for f in flows:
         u = sample_flow(f, events.x, events.y, events.mask)
+        t = events.tau
+        if reference_times == "events":
+            t, u = rebase_to_events(t.to(u.dtype), u, events.mask, 1.0)
         terms.append(
-            _terms(events.x, events.y, events.tau, events.p, events.mask, u, [f], [ev_mask],
-                   H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec, ramp)
+            _terms(events.x, events.y, t, events.p, events.mask, u, [f], [ev_mask],
+                   H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec, ramp, at_normalisation)
         )
     return _combine(terms, lambda_1, lambda_2, border_penalty, use_ec)
 
@@ -175,6 +222,9 @@ def hmc_loss(
     alpha: float = 0.6,
     border_penalty: float | torch.Tensor = 0.0,
     border_ramp: float = 0.0,
+    upsampling: Upsampling = "bilinear",
+    reference_times: ReferenceTimes = "window",
+    at_normalisation: AtNormalisation = "event_pixels",
 ) -> LossOutput:
     """Hybrid motion-compensation loss, eq. 17, per window.
 
@@ -186,13 +236,18 @@ def hmc_loss(
     weight (float, or (B,) tensor per window) of ``sum_s (1 - kept_s)`` (see the module doc).
     border_ramp: pixels; > 0 charges each event's dropped share times ``min(1, d / border_ramp)``,
     d = how far beyond the image it lands (``ramped_dropped_share``); 0: the plain share.
+    upsampling: how coarse scales reach full resolution (``to_full_resolution``).
+    reference_times: "window" (s = 0 and 1, the window's bounds) or "events" (the first and
+    last valid event of each window, ``rebase_to_events``).
+    at_normalisation: "event_pixels" (L_AT over N_nz, REFERENCE sec. 5) or "sum" (eq. 14 as
+    printed); see ``event_image_terms``.
     Returns LossOutput (loss = mean over batch of per_sample). Events and flow may be on CPU or
     CUDA; computations run in flow's dtype.
-    Raises ValueError for a bad flow shape, NaN/inf flow, batch-size mismatch, empty batch or
-    tau outside [0, 1].
+    Raises ValueError for a bad flow shape, NaN/inf flow, batch-size mismatch, empty batch,
+    tau outside [0, 1] or an unknown choice.
     """
     return _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_penalty, True,
-                       border_ramp)
+                       border_ramp, upsampling, reference_times, at_normalisation)
 
 
 def at_loss(
@@ -203,15 +258,18 @@ def at_loss(
     lambda_2: float = 1e-3,
     border_penalty: float | torch.Tensor = 0.0,
     border_ramp: float = 0.0,
+    upsampling: Upsampling = "bilinear",
+    reference_times: ReferenceTimes = "window",
+    at_normalisation: AtNormalisation = "event_pixels",
 ) -> LossOutput:
     """Baseline loss "L_AT": ``L_AT(0) + L_AT(1) + lambda_2 L_smooth`` (same args as hmc_loss).
     ``components["ec"]`` is still reported (detached, alpha = 0.6) for logging."""
     return _per_window(flow, events, flow_scaling, 1.0, lambda_2, 0.6, border_penalty, False,
-                       border_ramp)
+                       border_ramp, upsampling, reference_times, at_normalisation)
 
 
 def accumulated_hmc_loss(
-    flows: Sequence[torch.Tensor],
+    flows: Sequence[FlowInput],
     events_list: Sequence[EventBatch],
     *,
     flow_scaling: float | None = None,
@@ -221,48 +279,67 @@ def accumulated_hmc_loss(
     border_penalty: float | torch.Tensor = 0.0,
     outside_weight: float | torch.Tensor = 0.0,
     border_ramp: float = 0.0,
+    upsampling: Upsampling = "bilinear",
+    reference_times: ReferenceTimes = "window",
+    at_normalisation: AtNormalisation = "event_pixels",
 ) -> LossOutput:
     """Accumulated-window variant (REFERENCE sec. 5, Hagenaars "sequential learning").
 
-    flows: K tensors (B, 2, H, W), pixels per window, flow k for window k (full resolution).
+    flows: K items, the flow of window k: a tensor (B, 2, H, W), pixels per window at full
+        resolution, or a list of scales (as ``hmc_loss`` takes; every window the same number of
+        scales), each brought to full resolution with ``upsampling``.
     events_list: K EventBatch, window k's events. Event i of window k has time T_i = k + tau_i
     (in windows) and is warped with its own window's flow: ``x' = x + (s - T_i) u_k(x)`` for
     references s in {0, K}; its timestamp weight is ``1 - |s - T_i| / K`` (so T_P stays in
     [0, 1]). L_AT(0) + L_AT(K) + lambda_1 (L_EC(0) + L_EC(K)) + lambda_2 * mean over k of
-    L_smooth(flow k, window k's event pixels). With K = 1 this equals ``hmc_loss``.
+    L_smooth(flow k, window k's event pixels). With several scales: that loss for each scale
+    (scale j of every window together) averaged over scales. With K = 1 this equals ``hmc_loss``.
     outside_weight (float or (B,) tensor): adds ``outside_weight * outside_distance / max(H, W)``
     (mean distance in pixels by which warped events lie outside the image, see
-    ``warp.outside_distance``), a slope back into the frame for a net whose events all left it,
-    where the border penalty alone is flat. ``components["outside_px"]`` reports the distance.
-    border_ramp: as in ``hmc_loss``.
+    ``warp.outside_distance``; for several scales, the mean over scales), a slope back into the
+    frame for a net whose events all left it, where the border penalty alone is flat.
+    ``components["outside_px"]`` reports the distance.
+    border_ramp, upsampling, at_normalisation: as in ``hmc_loss``. reference_times: "window"
+    (0 and K) or "events" (the first event of the first window and the last of the last).
     """
-    flows = list(flows)
+    _check_choice("reference_times", reference_times, REFERENCE_TIMES)
+    _check_choice("at_normalisation", at_normalisation, AT_NORMALISATIONS)
     events_list = list(events_list)
     if len(flows) == 0 or len(flows) != len(events_list):
         raise ValueError(
             f"accumulated_hmc_loss: need K >= 1 flows and K event batches, got {len(flows)} "
             f"and {len(events_list)}"
         )
-    for k, f in enumerate(flows):
-        check_flow(f, name=f"flows[{k}]")
-        if f.shape != flows[0].shape:
-            raise ValueError(f"flows[{k}] has shape {tuple(f.shape)} != flows[0] {tuple(flows[0].shape)}")
-    B, _, H, W = flows[0].shape
+    scales = [to_full_resolution(f, upsampling) for f in flows]  # [window][scale]
+    if any(len(s) != len(scales[0]) for s in scales):
+        raise ValueError(f"accumulated_hmc_loss: windows give different numbers of scales {[len(s) for s in scales]}")
+    for k, per_window in enumerate(scales):
+        if per_window[0].shape != scales[0][0].shape:
+            raise ValueError(f"flows[{k}] has shape {tuple(per_window[0].shape)} != flows[0] {tuple(scales[0][0].shape)}")
+    B, _, H, W = scales[0][0].shape
     for k, ev in enumerate(events_list):
         check_events(ev, batch_size=B, name=f"events_list[{k}]")
-    K = len(flows)
+    K = len(scales)
     scaling = float(max(H, W)) if flow_scaling is None else float(flow_scaling)
-    us = [sample_flow(f, ev.x, ev.y, ev.mask) for f, ev in zip(flows, events_list)]
+    ramp = check_border_ramp(border_ramp)
     cat = lambda name: torch.cat([getattr(ev, name) for ev in events_list], dim=1)  # noqa: E731
-    t = torch.cat([ev.tau.to(flows[0].dtype) + k for k, ev in enumerate(events_list)], dim=1)
+    x, y, p, mask = cat("x"), cat("y"), cat("p"), cat("mask")
+    dtype = scales[0][0].dtype
     masks = [event_pixel_mask(ev.x, ev.y, ev.mask, H, W) for ev in events_list]
-    u = torch.cat(us, dim=1)
-    terms = _terms(cat("x"), cat("y"), t, cat("p"), cat("mask"), u,
-                   flows, masks, H, W, (0.0, float(K)), float(K), alpha, scaling, True,
-                   check_border_ramp(border_ramp))
-    out = _combine([terms], lambda_1, lambda_2, border_penalty, True)
-    if isinstance(outside_weight, torch.Tensor) or outside_weight:
-        distance = outside_distance(cat("x"), cat("y"), t, u, cat("mask"), H, W, (0.0, float(K)))
+    terms, distances = [], []
+    for j in range(len(scales[0])):
+        window_flows = [per_window[j] for per_window in scales]
+        u = torch.cat([sample_flow(f, ev.x, ev.y, ev.mask) for f, ev in zip(window_flows, events_list)], dim=1)
+        t = torch.cat([ev.tau.to(dtype) + k for k, ev in enumerate(events_list)], dim=1)
+        if reference_times == "events":
+            t, u = rebase_to_events(t, u, mask, float(K))
+        terms.append(_terms(x, y, t, p, mask, u, window_flows, masks, H, W, (0.0, float(K)), float(K), alpha,
+                            scaling, True, ramp, at_normalisation))
+        if isinstance(outside_weight, torch.Tensor) or outside_weight:
+            distances.append(outside_distance(x, y, t, u, mask, H, W, (0.0, float(K))))
+    out = _combine(terms, lambda_1, lambda_2, border_penalty, True)
+    if distances:
+        distance = sum(distances) / len(distances)
         per_sample = out.per_sample + outside_weight * distance / max(H, W)
         out = LossOutput(loss=per_sample.mean(), per_sample=per_sample,
                          components={**out.components, "outside_px": distance.detach()})

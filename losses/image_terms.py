@@ -18,7 +18,7 @@ check it with torch.autograd.gradcheck in float64.
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Literal, Sequence, get_args
 
 import numpy as np
 import torch
@@ -26,7 +26,11 @@ import torch
 from .splat import crop_padding, padded_corners
 from .warp import warp_events
 
-__all__ = ["event_image_terms"]
+__all__ = ["event_image_terms", "AtNormalisation", "AT_NORMALISATIONS"]
+
+#: How L_AT(s) is normalised: by the pixels holding warped events (default), or eq. 14's bare sum.
+AtNormalisation = Literal["event_pixels", "sum"]
+AT_NORMALISATIONS = get_args(AtNormalisation)
 
 
 def _zero_ring_(padded: torch.Tensor) -> torch.Tensor:
@@ -74,12 +78,12 @@ class _EventImageTerms(torch.autograd.Function):
         kept = count.sum(dim=(2, 3, 4))  # (B, R) splat weight inside the image
         ctx.save_for_backward(index, wx, wy, inside, closeness, dt, inv, T, E, S, Z)
         ctx.geometry = (height, width, alpha)
-        ctx.mark_non_differentiable(kept)
+        ctx.mark_non_differentiable(kept, n_nz)
         ctx.set_materialize_grads(False)  # None for an unused output (e.g. ec in at_loss)
-        return at, ec, kept
+        return at, ec, kept, n_nz
 
     @staticmethod
-    def backward(ctx, grad_at, grad_ec, _grad_kept):
+    def backward(ctx, grad_at, grad_ec, _grad_kept, _grad_n_nz):
         index, wx, wy, inside, closeness, dt, inv, T, E, S, Z = ctx.saved_tensors
         height, width, alpha = ctx.geometry
         B, R, N = closeness.shape
@@ -144,12 +148,14 @@ class _EventImageTermsCompiled(torch.autograd.Function):
         fwd(*arrays, int(height), int(width), images, stats, at, ec, kept)
         ctx.arrays, ctx.images, ctx.stats = arrays, images, stats
         ctx.geometry = (height, width, alpha)
-        ctx.mark_non_differentiable(kept_t := torch.from_numpy(kept).to(dtype))
+        kept_t = torch.from_numpy(kept).to(dtype)
+        n_nz = torch.from_numpy(stats[..., 0]).to(dtype)
+        ctx.mark_non_differentiable(kept_t, n_nz)
         ctx.set_materialize_grads(False)
-        return torch.from_numpy(at).to(dtype), torch.from_numpy(ec).to(dtype), kept_t
+        return torch.from_numpy(at).to(dtype), torch.from_numpy(ec).to(dtype), kept_t, n_nz
 
     @staticmethod
-    def backward(ctx, grad_at, grad_ec, _grad_kept):
+    def backward(ctx, grad_at, grad_ec, _grad_kept, _grad_n_nz):
         height, width, alpha = ctx.geometry
         x, images, stats = ctx.arrays[0], ctx.images, ctx.stats
         B, N = x.shape
@@ -178,15 +184,25 @@ def event_image_terms(
     references: Sequence[float] = (0.0, 1.0),
     span: float = 1.0,
     alpha: float = 0.6,
+    at_normalisation: AtNormalisation = "event_pixels",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """L_AT(s_r), L_EC(s_r) and the kept splat weight for every batch element and reference.
 
     Arguments as ``iwe.warped_event_images``; alpha as ``event_count_loss``.
+    at_normalisation: "event_pixels" (default) divides eq. 14's sum of squared average
+    timestamps by N_nz + 1e-9, the number of pixels with C_+ + C_- > 0 (REFERENCE sec. 5);
+    "sum" is eq. 14 as printed, the bare sum (N_nz is piecewise constant, so the gradient is the
+    normalised one times N_nz).
     Returns (at, ec, kept), each (B, R) in u's dtype; at and ec are differentiable in u
     (fused backward), kept = sum over pixels of C_+ + C_- (not differentiable).
     """
+    if at_normalisation not in AT_NORMALISATIONS:
+        raise ValueError(f"at_normalisation must be one of {AT_NORMALISATIONS}, got {at_normalisation!r}")
     if _kernels is not None and u.device.type == "cpu" and u.dtype in (torch.float32, torch.float64):
         fn = _EventImageTermsCompiled
     else:
         fn = _EventImageTerms
-    return fn.apply(u, x, y, t, p, mask, height, width, tuple(references), float(span), float(alpha))
+    at, ec, kept, n_nz = fn.apply(u, x, y, t, p, mask, height, width, tuple(references), float(span), float(alpha))
+    if at_normalisation == "sum":
+        at = at * (n_nz + 1e-9)  # undo the division: eq. 14's bare sum
+    return at, ec, kept

@@ -254,6 +254,90 @@ def test_accumulated_matches_reference_and_reduces_to_per_window(backend):
                                rtol=1e-12)
 
 
+def ref_at_sum(C, A):
+    """Eq. 14 as printed: the bare sum of squared average timestamps."""
+    return ((A / (C + 1e-9)) ** 2).sum()
+
+
+def ref_terms_at(flow_of_event, x, y, T, p, refs, span, H, W, at_of=ref_at):
+    """sum over the two references of L_AT and of L_EC, events warped to any reference times
+    with closeness 1 - |s - T| / span."""
+    at = ec = 0.0
+    for s in refs:
+        C, A = ref_images(None, x, y, None, p, s, H, W, span=span, t_override=T, flows_per_event=flow_of_event)
+        at += at_of(C, A)
+        ec += ref_ec(C)
+    return at, ec
+
+
+@pytest.mark.parametrize("reference_times", ["window", "events"])
+@pytest.mark.parametrize("at_normalisation", ["event_pixels", "sum"])
+def test_loss_options_match_slow_reference(backend, reference_times, at_normalisation):
+    """The readings the paper leaves open, each against the slow reference: references at the
+    window bounds or at the first and last event (closeness over their span, the flow still in
+    pixels per window), L_AT over N_nz or eq. 14's bare sum, coarse scales upsampled nearest."""
+    rng = np.random.default_rng(11)
+    H, W = 12, 16
+    w = random_window(rng, 50, H, W, integer=False)
+    w["t"] = np.sort(rng.integers(2000, 4500, 50))  # first/last event well inside [1000, 6000]
+    tau = taus(w)
+    coarse = rng.normal(0, 2, (2, H // 4, W // 4))
+    fine = rng.normal(0, 2, (2, H, W))
+    nearest = np.repeat(np.repeat(coarse, 4, axis=1), 4, axis=2)  # each cell over its 4x4 pixels
+    ev = EventBatch.from_windows([w], dtype=torch.float64)
+    out = hmc_loss([torch.from_numpy(coarse)[None], torch.from_numpy(fine)[None]], ev, upsampling="nearest",
+                   reference_times=reference_times, at_normalisation=at_normalisation)
+    refs, span = ((0.0, 1.0), 1.0) if reference_times == "window" else ((tau.min(), tau.max()), tau.max() - tau.min())
+    at_of = ref_at if at_normalisation == "event_pixels" else ref_at_sum
+    expected = []
+    for flow in (nearest, fine):
+        at, ec = ref_terms_at([flow] * len(tau), w["x"], w["y"], tau, w["p"], refs, span, H, W, at_of)
+        expected.append(at + ec + 1e-3 * ref_smooth(flow, w["x"], w["y"], max(H, W)))
+    np.testing.assert_allclose(out.loss.item(), np.mean(expected), rtol=RTOL)
+    if reference_times == "events" and at_normalisation == "sum":
+        assert out.loss.item() != pytest.approx(hmc_loss([torch.from_numpy(coarse)[None], torch.from_numpy(fine)[None]],
+                                                         ev, upsampling="nearest").loss.item(), rel=1e-3)
+
+
+def test_accumulated_per_scale_and_event_references_match_reference(backend):
+    """Sequential learning with per-scale flows: scale j of every window forms one accumulated
+    loss, the scales are averaged; with reference_times "events" the references sit at the first
+    event of the first window and the last of the last."""
+    rng = np.random.default_rng(12)
+    H, W, K = 8, 8, 3
+    wins = [random_window(rng, n, H, W, integer=False) for n in (15, 25, 20)]
+    flows = [[rng.normal(0, 1.0, (2, H // 2, W // 2)), rng.normal(0, 1.0, (2, H, W))] for _ in range(K)]
+    evs = [EventBatch.from_windows([w], dtype=torch.float64) for w in wins]
+    x = np.concatenate([w["x"] for w in wins])
+    y = np.concatenate([w["y"] for w in wins])
+    p = np.concatenate([w["p"] for w in wins])
+    T = np.concatenate([k + taus(w) for k, w in enumerate(wins)])
+    for reference_times in ("window", "events"):
+        out = accumulated_hmc_loss([[torch.from_numpy(f)[None] for f in per] for per in flows], evs,
+                                   reference_times=reference_times)
+        refs, span = ((0.0, float(K)), float(K)) if reference_times == "window" else ((T.min(), T.max()), T.max() - T.min())
+        expected = []
+        for j in range(2):
+            full = [np.asarray(torch.nn.functional.interpolate(torch.from_numpy(per[j])[None], size=(H, W),
+                                                               mode="bilinear", align_corners=False)[0])
+                    for per in flows]
+            per_event = [full[k] for k, w in enumerate(wins) for _ in range(len(w["x"]))]
+            at, ec = ref_terms_at(per_event, x, y, T, p, refs, span, H, W)
+            sm = np.mean([ref_smooth(f, w["x"], w["y"], max(H, W)) for f, w in zip(full, wins)])
+            expected.append(at + ec + 1e-3 * sm)
+        np.testing.assert_allclose(out.loss.item(), np.mean(expected), rtol=RTOL)
+
+
+def test_loss_options_refuse_unknown_choices():
+    ev, (H, W) = _small_batch()
+    flow = torch.zeros(2, 2, H, W)
+    for option in ("upsampling", "reference_times", "at_normalisation"):
+        with pytest.raises(ValueError, match=option):
+            hmc_loss(flow, ev, **{option: "bicubic"})
+        with pytest.raises(ValueError, match=option):
+            accumulated_hmc_loss([flow], [ev], **{option: "bicubic"})
+
+
 # --------------------------------------------------------------------------------------------
 # Building blocks
 # --------------------------------------------------------------------------------------------
