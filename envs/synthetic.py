@@ -63,6 +63,7 @@ __all__ = [
     "dr_train_specs",
     "cache_path",
     "load_sequence",
+    "generate_split",
     "clear_cache",
     "cache_root",
 ]
@@ -305,3 +306,74 @@ def load_sequence(split: str, index_or_name: int | str, *, disk_cache: bool = Tr
         return reader
     _MEMORY[key] = (path, config)
     return SyntheticH5Reader(path, config)
+
+
+def _generate_one(split: str, index: int, out: str | None, fmt: str, overwrite: bool) -> tuple[str, str | None, float]:
+    """Simulate and write one sequence (a worker's job): (name, path written or None when it
+    existed already, seconds of events simulated)."""
+    from envs.simulator.export import output_path, write_sequence
+
+    spec = get_spec(split, index)
+    provenance = {"split": _split_folder(split), "spec": asdict(spec)}
+    if out is None:
+        root = cache_root()
+        if root is None:
+            raise ValueError("the disk cache is off (EVFLOW_CACHE=off): give an output folder")
+        path = cache_path(split, spec, root)
+        if path.exists() and not overwrite:
+            return spec.name, None, 0.0
+        spec.simulate().to_h5(path, name=spec.name, provenance=provenance)
+        return spec.name, str(path), spec.duration_s
+    stem = Path(out) / spec.name
+    if output_path(stem, fmt).exists() and not overwrite:
+        return spec.name, None, 0.0
+    path = write_sequence(spec.simulate(), stem, fmt, name=spec.name, provenance=provenance)
+    return spec.name, str(path), spec.duration_s
+
+
+def generate_split(
+    split: str,
+    out: str | os.PathLike | None = None,
+    *,
+    fmt: str = "evflow-h5",
+    num: int | None = None,
+    workers: int = 1,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> list[Path]:
+    """Simulate a split's sequences into files, in ``workers`` processes, with a progress bar.
+
+    out: a folder for files named after the sequences, in ``fmt`` (envs.simulator.export);
+        None fills the disk cache that :func:`load_sequence` reads (evflow-h5 only).
+    num: only the first ``num`` sequences. Existing files are skipped unless ``overwrite``.
+    Returns the paths written.
+    """
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    from tqdm import tqdm
+
+    from envs.simulator.export import OUTPUT_FORMATS
+
+    if fmt not in OUTPUT_FORMATS:
+        raise ValueError(f"fmt must be one of {OUTPUT_FORMATS}, got {fmt!r}")
+    if out is None and fmt != "evflow-h5":
+        raise ValueError(f"the disk cache holds evflow-h5 files; give an output folder for {fmt!r}")
+    count = len(list_sequences(split)) if num is None else min(num, len(list_sequences(split)))
+    jobs = [(split, i, None if out is None else str(out), fmt, overwrite) for i in range(count)]
+    written: list[Path] = []
+    bar = tqdm(total=count, desc=split, unit="seq", disable=not progress)
+    if workers <= 1:
+        for job in jobs:
+            name, path, _ = _generate_one(*job)
+            bar.set_postfix_str(name)
+            written += [Path(path)] if path else []
+            bar.update()
+    else:
+        with ProcessPoolExecutor(workers) as pool:
+            for future in as_completed([pool.submit(_generate_one, *job) for job in jobs]):
+                name, path, _ = future.result()
+                bar.set_postfix_str(name)
+                written += [Path(path)] if path else []
+                bar.update()
+    bar.close()
+    return sorted(written)
