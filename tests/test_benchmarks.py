@@ -119,15 +119,17 @@ def test_hood_rows_are_left_out_of_outdoor_scores(tmp_path, rng):
 
     def flow_fn(window):  # Zhu ground truth over the window, plus 10 px on the hood rows
         flow = np.zeros((2, 256, 256))
-        flow[0], flow[1] = 1.5 * (window["t_end"] - window["t_start"]) / GT_DT, -0.5 * (window["t_end"] - window["t_start"]) / GT_DT
+        share = (window["t_end"] - window["t_start"]) / GT_DT
+        flow[0], flow[1] = 1.5 * share, -0.5 * share
         flow[0, 190:] += 10.0
         return flow
 
     results = {}
     for hood in (True, False):
         protocol = MVSECProtocol(dt=1, hood=hood)
-        (results[hood],) = evaluate(FixedFlow(flow_fn), str(path), data_format="mvsec", data_options=protocol.data_options,
-                                    windows_fn=protocol.windows, scorer_fn=protocol.scorer, progress=False)
+        (results[hood],) = evaluate(FixedFlow(flow_fn), str(path), data_format="mvsec",
+                                    data_options=protocol.data_options, windows_fn=protocol.windows,
+                                    scorer_fn=protocol.scorer, progress=False)
     assert results[True].windows == 3 and results[True].counts["aee"] == 3
     assert results[True].mean("aee") < 1e-5
     # without the hood rule: 10 px on the event pixels of rows >= 190, averaged with the rest
@@ -326,4 +328,5 @@ def test_evaluate_script_writes_a_dsec_submission(tmp_path, rng):
         flow, valid = decode_flow_png(tmp_path / "sub" / "thun_01_a" / f"{k:06d}.png")
         assert flow.shape == (2,) + size and valid.all() and not flow.any()  # zero flow, every pixel predicted
     with pytest.raises(SystemExit, match="--dsec-test-timestamps"):
-        _evaluate_script().main(["--zero", "--protocol", "dsec", "--data", str(path), "--dsec-submission", str(tmp_path)])
+        _evaluate_script().main(["--zero", "--protocol", "dsec", "--data", str(path),
+                                 "--dsec-submission", str(tmp_path)])

@@ -42,6 +42,7 @@ import struct
 import zipfile
 from collections import OrderedDict
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -177,7 +178,7 @@ class MVSECReader(EventReader):
         camera: str = "left",
         crop=None,
         grid: str = "images",
-        gt_mode: str = "chain",
+        gt_mode: Literal["chain", "zhu"] = "chain",
         validate: bool = True,
     ) -> None:
         if gt_mode not in MVSEC_GT_MODES:
@@ -413,7 +414,8 @@ def _gt_grid(reader) -> np.ndarray:
     return np.asarray(gt, np.int64)
 
 
-def mvsec_scored_span(reader: MVSECReader, sequence: str | None = None, *, outdoor_cut: str = "time") -> tuple[int, int]:
+def mvsec_scored_span(reader: MVSECReader, sequence: str | None = None, *,
+                      outdoor_cut: str = "time") -> tuple[int, int]:
     """The time span ``(t_first, t_last)`` µs that the MVSEC protocol scores.
 
     Indoor: MVSEC_VALID_FRAMES index the 20 Hz ground-truth timestamps (not the image
@@ -455,9 +457,9 @@ def mvsec_eval_windows(reader: MVSECReader, dt: int, sequence: str | None = None
 
     Windows span ``dt`` steps of the evaluation grid, ``[T_k, T_{k+dt})`` for k = k0, k0 +
     stride, k0 + 2 stride, ... from the first grid time inside :func:`mvsec_scored_span`
-    (``T_k0 >= t_first``), kept while ``T_{k+dt} <= t_last``. grid: ``"images"`` (the grayscale image timestamps, EV-FlowNet's
-    dt = 1 / dt = 4 frames), ``"gt"`` (the 20 Hz ground-truth timestamps: the E-RAFT / idnet
-    "20 Hz" evaluation), or None for ``reader.flow_timestamps()``. stride: grid steps between
+    (``T_k0 >= t_first``), kept while ``T_{k+dt} <= t_last``. grid: ``"images"`` (the grayscale
+    image timestamps, EV-FlowNet's dt = 1 / dt = 4 frames), ``"gt"`` (the 20 Hz ground-truth
+    timestamps: the E-RAFT / idnet "20 Hz" evaluation), or None for ``reader.flow_timestamps()``. stride: grid steps between
     window starts, default ``dt`` (contiguous, as Hagenaars); 1 with dt = 4 gives the overlapping
     windows of Zhu, Spike-FlowNet and tub-rip.
     """
