@@ -165,8 +165,6 @@ class DSECProtocol:
 
     test_timestamps: str | os.PathLike | None = None
 
-    data_options = None
-
     def describe(self) -> str:
         what = "ground-truth intervals" if self.test_timestamps is None else "test-set timestamps"
         return f"DSEC, {what}, dense (valid ground truth, no event mask)"

@@ -157,6 +157,26 @@ def test_hot_pixel_filter_drops_a_stuck_pixel_from_the_event_mask(rng):
         HotPixelFilter(size, sigma=0)
 
 
+def test_mvsec_scorer_leaves_hot_pixels_out_of_the_event_mask(rng):
+    """A stuck pixel with a wrong prediction: counted without the filter, gone with it."""
+    size = (20, 30)
+    reader = types.SimpleNamespace(name="indoor_flying1", sequence="indoor_flying1", crop=None)
+    gt = np.ones((2,) + size)
+    flow = gt.copy()
+    flow[:, 3, 7] += 30.0  # wrong only at the stuck pixel
+    info = {"flow_gt": gt, "flow_gt_valid": np.ones(size, bool)}
+    aee = {}
+    for sigma in (None, 5.0):
+        score = MVSECProtocol(hot_pixel_sigma=sigma).scorer(reader)
+        for _ in range(4):
+            x, y = rng.integers(0, 30, 300), rng.integers(0, 20, 300)
+            window = {"x": np.concatenate([x, np.full(200, 7)]), "y": np.concatenate([y, np.full(200, 3)])}
+            err, mask = score(flow, info, window, size, 1.0)
+        aee[sigma] = err["aee"]
+        assert mask[3, 7] == (sigma is None)
+    assert aee[5.0] == 0.0 and aee[None] > 0.0
+
+
 def test_mvsec_protocol_refuses_bad_choices():
     with pytest.raises(ValueError, match="grid"):
         MVSECProtocol(grid="frames")
