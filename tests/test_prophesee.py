@@ -186,6 +186,23 @@ def test_evt3_vector_base_advances_over_empty_masks(tmp_path):
     np.testing.assert_array_equal(ev.t, [t] * 5)
 
 
+def test_evt3_time_low_passing_4096_without_a_time_high(tmp_path):
+    """Writers that send no TIME_HIGH when the time base passes a multiple of 4096 µs: a TIME_LOW
+    below the previous one with no TIME_HIGH between them steps the time high, also when a chunk
+    boundary falls between them; a TIME_HIGH between them (a camera's stream) does not."""
+    words = [0x8000 | 2, 0x6000 | 4000, 0x0000 | 1, 0x2000 | 10,  # t = 2 * 4096 + 4000
+             0x6000 | 50, 0x2000 | 11,  # no TIME_HIGH: t = 3 * 4096 + 50
+             0x6000 | 60, 0x2000 | 12,  # t = 3 * 4096 + 60
+             0x8000 | 4, 0x6000 | 30, 0x2000 | 13,  # a TIME_HIGH: t = 4 * 4096 + 30
+             0x6000 | 20, 0x2000 | 14]  # looped again: t = 5 * 4096 + 20
+    expected = [2 * 4096 + 4000, 3 * 4096 + 50, 3 * 4096 + 60, 4 * 4096 + 30, 5 * 4096 + 20]
+    path = write(tmp_path / "loop.raw", raw_header("EVT3"), np.array(words, np.uint16))
+    for chunk_words in (1, 2, 3, 5, 9, 100):
+        with PropheseeRawReader(path, chunk_words=chunk_words, index_dir=tmp_path) as r:
+            np.testing.assert_array_equal(r.events_range(0, r.num_events).t, expected)
+            np.testing.assert_array_equal(r.events_range(0, r.num_events).x, [10, 11, 12, 13, 14])
+
+
 def test_events_before_the_first_time_high_are_dropped(tmp_path):
     first = (0 << 28) | (5 << 22) | (1 << 11) | 2  # a CD_OFF word with no time base yet
     words = np.array([first, 0x8 << 28 | 10, (1 << 28) | (3 << 22) | (4 << 11) | 6], np.uint32)
@@ -237,6 +254,7 @@ def test_index_is_cached_and_a_middle_window_decodes_only_its_chunks(tmp_path, r
     monkeypatch.setenv("EVFLOW_CACHE", str(tmp_path / "cache"))
     with PropheseeRawReader(path, chunk_words=1000) as r:
         assert r.index_path is not None and r.index_path.parent == tmp_path / "cache" / "prophesee-index"
+        assert r.reordered_events == 0
         n_chunks = len(r._t_last)
     assert n_chunks > 40
 
@@ -364,3 +382,23 @@ def test_benchmark_encoders_agree_with_the_reader(tmp_path, fmt):
     x, y, p, t = (np.concatenate(c) for c in zip(*parts))
     with PropheseeRawReader(path, index_dir=tmp_path) as r:
         assert_events(r.events_range(0, r.num_events), x, y, t, p)
+
+
+@pytest.mark.parametrize("encoding", ["evt2", "evt3", "dat"])
+def test_files_written_by_expelliarmus(tmp_path, rng, encoding):
+    """An independent encoder, where installed: expelliarmus writes RAW (no geometry in its
+    header, no TIME_HIGH words in EVT 3.0) and DAT files; we read back what it was given.
+    Its EVT 3.0 files hold only when events are less than 4096 µs apart (its own reader loses
+    the time otherwise), so the gaps here stay below 2000 µs."""
+    expelliarmus = pytest.importorskip("expelliarmus")
+    n = 40_000
+    events = np.zeros(n, np.dtype([("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "u1")]))
+    events["t"] = np.cumsum(rng.integers(0, 2000, n))  # ~20 s: past the 24-bit EVT 3.0 time base
+    events["x"], events["y"], events["p"] = rng.integers(0, 1280, n), rng.integers(0, 720, n), rng.integers(0, 2, n)
+    events["t"][1::2], events["y"][1::2], events["p"][1::2] = events["t"][::2], events["y"][::2], events["p"][::2]
+    events["x"][1::2] = np.minimum(events["x"][::2] + rng.integers(1, 11, n // 2), 1279)
+    path = tmp_path / f"x.{'dat' if encoding == 'dat' else 'raw'}"
+    expelliarmus.Wizard(encoding=encoding).save(path, events)
+    with open_recording(path, sensor_size=SENSOR, index_dir=tmp_path, chunk_words=997) as r:
+        assert r.reordered_events == 0
+        assert_events(r.events_range(0, r.num_events), events["x"], events["y"], events["t"], events["p"])

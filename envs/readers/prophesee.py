@@ -59,7 +59,7 @@ RAW_FORMATS = ("EVT2", "EVT3")
 # DAT event-type byte: the CD layouts read here (Event2d, EventCd); 0x0E is EventExtTrigger
 DAT_EVENT_TYPES = {0x00: "Event2d", 0x0C: "EventCd"}
 _DAT_TRIGGER = 0x0E
-_INDEX_VERSION = 1
+_INDEX_VERSION = 2
 _HEADER_LIMIT = 1 << 16  # bytes of header read at most
 
 
@@ -144,7 +144,8 @@ def read_raw_header(path: str | os.PathLike) -> RawHeader:
 # A state is a small int64 vector; -1 marks "not seen yet".
 
 _EVT2_STATE = ("time_high", "last_t")  # time_high: full (unwrapped) value of the last EVT_TIME_HIGH
-_EVT3_STATE = ("time_high", "time_low", "y", "base_x", "polarity", "last_t")
+# low_after_high: 1 when the last TIME_LOW came after the last TIME_HIGH (see _decode_evt3)
+_EVT3_STATE = ("time_high", "time_low", "y", "base_x", "polarity", "last_t", "low_after_high")
 _DAT_STATE = ("time", "last_t")  # time: full (unwrapped) time of the last record
 
 
@@ -210,7 +211,7 @@ def _decode_evt3(words: np.ndarray, state: np.ndarray):
     row and vector base in force at its position; a vector word then yields one event per set
     bit of its mask, in pixel order, at its place in the stream.
     """
-    time_high, time_low, y_state, base_state, pol_state, last_t = (int(v) for v in state)
+    time_high, time_low, y_state, base_state, pol_state, last_t, low_after_high = (int(v) for v in state)
     kind = (words >> 12).astype(np.uint8)
     payload = words & np.uint16(0x0FFF)
     is_th, is_tl, is_y, is_x = kind == 0x8, kind == 0x6, kind == 0x0, kind == 0x2
@@ -219,6 +220,32 @@ def _decode_evt3(words: np.ndarray, state: np.ndarray):
     carrying = np.flatnonzero(is_x | is_v12 | is_v8)
     th = _at(carrying, is_th, th_full, time_high)
     tl = _at(carrying, is_tl, payload[is_tl], time_low)
+    # A TIME_LOW below the one before it with no TIME_HIGH between them means the time base
+    # passed a multiple of 4096 µs without a TIME_HIGH word (some writers, e.g. expelliarmus,
+    # emit none); count those as time-high steps. A camera's stream, whose time base never goes
+    # back, always sends the TIME_HIGH, so this never fires on it.
+    tl_at = np.flatnonzero(is_tl)
+    th_seen = np.cumsum(is_th, dtype=np.int32)
+    tl_values = payload[tl_at].astype(np.int64)
+    previous_tl = np.concatenate([np.array([time_low], np.int64), tl_values[:-1]])
+    previous_seen = np.concatenate([np.array([0], np.int32), th_seen[tl_at][:-1]])
+    looped = (tl_values < previous_tl) & (th_seen[tl_at] == previous_seen)
+    if len(tl_at) and low_after_high != 1:
+        looped[0] = False  # a TIME_HIGH came between the previous chunk's last TIME_LOW and this one
+    th_at = np.flatnonzero(is_th)
+    if len(th_at) and (not len(tl_at) or th_at[-1] > tl_at[-1]):
+        low_after_high = 0
+    elif len(tl_at):
+        low_after_high = 1
+    end_high = int(th_full[-1]) if len(th_full) else time_high
+    if looped.any():
+        steps = np.zeros(len(words), np.int32)
+        steps[tl_at[looped]] = 1
+        steps_run = np.cumsum(steps, dtype=np.int64)
+        at_th = np.concatenate([np.array([0], np.int64), steps_run[is_th]])  # steps before each TIME_HIGH
+        th = np.where(th >= 0, th + steps_run[carrying] - at_th[th_seen[carrying]], th)
+        if end_high >= 0:
+            end_high += int(steps_run[-1] - at_th[-1])
     row = _at(carrying, is_y, payload[is_y] & 0x7FF, y_state)
     pay = payload[carrying].astype(np.int64)
     single = is_x[carrying]
@@ -266,11 +293,11 @@ def _decode_evt3(words: np.ndarray, state: np.ndarray):
     t, reordered = _monotonic(t, last_t)
     n = len(words)
     new_state = np.array([
-        th_full[-1] if len(th_full) else time_high,
+        end_high,
         int(payload[is_tl][-1]) if is_tl.any() else time_low,
         int(payload[is_y][-1] & 0x7FF) if is_y.any() else y_state,
         end_base if n else base_state, end_pol if n else pol_state,
-        int(t[-1]) if len(t) else last_t,
+        int(t[-1]) if len(t) else last_t, low_after_high,
     ], np.int64)
     return (x.astype(np.int16), row[source].astype(np.int16), t, polarity[source].astype(np.int8), new_state,
             reordered)
