@@ -218,14 +218,14 @@ def _decode_evt3(words: np.ndarray, state: np.ndarray):
     is_v12, is_v8, is_base = kind == 0x4, kind == 0x5, kind == 0x3
     th_full = _unwrap(payload[is_th], time_high, 12)
     carrying = np.flatnonzero(is_x | is_v12 | is_v8)
-    th = _at(carrying, is_th, th_full, time_high)
+    th_seen = np.cumsum(is_th, dtype=np.int32)  # TIME_HIGH words up to each word
+    th = np.concatenate([np.array([time_high], np.int64), th_full])[th_seen[carrying]]
     tl = _at(carrying, is_tl, payload[is_tl], time_low)
     # A TIME_LOW below the one before it with no TIME_HIGH between them means the time base
     # passed a multiple of 4096 µs without a TIME_HIGH word (some writers, e.g. expelliarmus,
     # emit none); count those as time-high steps. A camera's stream, whose time base never goes
     # back, always sends the TIME_HIGH, so this never fires on it.
     tl_at = np.flatnonzero(is_tl)
-    th_seen = np.cumsum(is_th, dtype=np.int32)
     tl_values = payload[tl_at].astype(np.int64)
     previous_tl = np.concatenate([np.array([time_low], np.int64), tl_values[:-1]])
     previous_seen = np.concatenate([np.array([0], np.int32), th_seen[tl_at][:-1]])
