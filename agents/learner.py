@@ -35,15 +35,16 @@ import torch.distributed as dist
 from gymnasium.vector import AutoresetMode
 
 from envs.env import EventFlowEnv
-from losses import (BORDER_RAMP, EventBatch, accumulated_hmc_loss, at_loss, check_border_ramp, contrast_maximisation_flow,
-                    event_pixel_mask, hmc_loss, to_full_resolution)
+from losses import (AT_NORMALISATIONS, BORDER_RAMP, REFERENCE_TIMES, UPSAMPLINGS, EventBatch, accumulated_hmc_loss,
+                    at_loss, check_border_ramp, contrast_maximisation_flow, event_pixel_mask, hmc_loss,
+                    to_full_resolution)
 
 from .checkpoint import rng_state, set_rng_state
 from .policy import RecurrentPolicy
 from .registry import make_model
 from .teacher import TeacherTargets
 
-__all__ = ["TrainConfig", "Learner", "make_vector_env"]
+__all__ = ["TrainConfig", "Learner", "make_vector_env", "PRESETS", "preset_config", "CHOICES"]
 
 
 @dataclass
@@ -72,6 +73,10 @@ class TrainConfig:
     loss: str = "hmc"  # "hmc", "at", "teacher" (regress per-window contrast-maximisation flows), or
     # "supervised" (endpoint error against ground truth: a reference bound, not the method)
     loss_mode: str = "window"  # "window" (per-window, default) or "accumulated"
+    loss_scales: str = "all"  # "all": every decoder scale, loss averaged over scales; "finest": the full-resolution flow only
+    upsampling: str = "bilinear"  # coarse scales to full resolution in the loss: "bilinear" or "nearest"
+    reference_times: str = "window"  # "window": references at the window bounds; "events": at the first/last event
+    at_normalisation: str = "event_pixels"  # L_AT over the pixels holding events, or "sum" (eq. 14 as printed)
     lambda_1: float = 1.0
     lambda_2: float = 1e-3
     alpha: float = 0.6
@@ -91,6 +96,45 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+    def check(self) -> None:
+        """ValueError naming the field and the allowed values for a choice that is not one."""
+        for name, allowed in CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"TrainConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+
+
+#: The allowed values of the config's choices (checked by ``TrainConfig.check``).
+CHOICES: dict[str, tuple] = {
+    "input": ("count_image", "voxel_grid"),
+    "loss": ("hmc", "at", "teacher", "supervised"),
+    "loss_mode": ("window", "accumulated"),
+    "loss_scales": ("all", "finest"),
+    "upsampling": UPSAMPLINGS,
+    "reference_times": REFERENCE_TIMES,
+    "at_normalisation": AT_NORMALISATIONS,
+}
+
+#: Named recipes: TrainConfig values a preset sets (options given beside it still win).
+#: "paper": Zhuang et al. 2024, sec. IV-A: EV-MGRFlowNet at the paper's width on count images,
+#: all four scales' flows in the loss, Adam at 1e-4, L = 10 windows per update, and L_HMC over
+#: those windows as Hagenaars' sequential learning (one loss over the events of all L windows,
+#: references 0 and L). The border rule stays on (docs/method.md says why; --border-penalty 0
+#: gives the paper's bare loss).
+PRESETS: dict[str, dict[str, Any]] = {
+    "paper": {
+        "model": "ev-mgrflownet", "width": "paper", "input": "count_image", "lr": 1e-4, "unroll": 10,
+        "loss": "hmc", "loss_mode": "accumulated", "loss_scales": "all", "lambda_1": 1.0, "lambda_2": 1e-3,
+        "alpha": 0.6, "grad_clip": 100.0, "decay": "none", "warmup_steps": 0,
+    },
+}
+
+
+def preset_config(name: str, **overrides) -> TrainConfig:
+    """The TrainConfig of preset ``name`` with ``overrides`` on top."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; presets: {sorted(PRESETS)}")
+    return TrainConfig(**{**PRESETS[name], **overrides})
 
 
 def _width_kwargs(width) -> dict:
@@ -154,6 +198,7 @@ class Learner:
     """Owns the policy, optimizer and training envs of one process."""
 
     def __init__(self, cfg: TrainConfig) -> None:
+        cfg.check()
         check_border_ramp(cfg.border_ramp)  # before any env or output exists
         if cfg.teacher_cache and cfg.loss != "teacher":
             raise ValueError(f"teacher_cache is for loss 'teacher', not {cfg.loss!r}")
@@ -236,14 +281,24 @@ class Learner:
                 errors.append(((f - t).norm(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1))
         return torch.stack(errors).mean(), torch.stack(zero_errors).mean().detach()
 
+    def _loss_flows(self, flows: list) -> list:
+        """The scales that enter the loss: all four (averaged) or the finest only."""
+        return flows if self.cfg.loss_scales == "all" else flows[-1:]
+
+    def _options(self) -> dict:
+        """The loss readings the paper leaves open (docs/method.md)."""
+        cfg = self.cfg
+        return {"upsampling": cfg.upsampling, "reference_times": cfg.reference_times,
+                "at_normalisation": cfg.at_normalisation}
+
     def _loss(self, flows, batch: EventBatch, border_penalty=0.0):
         cfg = self.cfg
         if cfg.loss == "hmc" or cfg.loss == "supervised":
             return hmc_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
                             lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty,
-                            border_ramp=cfg.border_ramp)
+                            border_ramp=cfg.border_ramp, **self._options())
         return at_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_2=cfg.lambda_2,
-                       border_penalty=border_penalty, border_ramp=cfg.border_ramp)
+                       border_penalty=border_penalty, border_ramp=cfg.border_ramp, **self._options())
 
     def _accumulated(self, flows, batches, border_penalty=0.0):
         """Accumulated-window loss; with the border rule on, also the slope back into the frame
@@ -252,13 +307,13 @@ class Learner:
         cfg = self.cfg
         return accumulated_hmc_loss(flows, batches, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
                                     lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty,
-                                    outside_weight=border_penalty, border_ramp=cfg.border_ramp)
+                                    outside_weight=border_penalty, border_ramp=cfg.border_ramp, **self._options())
 
     def update(self) -> dict[str, float]:
         """One truncated-BPTT update over ``unroll`` windows; returns logged scalars."""
         cfg = self.cfg
         n = cfg.num_envs
-        losses, zero_losses, finest, batches, events_seen = [], [], [], [], 0
+        losses, zero_losses, window_flows, batches, events_seen = [], [], [], [], 0
         all_flows, windows, model_losses, cached = [], [], [], []
         for _ in range(cfg.unroll):
             x = torch.as_tensor(self.obs[cfg.input], device=self.device)
@@ -279,9 +334,9 @@ class Learner:
             elif cfg.loss == "supervised":
                 losses.append(self._supervised(flows))
             elif cfg.loss_mode == "window":
-                losses.append(self._loss(flows, batch, cfg.border_penalty * zero.per_sample).loss)
-            else:
-                finest.append(flows[-1])
+                losses.append(self._loss(self._loss_flows(flows), batch, cfg.border_penalty * zero.per_sample).loss)
+            else:  # sequential learning: window k's flows (the scales in the loss) and events
+                window_flows.append(self._loss_flows(flows))
                 batches.append(batch)
             self.obs, _, terminated, truncated, self.info = self.envs.step(flows[-1].detach().cpu().numpy())
             done = np.logical_or(terminated, truncated)
@@ -294,8 +349,8 @@ class Learner:
             loss = torch.stack(losses).mean()
         else:
             with torch.no_grad():
-                zero = self._accumulated([torch.zeros_like(f) for f in finest], batches)
-            loss = self._accumulated(finest, batches, cfg.border_penalty * zero.per_sample).loss
+                zero = self._accumulated([torch.zeros_like(f[-1]) for f in window_flows], batches)
+            loss = self._accumulated(window_flows, batches, cfg.border_penalty * zero.per_sample).loss
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if self.world > 1:

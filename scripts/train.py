@@ -3,6 +3,8 @@
 
 Examples:
   python scripts/train.py --steps 500 --out runs/mgr                 # EV-MGRFlowNet, CPU width
+  python scripts/train.py --preset paper --out runs/paper            # the paper's recipe (docs/method.md)
+  python scripts/train.py --preset paper --border-penalty 0 --width cpu --out runs/paper-bare
   python scripts/train.py --model convgru-ev-flownet --loss at --out runs/baseline
   python scripts/train.py --model mypkg.models:build --out runs/mine  # any protocol module
   python scripts/train.py --resume runs/mgr/checkpoint.pt --steps 1000
@@ -18,6 +20,10 @@ line that differs from it is refused, naming each field, unless --allow-changes 
 options --steps, --minutes, --out, --device, --ckpt-every and --val-* may always change, --steps
 too unless the step size decays with --decay cosine; the network's shape never: fine-tune with
 --init). metrics.jsonl is cut back to the checkpoint's step, so every step is logged once.
+
+--preset NAME sets the defaults of a named recipe (agents.learner.PRESETS); options given beside
+it override them. "paper": EV-MGRFlowNet at width 32 on count images, all scales in the loss,
+Adam 1e-4, L = 10, L_HMC as sequential learning over the L windows, the border rule on.
 
 Distributed (torchrun): each rank uses the GPU of its LOCAL_RANK with NCCL, or the CPU with gloo.
 """
@@ -42,7 +48,7 @@ from tqdm import tqdm  # noqa: E402
 from agents.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
 from envs.atomic import remove_stale_temporaries, temporary_path  # noqa: E402
 from agents.evaluation import evaluate  # noqa: E402
-from agents.learner import Learner, TrainConfig  # noqa: E402
+from agents.learner import PRESETS, Learner, TrainConfig  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
 from agents import pretrained as shipped  # noqa: E402
 
@@ -63,6 +69,8 @@ def parse_kv(items: list[str]) -> dict:
 def build_parser() -> argparse.ArgumentParser:
     d = TrainConfig()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", default=None, choices=sorted(PRESETS),
+                   help="a named recipe's defaults (options given beside it win); paper: see docs/method.md")
     g = p.add_argument_group("model")
     g.add_argument("--model", default=d.model, help="registry name (ev-mgrflownet, ev-flownet, convgru-ev-flownet, xlif-ev-flownet) or package.module:factory")
     g.add_argument("--width", default=d.width, help="'paper' (base width 32), 'cpu' (8) or an integer base width")
@@ -105,7 +113,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="teacher: precomputed targets (scripts/teacher_targets.py) instead of solving every update")
     g.add_argument("--teacher-max-events", type=int, default=d.teacher_max_events,
                    help="teacher: solve on at most this many events per window, evenly subsampled (default: all)")
-    g.add_argument("--loss-mode", default=d.loss_mode, choices=["window", "accumulated"])
+    g.add_argument("--loss-mode", default=d.loss_mode, choices=["window", "accumulated"],
+                   help="window: the mean of the L per-window losses; accumulated: one loss over the events of all L "
+                        "windows (Hagenaars' sequential learning, window k's events at k + tau, references 0 and L)")
+    g.add_argument("--loss-scales", default=d.loss_scales, choices=["all", "finest"],
+                   help="all: every decoder scale's flow in the loss, averaged; finest: the full-resolution flow only")
+    g.add_argument("--upsampling", default=d.upsampling, choices=["bilinear", "nearest"],
+                   help="how coarse scales' flows reach full resolution in the loss")
+    g.add_argument("--reference-times", default=d.reference_times, choices=["window", "events"],
+                   help="window: references at the window bounds; events: at the first and last event")
+    g.add_argument("--at-normalisation", default=d.at_normalisation, choices=["event_pixels", "sum"],
+                   help="L_AT over the pixels holding events (default), or sum: eq. 14's bare sum")
     g.add_argument("--lambda-1", type=float, default=d.lambda_1)
     g.add_argument("--lambda-2", type=float, default=d.lambda_2)
     g.add_argument("--alpha", type=float, default=d.alpha)
@@ -149,7 +167,8 @@ def config_from_args(args) -> TrainConfig:
         random_crop=args.random_crop,
         num_envs=args.num_envs, vector=args.vector, unroll=args.unroll, steps=args.steps, lr=args.lr,
         warmup_steps=args.warmup_steps, decay=args.decay, grad_clip=args.grad_clip, loss=args.loss,
-        loss_mode=args.loss_mode, lambda_1=args.lambda_1, lambda_2=args.lambda_2, alpha=args.alpha,
+        loss_mode=args.loss_mode, loss_scales=args.loss_scales, upsampling=args.upsampling,
+        reference_times=args.reference_times, at_normalisation=args.at_normalisation, lambda_1=args.lambda_1, lambda_2=args.lambda_2, alpha=args.alpha,
         border_penalty=args.border_penalty, border_ramp=args.border_ramp, flow_scaling=args.flow_scaling, head_init=args.head_init,
         teacher_grids=tuple(args.teacher_grids), teacher_steps=args.teacher_steps, teacher_lr=args.teacher_lr,
         teacher_lambda_2=args.teacher_lambda_2, teacher_pixels=args.teacher_pixels,
@@ -219,8 +238,10 @@ def resume_config(stored: dict, args, given: set[str], source: Path) -> tuple[Tr
     stored: the checkpoint's config. Each option given on the command line (``given``) must agree
     with it, except run options, ``steps`` (unless the step size decays over the steps) and the
     fields listed in ``--allow-changes``; otherwise ValueError names every differing field."""
-    # checkpoints from before the border rule's ramp existed trained with the plain rule
-    old = TrainConfig(**{"border_ramp": 0.0, **stored})
+    # checkpoints from before the border rule's ramp existed trained with the plain rule, and
+    # those from before loss_scales with the finest flow only in the accumulated loss
+    before = {"border_ramp": 0.0, "loss_scales": "finest" if stored.get("loss_mode") == "accumulated" else "all"}
+    old = TrainConfig(**{**before, **stored})
     asked = config_from_args(args)
     allowed = {name.strip() for name in args.allow_changes.split(",") if name.strip()}
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
@@ -297,8 +318,17 @@ def setup_distributed(args) -> int:
     return dist.get_rank()
 
 
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, with the defaults of ``--preset`` (if given) under the options given."""
+    parser = build_parser()
+    known, _ = parser.parse_known_args(argv)
+    if known.preset is not None:
+        parser.set_defaults(**PRESETS[known.preset])
+    return parser.parse_args(argv)
+
+
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    args = parse_args(argv)
     rank = setup_distributed(args)
     out = Path(args.out)
     payload, changed = None, set()
