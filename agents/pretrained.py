@@ -20,6 +20,8 @@ from typing import Any
 
 import torch
 
+from envs.atomic import remove_stale_temporaries, temporary_path
+
 from .checkpoint import CheckpointError, load_checkpoint, load_model, save_checkpoint
 
 __all__ = ["WEIGHTS_DIR", "DEFAULT_PRETRAINED", "list_pretrained", "pretrained_info", "load_pretrained", "export_pretrained"]
@@ -89,7 +91,8 @@ def export_pretrained(
               "input": config.get("input", "count_image"), "voxel_bins": config.get("voxel_bins", 5),
               "steps": payload.get("step"), **provenance}
     meta = directory / f"{name}.json"
-    tmp = meta.with_name(f"{meta.name}.tmp-{os.getpid()}")
+    remove_stale_temporaries(meta)
+    tmp = temporary_path(meta)
     tmp.write_text(json.dumps(record, indent=2, default=str) + "\n")
     os.replace(tmp, meta)
     return weights, meta

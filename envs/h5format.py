@@ -322,6 +322,13 @@ class H5Reader(EventReader):
         t_start, t_end, n = self._t_start, self._t_end, self.num_events
         if t_end <= t_start:
             raise FormatError(f"{self.path}: attribute 't_end_us' ({t_end}) must be greater than 't_start_us' ({t_start})")
+        if n:
+            t_first, t_last = self.time_of(0), self.time_of(n - 1)
+            if t_first < t_start or t_last >= t_end:
+                raise FormatError(
+                    f"{self.path}: events span [{t_first}, {t_last}] us, outside the attributes "
+                    f"[t_start_us, t_end_us) = [{t_start}, {t_end})"
+                )
         index = self._ms_to_idx
         n_ms = max(1, -(-(t_end - t_start) // 1000))
         where = f"{self.path}: dataset '/ms_to_idx'"
@@ -338,12 +345,6 @@ class H5Reader(EventReader):
             raise FormatError(f"{where} decreases at entry {m} ({index[m]} after {index[m - 1]}); it must be non-decreasing")
         if n == 0:
             return
-        t_first, t_last = self.time_of(0), self.time_of(n - 1)
-        if t_first < t_start or t_last >= t_end:
-            raise FormatError(
-                f"{self.path}: events span [{t_first}, {t_last}] us, outside the attributes "
-                f"[t_start_us, t_end_us) = [{t_start}, {t_end})"
-            )
         for m in np.unique(np.linspace(0, n_ms, samples).round().astype(np.int64)):
             self._check_entry(int(m))
 
