@@ -204,27 +204,19 @@ def _at(where: np.ndarray, is_update: np.ndarray, values: np.ndarray, before: in
     return table[np.cumsum(is_update, dtype=np.int32)[where]]
 
 
-def _decode_evt3(words: np.ndarray, state: np.ndarray):
-    """words: (N,) uint16. Returns (x, y, t, p, state, reordered).
+def _evt3_time_high(is_th, is_tl, payload, carrying, time_high, time_low, low_after_high):
+    """The full time high (unfolded, int64) in force at each word of ``carrying``, the time high
+    and ``low_after_high`` flag at the chunk's end.
 
-    Only the event-carrying words (ADDR_X, VECT_12, VECT_8) are expanded: each gets the time,
-    row and vector base in force at its position; a vector word then yields one event per set
-    bit of its mask, in pixel order, at its place in the stream.
+    Besides the TIME_HIGH words, a TIME_LOW below the one before it with no TIME_HIGH between
+    them steps the time high by one: the time base passed a multiple of 4096 µs without a
+    TIME_HIGH word, as some writers (e.g. expelliarmus) produce. A camera's stream, whose time
+    base never goes back, always sends the TIME_HIGH, so this never fires on it.
     """
-    time_high, time_low, y_state, base_state, pol_state, last_t, low_after_high = (int(v) for v in state)
-    kind = (words >> 12).astype(np.uint8)
-    payload = words & np.uint16(0x0FFF)
-    is_th, is_tl, is_y, is_x = kind == 0x8, kind == 0x6, kind == 0x0, kind == 0x2
-    is_v12, is_v8, is_base = kind == 0x4, kind == 0x5, kind == 0x3
     th_full = _unwrap(payload[is_th], time_high, 12)
-    carrying = np.flatnonzero(is_x | is_v12 | is_v8)
     th_seen = np.cumsum(is_th, dtype=np.int32)  # TIME_HIGH words up to each word
     th = np.concatenate([np.array([time_high], np.int64), th_full])[th_seen[carrying]]
-    tl = _at(carrying, is_tl, payload[is_tl], time_low)
-    # A TIME_LOW below the one before it with no TIME_HIGH between them means the time base
-    # passed a multiple of 4096 µs without a TIME_HIGH word (some writers, e.g. expelliarmus,
-    # emit none); count those as time-high steps. A camera's stream, whose time base never goes
-    # back, always sends the TIME_HIGH, so this never fires on it.
+    end_high = int(th_full[-1]) if len(th_full) else time_high
     tl_at = np.flatnonzero(is_tl)
     tl_values = payload[tl_at].astype(np.int64)
     previous_tl = np.concatenate([np.array([time_low], np.int64), tl_values[:-1]])
@@ -237,58 +229,77 @@ def _decode_evt3(words: np.ndarray, state: np.ndarray):
         low_after_high = 0
     elif len(tl_at):
         low_after_high = 1
-    end_high = int(th_full[-1]) if len(th_full) else time_high
     if looped.any():
-        steps = np.zeros(len(words), np.int32)
+        steps = np.zeros(len(is_th), np.int32)
         steps[tl_at[looped]] = 1
         steps_run = np.cumsum(steps, dtype=np.int64)
         at_th = np.concatenate([np.array([0], np.int64), steps_run[is_th]])  # steps before each TIME_HIGH
         th = np.where(th >= 0, th + steps_run[carrying] - at_th[th_seen[carrying]], th)
         if end_high >= 0:
             end_high += int(steps_run[-1] - at_th[-1])
+    return th, end_high, low_after_high
+
+
+def _evt3_vectors(kind, payload, carrying, base_state, pol_state):
+    """For the VECT_12 / VECT_8 words among ``carrying``: their first x (the last VECT_BASE_X,
+    advanced by 12 / 8 for every vector word since it), polarity and mask (-1 x where no base
+    is known yet); and the base and polarity at the chunk's end."""
+    is_v12, is_v8, is_base = kind == 0x4, kind == 0x5, kind == 0x3
+    step = is_v12 * np.int64(12) + is_v8 * np.int64(8)
+    advanced = np.cumsum(step)  # inclusive
+    which = np.cumsum(is_base, dtype=np.int32)[carrying]
+    base_word = np.concatenate([np.array([base_state], np.int64), payload[is_base].astype(np.int64) & 0x7FF])
+    base_mark = np.concatenate([np.array([0], np.int64), advanced[is_base]])
+    base_pol = np.concatenate([np.array([pol_state], np.int64), payload[is_base].astype(np.int64) >> 11])
+    first_x = base_word[which] + (advanced[carrying] - step[carrying]) - base_mark[which]
+    first_x[base_word[which] < 0] = -1
+    pay = payload[carrying].astype(np.int64)
+    mask = np.where(is_v12[carrying], pay, pay & 0xFF)
+    end_base = int(base_word[-1] + advanced[-1] - base_mark[-1]) if base_word[-1] >= 0 else -1
+    return first_x, base_pol[which], mask, end_base, int(base_pol[-1])
+
+
+def _decode_evt3(words: np.ndarray, state: np.ndarray):
+    """words: (N,) uint16. Returns (x, y, t, p, state, reordered).
+
+    Only the event-carrying words (ADDR_X, VECT_12, VECT_8) are expanded: each gets the time,
+    row and vector base in force at its position (running counts of the update words); a
+    vector word then yields one event per set bit of its mask, in pixel order, at its place in
+    the stream.
+    """
+    time_high, time_low, y_state, base_state, pol_state, last_t, low_after_high = (int(v) for v in state)
+    kind = (words >> 12).astype(np.uint8)
+    payload = words & np.uint16(0x0FFF)
+    is_th, is_tl, is_y, is_x = kind == 0x8, kind == 0x6, kind == 0x0, kind == 0x2
+    is_vector = (kind == 0x4) | (kind == 0x5)
+    carrying = np.flatnonzero(is_x | is_vector)
+    th, end_high, low_after_high = _evt3_time_high(is_th, is_tl, payload, carrying, time_high, time_low, low_after_high)
+    tl = _at(carrying, is_tl, payload[is_tl], time_low)
     row = _at(carrying, is_y, payload[is_y] & 0x7FF, y_state)
     pay = payload[carrying].astype(np.int64)
-    single = is_x[carrying]
-    first_x = pay & 0x7FF
-    polarity = pay >> 11
-    count = np.ones(len(carrying), np.int64)
-    has_vectors = bool(is_v12.any() or is_v8.any())
+    first_x, polarity = pay & 0x7FF, pay >> 11  # ADDR_X words: the event itself
+    count = np.ones(len(carrying), np.int64)  # events per carrying word
+    has_vectors = bool(is_vector.any())
     end_base, end_pol = base_state, pol_state
-    if has_vectors or is_base.any():
-        # vector base: the last VECT_BASE_X, advanced by 12 / 8 for every VECT_12 / VECT_8 since it
-        step = is_v12 * np.int64(12) + is_v8 * np.int64(8)
-        advanced = np.cumsum(step)  # inclusive
-        which = np.cumsum(is_base, dtype=np.int32)
-        base_word = np.concatenate([np.array([base_state], np.int64), payload[is_base].astype(np.int64) & 0x7FF])
-        base_mark = np.concatenate([np.array([0], np.int64), advanced[is_base]])
-        base_pol = np.concatenate([np.array([pol_state], np.int64), payload[is_base].astype(np.int64) >> 11])
-        w = which[carrying]
-        vec = ~single
-        first_x[vec] = base_word[w[vec]] + (advanced[carrying[vec]] - step[carrying[vec]]) - base_mark[w[vec]]
-        polarity[vec] = base_pol[w[vec]]
-        mask = np.where(is_v12[carrying], pay, pay & 0xFF)
-        count[vec] = _POPCOUNT[mask[vec]]
-        count[vec & (base_word[w] < 0)] = 0  # vectors before any VECT_BASE_X: no known x
-        end_base = int(base_word[-1] + advanced[-1] - base_mark[-1]) if base_word[-1] >= 0 else -1
-        end_pol = int(base_pol[-1])
+    if has_vectors or (kind == 0x3).any():
+        vec = is_vector[carrying]
+        vx, vpol, mask, end_base, end_pol = _evt3_vectors(kind, payload, carrying, base_state, pol_state)
+        first_x[vec], polarity[vec] = vx[vec], vpol[vec]
+        count[vec] = np.where(vx[vec] >= 0, _POPCOUNT[mask[vec]], 0)
     count[(th < 0) | (tl < 0) | (row < 0)] = 0  # before the first time base / row: no known time or y
     if not has_vectors:  # one event per ADDR_X word
         source = np.flatnonzero(count > 0)  # which carrying word each event comes from
         x = first_x[source]
     else:
-        offset = np.cumsum(count) - count
-        total = int(offset[-1] + count[-1]) if len(count) else 0
-        x = np.empty(total, np.int64)
-        source = np.empty(total, np.int64)
-        keep_single = single & (count > 0)
-        x[offset[keep_single]] = first_x[keep_single]
-        source[offset[keep_single]] = np.flatnonzero(keep_single)
-        vec = np.flatnonzero(~single & (count > 0))
-        r, c = np.nonzero((mask[vec, None].astype(np.uint16) >> _BIT) & 1)  # word order, then pixel order
-        rank = np.arange(len(r)) - (np.cumsum(count[vec]) - count[vec])[r]
-        at = offset[vec][r] + rank
-        x[at] = first_x[vec][r] + c
-        source[at] = vec[r]
+        offset = np.cumsum(count) - count  # each word's first event
+        x = np.empty(int(offset[-1] + count[-1]), np.int64)
+        source = np.empty(len(x), np.int64)
+        single = np.flatnonzero(~vec & (count > 0))
+        x[offset[single]], source[offset[single]] = first_x[single], single
+        vectors = np.flatnonzero(vec & (count > 0))
+        r, c = np.nonzero((mask[vectors, None].astype(np.uint16) >> _BIT) & 1)  # word order, then pixel order
+        at = offset[vectors][r] + np.arange(len(r)) - (np.cumsum(count[vectors]) - count[vectors])[r]
+        x[at], source[at] = first_x[vectors][r] + c, vectors[r]
     t = (th[source] << 12) | tl[source]
     t, reordered = _monotonic(t, last_t)
     n = len(words)
