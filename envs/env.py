@@ -13,7 +13,7 @@ from gymnasium import spaces
 
 from envs.dataset import resolve_data
 from envs.events import Events
-from envs.representations import count_image, voxel_grid
+from envs.representations import count_image, count_time_image, voxel_grid
 from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import WINDOW_MODES, window_bounds, window_grid
 from losses import BORDER_RAMP, EventBatch, at_loss, check_border_ramp, hmc_loss
@@ -25,7 +25,7 @@ class NoWindowsError(ValueError):
     """The chosen recording has no window of the requested kind (e.g. shorter than one window)."""
 
 
-OBSERVATION_KEYS = ("count_image", "voxel_grid", "events")
+OBSERVATION_KEYS = ("count_image", "voxel_grid", "events", "count_time_image")
 # Finite upper bound of the count/voxel boxes: far above any real per-pixel count.
 _MAX_COUNT = float(2**24)
 
@@ -71,6 +71,8 @@ class EventFlowEnv(gym.Env):
 
     - ``"count_image"``: (2, H, W) events per pixel, [ON, OFF] (paper eq. 2), in [0, 2^24].
     - ``"voxel_grid"``: (voxel_bins, H, W) signed, bilinear in time, in [-2^24, 2^24].
+    - ``"count_time_image"``: (4, H, W) EV-FlowNet's input (Zhu et al.): the count image, then
+      per polarity the latest event's time in the window, scaled so the latest is 1.
     - ``"events"``: (max_events, 4) rows ``(x, y, tau, p)`` of the window's events, zero
       padded; ``"num_events"``: (1,) how many rows are real. A window with more events
       than ``max_events`` is subsampled evenly for this part only (``info`` and the reward
@@ -282,6 +284,9 @@ class EventFlowEnv(gym.Env):
             parts["count_image"] = spaces.Box(0.0, _MAX_COUNT, (2, h, w), np.float32)
         if "voxel_grid" in self.observation_keys:
             parts["voxel_grid"] = spaces.Box(-_MAX_COUNT, _MAX_COUNT, (self.voxel_bins, h, w), np.float32)
+        if "count_time_image" in self.observation_keys:
+            high = np.concatenate([np.full((2, h, w), _MAX_COUNT, np.float32), np.ones((2, h, w), np.float32)])
+            parts["count_time_image"] = spaces.Box(np.zeros_like(high), high, dtype=np.float32)
         if "events" in self.observation_keys:
             low = np.tile(np.array([0, 0, 0, -1], np.float32), (self.max_events, 1))
             high = np.tile(np.array([w - 1, h - 1, 1, 1], np.float32), (self.max_events, 1))
@@ -477,6 +482,8 @@ class EventFlowEnv(gym.Env):
             obs["count_image"] = count_image(_EventView(ev), size)
         if "voxel_grid" in self.observation_keys:
             obs["voxel_grid"] = voxel_grid(_EventView(ev), self.voxel_bins, window["t_start"], window["t_end"], size)
+        if "count_time_image" in self.observation_keys:
+            obs["count_time_image"] = count_time_image(_EventView(ev), window["t_start"], window["t_end"], size)
         if "events" in self.observation_keys:
             n = len(ev["t"])
             rows = np.zeros((self.max_events, 4), np.float32)

@@ -5,6 +5,8 @@
 - :func:`voxel_grid`: (B, H, W) float32, signed polarity spread bilinearly in time over B bins
   at position ``tau * (B - 1)``.
 - :func:`event_mask`: (H, W) bool, pixels with at least one event.
+- :func:`count_time_image`: (4, H, W) float32, Zhu et al.'s EV-FlowNet input: the count image
+  and, per polarity, the time of the pixel's latest event.
 
 Each has a numpy version (for the env) and a torch version (``*_torch``, batched, for
 training on a device) that agree exactly: both accumulate in float64 or integers before the
@@ -22,6 +24,7 @@ __all__ = [
     "count_image",
     "voxel_grid",
     "event_mask",
+    "count_time_image",
     "count_image_torch",
     "voxel_grid_torch",
     "event_mask_torch",
@@ -53,6 +56,31 @@ def event_mask(events, sensor_size: tuple[int, int] | None = None) -> np.ndarray
     mask = np.zeros(height * width, bool)
     mask[_pixel_index(events.x, events.y, width)] = True
     return mask.reshape(height, width)
+
+
+def count_time_image(
+    events, t_start: int, t_end: int, sensor_size: tuple[int, int] | None = None
+) -> np.ndarray:
+    """EV-FlowNet's 4-channel event image (Zhu et al., RSS 2018): (4, H, W) float32,
+    [ON counts, OFF counts, ON latest time, OFF latest time].
+
+    Channels 0-1 are :func:`count_image`. Channels 2-3 hold, per pixel and polarity, the
+    normalised time ``tau = (t - t_start) / (t_end - t_start)`` of the pixel's most recent event
+    (0 where it has none), divided by the largest such value in the image, so that the window's
+    latest event reads 1 (as EV-FlowNet normalises its timestamp image). events: as
+    :func:`count_image`, with t int64 microseconds in [t_start, t_end].
+    """
+    height, width = sensor_size or events.sensor_size
+    n_pix = height * width
+    idx = _pixel_index(events.x, events.y, width) + (np.asarray(events.p) <= 0) * n_pix
+    tau = (np.asarray(events.t, np.float64) - t_start) / float(t_end - t_start)
+    latest = np.zeros(2 * n_pix, np.float64)
+    np.maximum.at(latest, idx, tau)
+    top = latest.max(initial=0.0)
+    if top > 0:
+        latest /= top
+    times = latest.reshape(2, height, width).astype(np.float32)
+    return np.concatenate([count_image(events, (height, width)), times])
 
 
 def voxel_grid(
