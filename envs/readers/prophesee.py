@@ -193,8 +193,10 @@ def _decode_evt2(words: np.ndarray, state: np.ndarray):
     return x, y, t, p, new_state, reordered
 
 
-_BIT = np.arange(12, dtype=np.uint16)
 _POPCOUNT = np.array([bin(m).count("1") for m in range(1 << 12)], np.int64)  # events per vector mask
+# _SET_BITS[mask, k]: the position of the k-th set bit of a 12-bit vector mask (pixel offset)
+_SET_BITS = np.array([[i for i in range(12) if m >> i & 1] + [0] * (12 - bin(m).count("1")) for m in range(1 << 12)],
+                     np.int64)
 
 
 def _at(where: np.ndarray, is_update: np.ndarray, values: np.ndarray, before: int) -> np.ndarray:
@@ -297,9 +299,10 @@ def _decode_evt3(words: np.ndarray, state: np.ndarray):
         single = np.flatnonzero(~vec & (count > 0))
         x[offset[single]], source[offset[single]] = first_x[single], single
         vectors = np.flatnonzero(vec & (count > 0))
-        r, c = np.nonzero((mask[vectors, None].astype(np.uint16) >> _BIT) & 1)  # word order, then pixel order
-        at = offset[vectors][r] + np.arange(len(r)) - (np.cumsum(count[vectors]) - count[vectors])[r]
-        x[at], source[at] = first_x[vectors][r] + c, vectors[r]
+        r = np.repeat(vectors, count[vectors])  # the word of each vector event, in word order
+        k = np.arange(len(r)) - np.repeat(np.cumsum(count[vectors]) - count[vectors], count[vectors])
+        at = offset[r] + k  # the k-th set bit of a mask is its k-th event, in pixel order
+        x[at], source[at] = first_x[r] + _SET_BITS[mask[r], k], r
     t = (th[source] << 12) | tl[source]
     t, reordered = _monotonic(t, last_t)
     n = len(words)
