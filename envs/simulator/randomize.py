@@ -119,7 +119,7 @@ def draw_scene(seed: int, factors: FactorRanges = TRAIN_FACTORS, *, duration_s: 
     static = rng.random() < factors.static_camera
     if static:
         camera = AffineMotion(anchor=(float(centre[0]), float(centre[1])), camera=True)
-        ground = rng.random() < 0.6
+        ground = rng.random() < 0.6 and "flat" in factors.families
         background = _draw_texture(rng, factors, family="flat" if ground else None, dark=ground and rng.random() < 0.5)
     else:
         target = _log_uniform(rng, factors.camera_flow_px)

@@ -309,6 +309,7 @@ class Scene:
         self._y32 = self._y.astype(np.float32)
         self.motions = [config.camera] + [o.motion for o in config.objects]
         self._textures: list[np.ndarray] | None = None
+        self._background: tuple[np.ndarray, np.ndarray] | None = None  # (camera inverse, its render)
         self._polygons = []
         for obj in config.objects:
             if obj.shape == "disc":
@@ -397,14 +398,18 @@ class Scene:
         """(H, W) float32 log intensity at time t (seconds)."""
         textures = self.textures
         inv = self.config.camera.inverse(t)
-        size = textures[0].size
-        # the plane's origin sits at the texture's centre; the offset is reduced modulo the
-        # period first so float32 coordinates stay small (and precise) however far the camera pans
-        lin = inv[:2, :2].astype(np.float32)
-        off = np.mod(inv[:2, 2] + size / 2.0, size).astype(np.float32)
-        u = lin[0, 0] * self._x32 + lin[0, 1] * self._y32 + off[0]
-        v = lin[1, 0] * self._x32 + lin[1, 1] * self._y32 + off[1]
-        image = textures[0].sample(u, v)
+        if self._background is not None and np.array_equal(inv, self._background[0]):
+            image = self._background[1].copy()  # a still camera: the same background as last time
+        else:
+            size = textures[0].size
+            # the plane's origin sits at the texture's centre; the offset is reduced modulo the
+            # period first so float32 coordinates stay small (and precise) however far the camera pans
+            lin = inv[:2, :2].astype(np.float32)
+            off = np.mod(inv[:2, 2] + size / 2.0, size).astype(np.float32)
+            u = lin[0, 0] * self._x32 + lin[0, 1] * self._y32 + off[0]
+            v = lin[1, 0] * self._x32 + lin[1, 1] * self._y32 + off[1]
+            image = textures[0].sample(u, v)
+            self._background = (inv, image.copy())
         for k in range(len(self.config.objects)):
             region = self._object_region(k, t)
             if region is None:
