@@ -5,7 +5,8 @@
   python scripts/benchmark.py --only foundation env
   python scripts/benchmark.py --quick              # fewer repetitions
 
-Sections: foundation (project h5 windows + count images), simulator, losses, agents, env,
+Sections: foundation (project h5 windows + count images), simulator (with synthetic-dr-train
+generation per sensor size), losses, agents, env,
 training, readers, prophesee (RAW reading at 1280x720), predict (scripts/predict.py end to end).
 Timings are wall-clock on whatever machine runs them; compare rows of one run.
 """
@@ -152,7 +153,7 @@ def main(argv=None) -> int:
         elif section == "simulator":
             import bench_simulator
 
-            bench_simulator.run(report)
+            bench_simulator.run(report, quick=args.quick)
         elif section == "losses":
             import bench_losses
 
