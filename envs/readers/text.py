@@ -119,7 +119,7 @@ class TextReader(EventReader):
                     text = line.decode("utf-8")
                 except UnicodeDecodeError:
                     text = None
-                if text is None or not text.rstrip("\r\n").replace("\t", " ").isprintable():
+                if text is None or not text.lstrip("\ufeff").rstrip("\r\n").replace("\t", " ").isprintable():
                     raise FormatError(
                         f"{self.path}: line {k + 1} is not text (binary data?); an event text file holds "
                         "'t x y p' lines after an optional header"
