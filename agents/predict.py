@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from envs.atomic import remove_stale_temporaries, temporary_path
+from envs.atomic import remove_stale_temporaries, same_file, temporary_path
 from envs.env import EventFlowEnv
 from envs.representations import event_mask
 from envs.visualize import count_image_to_rgb, flow_to_rgb, panel, save_animation
@@ -152,6 +152,7 @@ def predict(
     no_gt_window_us: int = 33_333,
     progress: bool = True,
     compression: int = 4,
+    overwrite: bool = False,
 ) -> PredictResult:
     """Run ``policy`` over every window of ``recording`` and write the flows (module docstring).
 
@@ -161,10 +162,18 @@ def predict(
     (``.gif``, or ``.mp4`` where a codec is installed), None for none; at most ``video_frames``
     windows spread evenly over the run, each tile at most ``video_width`` pixels wide.
     sequence: which recording when ``recording`` names several (a folder, a synthetic split).
+    overwrite: replace an existing ``out_path`` (refused otherwise, and always when it is the
+    recording itself), as ``scripts/convert.py`` does.
     """
     if window not in WINDOW_MODES:
         raise ValueError(f"window must be one of {WINDOW_MODES}, got {window!r}")
     out_path = Path(out_path)
+    if Path(recording).exists() and same_file(out_path, recording):
+        raise FileExistsError(f"{out_path}: is the input recording; write the flow to another file")
+    if out_path.is_dir():
+        raise IsADirectoryError(f"{out_path}: is a folder; the output must be a file path (e.g. {out_path / 'flow.h5'})")
+    if out_path.exists() and not overwrite:
+        raise FileExistsError(f"{out_path}: exists; pass overwrite=True (--overwrite) to replace it")
     parts = ("count_image",) if policy.input_key == "count_image" else ("count_image", policy.input_key)
     env = EventFlowEnv(str(recording), data_format=data_format, data_options=data_options, window=window,
                        window_size=window_size, crop=crop, compute_reward=False, observations=parts,

@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="flow h5 to write (default: runs/predict/<recording>.flow.h5)")
     p.add_argument("--video", default=None, help="preview path, .gif or .mp4 (default: beside --out, .gif)")
     p.add_argument("--no-video", action="store_true")
+    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists (never the recording itself)")
     p.add_argument("--video-frames", type=int, default=150, help="windows shown, spread over the run")
     p.add_argument("--fps", type=float, default=10.0)
     p.add_argument("--window", default="frames", choices=["frames", "time", "count"],
@@ -71,7 +72,7 @@ def main(argv=None) -> int:
         policy, args.recording, out, window=args.window, window_size=args.window_size, start_s=args.start, end_s=args.end,
         crop=args.crop, sequence=sequence, data_format=args.format, per_event=args.per_event, video=video,
         video_fps=args.fps, video_frames=args.video_frames, provenance=provenance, no_gt_window_us=args.no_gt_window,
-        progress=not args.no_progress,
+        progress=not args.no_progress, overwrite=args.overwrite,
     )
     name = provenance.get("name") or provenance.get("path") or "model"
     print(summary_table(result, name=str(name)))

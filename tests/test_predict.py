@@ -129,3 +129,22 @@ def test_predict_script_on_a_prophesee_file_with_per_event_flow(tmp_path, plugin
         for k, (t0, t1) in enumerate(zip(f["t_start"][:], f["t_end"][:])):
             ev = reader.events_between(int(t0), int(t1))
             np.testing.assert_array_equal(per_event[offsets[k] : offsets[k + 1]], flows[k][:, ev.y, ev.x].T)
+
+
+def test_predict_refuses_to_overwrite(tmp_path, plugin_path):
+    """An existing output is kept unless overwrite=True; the recording itself never is replaced."""
+    from envs.h5format import write_h5
+    from tests.conftest import random_events
+
+    recording = write_h5(tmp_path / "rec.h5", random_events(np.random.default_rng(0), 2000, (16, 16), (0, 100_000)))
+    before = recording.read_bytes()
+    policy = tiny_policy()
+    for overwrite in (False, True):
+        with pytest.raises(FileExistsError, match="is the input recording"):
+            predict(policy, recording, recording, window="time", window_size=20_000, progress=False, overwrite=overwrite)
+    assert recording.read_bytes() == before
+    out = tmp_path / "flow.h5"
+    predict(policy, recording, out, window="time", window_size=20_000, progress=False)
+    with pytest.raises(FileExistsError, match="exists; pass overwrite=True"):
+        predict(policy, recording, out, window="time", window_size=20_000, progress=False)
+    assert predict(policy, recording, out, window="time", window_size=20_000, progress=False, overwrite=True).windows == 5
