@@ -83,12 +83,18 @@ def _set_ms_to_idx(values):
     return edit
 
 
-def _dsec_zeroed(tmp: Path) -> Path:
+def _dsec(tmp: Path, edit) -> Path:
     x, y, t, p = _stream(20_000, (480, 640), 100_000)
     path = write_dsec(tmp / "seq" / "events" / "left", x, y, t, p, compression=False)
     with h5py.File(path, "a") as f:
-        f["ms_to_idx"][:] = 0
+        edit(f)
     return path
+
+
+def _cut(f, key, length):
+    values = f[key][:length]
+    del f[key]
+    f[key] = values
 
 
 def _training_run(tmp: Path, name="run", extra=()) -> Path:
@@ -181,8 +187,11 @@ HOSTILE = [
                      _project(tmp, lambda f: f["ms_to_idx"].__setitem__(31, int(f["ms_to_idx"][31]) + 7))),
                  FormatError, r"rec.h5: dataset '/ms_to_idx' entry 31 = \d+ does not point at the first event",
                  id="h5-one-wrong-index-entry"),
-    pytest.param(lambda tmp: lambda: DSECReader(_dsec_zeroed(tmp)),
+    pytest.param(lambda tmp: lambda: DSECReader(_dsec(tmp, lambda f: f["ms_to_idx"].__setitem__(slice(None), 0))),
                  FormatError, r"events.h5: dataset '/ms_to_idx' entry \d+ = 0 is not the first event", id="dsec-zeroed-ms-to-idx"),
+    pytest.param(lambda tmp: lambda: DSECReader(_dsec(tmp, lambda f: _cut(f, "ms_to_idx", 40))),
+                 FormatError, r"events.h5: dataset '/ms_to_idx' has 40 entries but the events run to 99 ms; it is cut short",
+                 id="dsec-short-ms-to-idx"),
     # -- formats ------------------------------------------------------------------------------------
     pytest.param(lambda tmp: (lambda path: (path.write_bytes(np.random.default_rng(1).bytes(500)),
                                             lambda: open_recording(path, "ecd-text"))[1])(tmp / "random.bin"),

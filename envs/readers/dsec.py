@@ -283,6 +283,9 @@ class DSECReader(EventReader):
         if len(drops):
             m = int(drops[0]) + 1
             raise FormatError(f"{where} decreases at entry {m} ({index[m]} after {index[m - 1]}); it must be non-decreasing")
+        last_ms = (self._times._probe(n - 1) - self.t_offset) // 1000 if n else 0
+        if len(index) < last_ms:  # one entry per millisecond up to the last event's (one short tolerated)
+            raise FormatError(f"{where} has {len(index)} entries but the events run to {last_ms} ms; it is cut short")
         for m in np.unique(np.linspace(0, len(index) - 1, samples).round().astype(np.int64)) if n else ():
             self._check_entry(int(m), int(index[m]))
 
