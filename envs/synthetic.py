@@ -50,7 +50,7 @@ import numpy as np
 from envs.h5format import H5Reader
 from envs.readers.base import EventReader, FlowGT
 from envs.simulator import SIMULATOR_VERSION, Scene, SceneConfig, SimulatedSequence, simulate
-from envs.simulator.randomize import STRESS_FACTORS, TRAIN_FACTORS, FactorRanges, draw_scene, draw_size
+from envs.simulator.randomize import RANDOMIZED_VERSION, STRESS_FACTORS, TRAIN_FACTORS, FactorRanges, draw_scene, draw_size
 
 __all__ = [
     "SequenceSpec",
@@ -123,8 +123,10 @@ class RandomizedSpec:
         return simulate(self.config(), self.duration_s, fps=self.fps)
 
     def cache_key(self) -> str:
-        """Hash of everything that determines the output (spec, config, simulator version)."""
-        blob = json.dumps([asdict(self), self.config().to_dict(), SIMULATOR_VERSION], sort_keys=True)
+        """Hash of everything that determines the output (spec, config, simulator and
+        randomisation versions)."""
+        versions = [SIMULATOR_VERSION] + ([RANDOMIZED_VERSION] if RANDOMIZED_VERSION > 1 else [])  # files of version 1 predate it
+        blob = json.dumps([asdict(self), self.config().to_dict(), *versions], sort_keys=True)
         return hashlib.sha1(blob.encode()).hexdigest()[:10]
 
 

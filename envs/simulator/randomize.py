@@ -30,7 +30,12 @@ from envs.simulator.motion import AffineMotion
 from envs.simulator.scene import ObjectSpec, SceneConfig, SensorConfig, _next_pow2
 from envs.simulator.textures import TextureConfig
 
-__all__ = ["FactorRanges", "TRAIN_FACTORS", "STRESS_FACTORS", "draw_scene", "draw_size", "peak_flow_px"]
+__all__ = ["FactorRanges", "TRAIN_FACTORS", "STRESS_FACTORS", "RANDOMIZED_VERSION", "draw_scene", "draw_size", "peak_flow_px"]
+
+# Bump whenever a change alters a randomised sequence for a given seed (the draws here, or the
+# sensor effects only these splits use): it enters their cache keys, which SIMULATOR_VERSION
+# alone (kept for the first splits' caches) would not change.
+RANDOMIZED_VERSION = 1
 
 Range = tuple[float, float]
 
