@@ -21,8 +21,9 @@ event), following Prophesee's published format descriptions:
   bits 14..27 and the polarity in bits 28..31.
 
 Time-base wrap-arounds are unfolded (times are absolute µs since the camera's clock start, as
-Metavision reports them). Events before the first time-high word of a RAW file have no known
-time and are dropped. The rare event stamped earlier than one before it is given that earlier
+Metavision reports them). Events whose time, row or x is not yet known (before the first
+time-high word; in EVT 3.0 also before the first TIME_LOW, EVT_ADDR_Y or, for vectors,
+VECT_BASE_X) are dropped. The rare event stamped earlier than one before it is given that earlier
 time (the project's events never go back in time); ``reordered_events`` counts them.
 
 **Streaming.** The file is cut into chunks of a fixed number of words. On first open the
@@ -506,6 +507,12 @@ class _ChunkedReader(EventReader):
             self._file.close()
             self._file = None
         self._decoded = OrderedDict()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:
+            pass
 
 
 class PropheseeRawReader(_ChunkedReader):
