@@ -16,6 +16,8 @@ one frame interval, spread geometrically over each split, so windows range from 
   every scene, motion, sensor and size factor drawn per sequence; 1 s each, 64x64 to 260x346.
   256 sequences by name; ``synthetic-dr-train:N`` is the first N of the same endless series
   (any N; sequence i is the same whatever N, and shares its cache file).
+- ``synthetic-dr-val``: 8 sequences of the training distribution with seeds no training
+  sequence has: the validation that picks a training run's checkpoints (so not a test).
 - ``synthetic-stress``: held out, never for training or tuning: 4 groups of 3 sequences
   (1 s, native size), each with one factor group outside the training ranges: ``texture``
   (dots and plaid families), ``fast`` (camera 16-22, objects 22-30 px per frame), ``noise``
@@ -135,6 +137,9 @@ DR_TRAIN_DEFAULT_SIZE = 256
 DR_TRAIN_SEED = 10_000_000  # sequence i has seed DR_TRAIN_SEED + i (i below 10^7)
 STRESS_SEED = 20_000_000
 STRESS_PER_GROUP = 3
+DR_VAL = "synthetic-dr-val"
+DR_VAL_SEED = 30_000_000  # the training distribution, seeds no training sequence has
+DR_VAL_SIZE = 8
 
 
 def dr_train_specs(n: int) -> list[RandomizedSpec]:
@@ -187,6 +192,8 @@ def _build_splits() -> dict[str, list[SequenceSpec]]:
         "synthetic-mini": mini,
         DR_TRAIN: dr_train_specs(DR_TRAIN_DEFAULT_SIZE),
         "synthetic-stress": _stress_specs(),
+        DR_VAL: [RandomizedSpec(f"{DR_VAL}-{i}", DR_VAL_SEED + i, *draw_size(DR_VAL_SEED + i, TRAIN_FACTORS), 1.0)
+                 for i in range(DR_VAL_SIZE)],
     }
 
 
