@@ -17,7 +17,7 @@ from envs.readers.base import EventReader
 
 __all__ = ["SequenceSource", "resolve_data", "RECORDING_SUFFIXES"]
 
-RECORDING_SUFFIXES = (".h5", ".hdf5", ".txt", ".aedat4")
+RECORDING_SUFFIXES = (".h5", ".hdf5", ".txt", ".aedat4", ".raw", ".dat")
 
 
 @dataclass
