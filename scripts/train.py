@@ -225,7 +225,11 @@ def given_options(argv: list[str] | None) -> set[str]:
     """The dests of the options written on the command line (not left at their defaults)."""
     parser = build_parser()
     parser.set_defaults(**{action.dest: None for action in parser._actions})  # no option parses to None
-    return {dest for dest, value in vars(parser.parse_args(argv)).items() if value is not None}
+    given = {dest for dest, value in vars(parser.parse_args(argv)).items() if value is not None}
+    preset = vars(parser.parse_args(argv)).get("preset")
+    if preset is not None:  # a preset asks for its values as if they were written out
+        given |= set(PRESETS[preset])
+    return given
 
 
 def _comparable(value):
