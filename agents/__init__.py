@@ -2,7 +2,7 @@
 the stateful policy wrapper. See ``agents/protocol.py`` for the protocol and
 ``agents/registry.py`` for how to bring your own model."""
 
-from .baselines import ConvGRUEVFlowNet, EVFlowNet, XLIFEVFlowNet
+from .baselines import ConvGRUEVFlowNet, EVFlowNet, UNetConvGRU, UNetFeedforward, UNetXLIFEncoder, XLIFEVFlowNet
 from .evmgrflownet import EVMGRFlowNet
 from .flownet import WIDTHS
 from .policy import RecurrentPolicy
@@ -18,6 +18,9 @@ __all__ = [
     "ModelLoadError",
     "ProtocolError",
     "RecurrentPolicy",
+    "UNetConvGRU",
+    "UNetFeedforward",
+    "UNetXLIFEncoder",
     "XLIFEVFlowNet",
     "check_protocol",
     "make_model",

@@ -19,7 +19,7 @@ from torch import Tensor, nn
 
 from losses import forward_warp_flow
 
-from .layers import ConvGRU, ConvUp, ResidualBlock, conv3x3, is_channels_last, refine_flow
+from .layers import ConvGRU, ConvUp, ResidualBlock, is_channels_last, refine_flow
 
 #: Named base widths: the paper's size and a size that trains on a laptop CPU.
 WIDTHS: dict[str, int] = {"paper": 32, "cpu": 8}
@@ -60,6 +60,10 @@ class FlowDecoder(nn.Module):
     ``uhat_l = tanh(conv(D_l))``; with ``refine`` (FGD-Net), ``u_l = ConvGRU_flow(uhat_l, ubar_l)``
     where ``ubar_l`` is the aligned prior flow downsampled to D_l's resolution, else ``u_l = uhat_l``.
 
+    Options for the published baselines (defaults: EV-MGRFlowNet's decoder): ``head_kernel``, the
+    flow heads' kernel (3, or 1 as in EV-FlowNet and Hagenaars' networks); ``upsample``, the
+    class of the four upsampling convolutions (``ConvUp``: bilinear, zero padding).
+
     Args (forward):
         residual: (B, 16c, H/16, W/16) output R of the residual module.
         skips: [F1, F2, F3, F4], (B, 2^l c, H/2^l, W/2^l).
@@ -69,7 +73,7 @@ class FlowDecoder(nn.Module):
         [u1, u2, u3, u4] at 1/8, 1/4, 1/2, 1 resolution, (B, 2, h, w), network units in [-1, 1].
     """
 
-    def __init__(self, base_width: int, refine: bool):
+    def __init__(self, base_width: int, refine: bool, head_kernel: int = 3, upsample: type[nn.Module] = ConvUp):
         super().__init__()
         c = base_width
         skip_channels = [16 * c, 8 * c, 4 * c, 2 * c]  # F4, F3, F2, F1
@@ -77,8 +81,10 @@ class FlowDecoder(nn.Module):
         in_channels = [16 * c + skip_channels[0]] + [
             out_channels[i - 1] + skip_channels[i] + 2 for i in range(1, NUM_SCALES)
         ]
-        self.upsamples = nn.ModuleList(ConvUp(i, o) for i, o in zip(in_channels, out_channels))
-        self.heads = nn.ModuleList(conv3x3(o, 2) for o in out_channels)
+        self.upsamples = nn.ModuleList(upsample(i, o) for i, o in zip(in_channels, out_channels))
+        self.heads = nn.ModuleList(
+            nn.Conv2d(o, 2, head_kernel, padding=head_kernel // 2) for o in out_channels
+        )
         # ConvGRU_flow of each scale (eq. 11): input = fresh estimate, hidden = prior flow.
         self.refiners = nn.ModuleList(ConvGRU(2, 2) for _ in out_channels) if refine else None
 
@@ -109,7 +115,9 @@ class FlowDecoder(nn.Module):
 class FlowNetBase(nn.Module):
     """Encoder -> residual module -> decoder, with padding, cropping and flow scaling.
 
-    Subclasses implement :meth:`encode`. ``forward(x, state) -> (flows, state)``:
+    Subclasses implement :meth:`encode`; networks whose residual module or decoder differ from
+    EV-MGRFlowNet's pass their own (``residual``, ``decoder``) and, if those carry state,
+    override :meth:`bottleneck` and :meth:`decode`. ``forward(x, state) -> (flows, state)``:
 
     - x: (B, in_channels, H, W) float32 event count image (any H, W; padded to multiples of 16
       internally and cropped back).
@@ -134,6 +142,8 @@ class FlowNetBase(nn.Module):
         base_width: int,
         flow_scaling: float,
         use_prior_flow: bool,
+        residual: nn.Module | None = None,
+        decoder: nn.Module | None = None,
     ):
         super().__init__()
         self.in_channels = int(in_channels)
@@ -142,8 +152,8 @@ class FlowNetBase(nn.Module):
         self.use_prior_flow = bool(use_prior_flow)
         deepest = 16 * self.base_width
         # Residual module (eq. 8): R = RB2(RB1(F4)).
-        self.residual = nn.Sequential(ResidualBlock(deepest), ResidualBlock(deepest))
-        self.decoder = FlowDecoder(self.base_width, refine=self.use_prior_flow)
+        self.residual = residual if residual is not None else nn.Sequential(ResidualBlock(deepest), ResidualBlock(deepest))
+        self.decoder = decoder if decoder is not None else FlowDecoder(self.base_width, refine=self.use_prior_flow)
         self.config: dict = {}
 
     def _use_channels_last(self, x: Tensor) -> bool:
@@ -154,6 +164,15 @@ class FlowNetBase(nn.Module):
     def encode(self, x: Tensor, state: State, new_state: State) -> list[Tensor]:
         """Return the skips [F1, F2, F3, F4]; read previous state, write the new one."""
         raise NotImplementedError
+
+    def bottleneck(self, deepest: Tensor, state: State, new_state: State) -> Tensor:
+        """The residual module on the deepest skip F4 (stateless unless overridden)."""
+        return self.residual(deepest)
+
+    def decode(self, residual: Tensor, skips: list[Tensor], prior: Tensor | None, state: State,
+               new_state: State) -> list[Tensor]:
+        """The four scales' flows in network units (stateless unless overridden)."""
+        return self.decoder(residual, skips, prior)
 
     def forward(self, x: Tensor, state: State | None = None) -> tuple[list[Tensor], State]:
         if x.dim() != 4 or x.shape[1] != self.in_channels:
@@ -167,7 +186,7 @@ class FlowNetBase(nn.Module):
         padded = padded.contiguous(memory_format=layout)
         new_state: State = {}
         skips = self.encode(padded, state, new_state)
-        residual = self.residual(skips[-1])
+        residual = self.bottleneck(skips[-1], state, new_state)
 
         prior = None
         previous_flow = state.get("prior_flow") if self.use_prior_flow else None
@@ -176,7 +195,7 @@ class FlowNetBase(nn.Module):
             prior = pad_to_multiple(aligned / self.flow_scaling)  # back to network units
 
         flows = []
-        for scale_flow in self.decoder(residual, skips, prior):
+        for scale_flow in self.decode(residual, skips, prior, state, new_state):
             stride = padded.shape[-1] // scale_flow.shape[-1]
             cropped = scale_flow[..., : math.ceil(height / stride), : math.ceil(width / stride)]
             flows.append((cropped * self.flow_scaling).contiguous())  # NCHW, whatever the layout inside

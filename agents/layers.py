@@ -422,3 +422,84 @@ class STConvGRU(nn.Module):
         # eq. 6: o_k = sig(Wfo*X + [Wmo, Wso]*[Mbar_k, S_k]), F_k = o_k . tanh(W_1x1*[Mbar_k, S_k])
         out = output_gate(self.gate_input(x), self.gate_hidden(memories), self.fusion(memories))
         return out, own
+
+
+# -- layers of the published baselines (docs/method.md, "Baselines") ---------------------------
+
+
+class HagenaarsConvGRU(nn.Module):
+    """The ConvGRU of Hagenaars et al.'s ConvGRU-EV-FlowNet (a variant of eq. 4).
+
+    With ``[a, b]`` the channel concatenation and ``*`` a 3x3 convolution with bias:
+    ``z = sig(Wz * [X, H] + bz)``, ``r = sig(Wr * [X, H] + br)``,
+    ``Hhat = tanh(Wh * [X, r . H] + bh)``, ``H' = (1 - z) . H + z . Hhat``.
+    Unlike eq. 4 (which gates the convolved state, ``r . (Whh*H)``), the reset gate scales the
+    hidden state before its convolution. Weights orthogonal (each gate's kernel as one
+    (hidden, (C_in + hidden) k^2) matrix), biases 0, as in the authors' description.
+
+    Args:
+        x: (B, C_in, h, w) input.
+        hidden: (B, C_hidden, h, w) previous hidden state, or None for a fresh sequence (zeros).
+    Returns:
+        (B, C_hidden, h, w) new hidden state.
+    """
+
+    def __init__(self, input_size: int, hidden_size: int, kernel_size: int = 3):
+        super().__init__()
+        self.hidden_size = hidden_size
+        padding = kernel_size // 2
+        both = input_size + hidden_size
+        self.update_gate = nn.Conv2d(both, hidden_size, kernel_size, padding=padding)
+        self.reset_gate = nn.Conv2d(both, hidden_size, kernel_size, padding=padding)
+        self.candidate = nn.Conv2d(both, hidden_size, kernel_size, padding=padding)
+        for conv in (self.update_gate, self.reset_gate, self.candidate):
+            nn.init.orthogonal_(conv.weight)
+            nn.init.zeros_(conv.bias)
+
+    def forward(self, x: Tensor, hidden: Tensor | None) -> Tensor:
+        if hidden is None:
+            hidden = x.new_zeros(x.shape[0], self.hidden_size, *x.shape[2:])
+        both = torch.cat([x, hidden], dim=1)
+        z = torch.sigmoid(self.update_gate(both))
+        r = torch.sigmoid(self.reset_gate(both))
+        candidate = torch.tanh(self.candidate(torch.cat([x, r * hidden], dim=1)))
+        return (1 - z) * hidden + z * candidate
+
+
+def zhu_init_(conv: nn.Conv2d, factor: float = 0.1) -> nn.Conv2d:
+    """EV-FlowNet's initialisation (Zhu et al.'s code: TensorFlow's variance scaling with factor
+    0.1 over the fan-in): weights from a normal truncated at two standard deviations,
+    std = sqrt(1.3 factor / fan_in) (1.3 corrects for the truncation), biases 0."""
+    fan_in = conv.weight.shape[1] * conv.weight.shape[2] * conv.weight.shape[3]
+    std = (1.3 * factor / fan_in) ** 0.5
+    nn.init.trunc_normal_(conv.weight, 0.0, std, -2 * std, 2 * std)
+    if conv.bias is not None:
+        nn.init.zeros_(conv.bias)
+    return conv
+
+
+class ZhuResidualBlock(nn.Module):
+    """EV-FlowNet's residual block: ``RB(x) = x + relu(conv(relu(conv(x))))`` (both convs 3x3
+    with ReLU, no activation after the sum; EV-MGRFlowNet's :class:`ResidualBlock` instead
+    applies the ReLU after the sum)."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.conv1 = zhu_init_(conv3x3(channels, channels))
+        self.conv2 = zhu_init_(conv3x3(channels, channels))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return x + F.relu(self.conv2(F.relu(self.conv1(x))))
+
+
+class ConvUpNearestReflect(nn.Module):
+    """EV-FlowNet's upsampling convolution: nearest-neighbour x2, reflection padding of 1, 3x3
+    convolution without padding, ReLU. ``forward(x)``: (B, C_in, h, w) -> (B, C_out, 2h, 2w)."""
+
+    def __init__(self, in_channels: int, out_channels: int):
+        super().__init__()
+        self.conv = zhu_init_(nn.Conv2d(in_channels, out_channels, 3))
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = F.interpolate(x, scale_factor=2, mode="nearest")
+        return F.relu(self.conv(F.pad(x, (1, 1, 1, 1), mode="reflect")))

@@ -54,7 +54,7 @@ class TrainConfig:
     model: str = "ev-mgrflownet"  # registry name or package.module:factory
     width: str | int = "cpu"  # "paper" (base width 32), "cpu" (8) or an int
     model_kwargs: dict = field(default_factory=dict)  # e.g. {"use_st_convgru": False}
-    input: str = "count_image"  # network input: "count_image" (paper eq. 2) or "voxel_grid"
+    input: str = "count_image"  # network input: "count_image" (paper eq. 2), "voxel_grid" or "count_time_image" (EV-FlowNet's)
     voxel_bins: int = 5
     data: Any = "synthetic-train"
     window: str = "frames"
@@ -106,7 +106,7 @@ class TrainConfig:
 
 #: The allowed values of the config's choices (checked by ``TrainConfig.check``).
 CHOICES: dict[str, tuple] = {
-    "input": ("count_image", "voxel_grid"),
+    "input": ("count_image", "voxel_grid", "count_time_image"),
     "loss": ("hmc", "at", "teacher", "supervised"),
     "loss_mode": ("window", "accumulated"),
     "loss_scales": ("all", "finest"),
@@ -213,7 +213,7 @@ class Learner:
         space = self.envs.single_action_space
         self.height, self.width = space.shape[1:]
         self.flow_scaling = float(cfg.flow_scaling or max(self.height, self.width))
-        in_channels = 2 if cfg.input == "count_image" else cfg.voxel_bins
+        in_channels = {"count_image": 2, "count_time_image": 4}.get(cfg.input, cfg.voxel_bins)
         self.model_config = {**_width_kwargs(cfg.width), "flow_scaling": self.flow_scaling, "in_channels": in_channels,
                              **cfg.model_kwargs}
         model = make_model(cfg.model, **self.model_config)

@@ -26,8 +26,8 @@ class RecurrentPolicy(nn.Module):
     Args:
         model: a module honouring the protocol (``forward(x, state) -> (flows, state)``).
         device: where to run it; None keeps the device of the model's parameters (CPU if none).
-        input_key: the observation part fed to the model: "count_image" (paper, 2 channels) or
-            "voxel_grid" (voxel_bins channels).
+        input_key: the observation part fed to the model: "count_image" (paper, 2 channels),
+            "voxel_grid" (voxel_bins channels) or "count_time_image" (EV-FlowNet's 4 channels).
     """
 
     def __init__(

@@ -1,7 +1,11 @@
 """Models by name, and how a user brings their own.
 
-Built-in names (``MODELS``): "ev-mgrflownet", "ev-flownet", "convgru-ev-flownet",
-"xlif-ev-flownet". Each accepts ``in_channels=2``, ``base_width`` (paper 32), ``width``
+Built-in names (``MODELS``): "ev-mgrflownet"; the published baselines as their authors built
+them, "ev-flownet" (Zhu et al.; 4-channel input by default: train it with
+``--input count_time_image``), "convgru-ev-flownet" and "xlif-ev-flownet" (Hagenaars et al.);
+and the project's earlier stand-ins, EV-MGRFlowNet's U-Net without recurrence
+("unet-feedforward"), with eq. 4 ConvGRU encoders ("unet-convgru") or with spiking encoders
+only ("unet-xlif-encoder"). Each accepts ``in_channels``, ``base_width`` (paper 32), ``width``
 ("paper" | "cpu", used when ``base_width`` is None) and ``flow_scaling=128.0``; EV-MGRFlowNet also
 ``use_st_convgru`` and ``use_prior_flow`` (the paper's ablations). Each built-in model keeps its
 constructor kwargs in ``model.config``, so ``make_model(name, **model.config)`` rebuilds it.
@@ -31,7 +35,7 @@ from typing import Callable
 
 from torch import nn
 
-from .baselines import ConvGRUEVFlowNet, EVFlowNet, XLIFEVFlowNet
+from .baselines import ConvGRUEVFlowNet, EVFlowNet, UNetConvGRU, UNetFeedforward, UNetXLIFEncoder, XLIFEVFlowNet
 from .evmgrflownet import EVMGRFlowNet
 from .protocol import ModelLoadError, ProtocolError, check_protocol
 
@@ -42,6 +46,9 @@ MODELS: dict[str, ModelFactory] = {
     "ev-flownet": EVFlowNet,
     "convgru-ev-flownet": ConvGRUEVFlowNet,
     "xlif-ev-flownet": XLIFEVFlowNet,
+    "unet-feedforward": UNetFeedforward,
+    "unet-convgru": UNetConvGRU,
+    "unet-xlif-encoder": UNetXLIFEncoder,
 }
 
 #: Keyword arguments every script may pass; silently dropped for factories that do not take them.

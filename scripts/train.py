@@ -72,10 +72,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default=None, choices=sorted(PRESETS),
                    help="a named recipe's defaults (options given beside it win); paper: see docs/method.md")
     g = p.add_argument_group("model")
-    g.add_argument("--model", default=d.model, help="registry name (ev-mgrflownet, ev-flownet, convgru-ev-flownet, xlif-ev-flownet) or package.module:factory")
+    g.add_argument("--model", default=d.model, help="registry name (ev-mgrflownet; the published baselines ev-flownet "
+                   "(with --input count_time_image), convgru-ev-flownet, xlif-ev-flownet; unet-feedforward, unet-convgru, "
+                   "unet-xlif-encoder) or package.module:factory")
     g.add_argument("--width", default=d.width, help="'paper' (base width 32), 'cpu' (8) or an integer base width")
-    g.add_argument("--input", default=d.input, choices=["count_image", "voxel_grid"],
-                   help="network input: the paper's 2-channel count image, or a voxel grid (--voxel-bins)")
+    g.add_argument("--input", default=d.input, choices=["count_image", "voxel_grid", "count_time_image"],
+                   help="network input: the paper's 2-channel count image, a voxel grid (--voxel-bins), or EV-FlowNet's "
+                        "4-channel counts and latest timestamps")
     g.add_argument("--voxel-bins", type=int, default=d.voxel_bins)
     g.add_argument("--model-kwarg", action="append", default=[], metavar="KEY=VALUE", help="extra model argument, e.g. use_st_convgru=false (repeatable)")
     g = p.add_argument_group("data")

@@ -27,8 +27,9 @@ from agents.layers import ConvGRU, STConvGRU
 from agents.spiking import arctan_spike
 from agents.summary import MODEL_VARIANTS, count_parameters, forward_flops, parameter_table
 
-BUILT_IN = ["ev-mgrflownet", "ev-flownet", "convgru-ev-flownet", "xlif-ev-flownet"]
-RECURRENT = ["ev-mgrflownet", "convgru-ev-flownet", "xlif-ev-flownet"]
+BUILT_IN = ["ev-mgrflownet", "ev-flownet", "convgru-ev-flownet", "xlif-ev-flownet", "unet-feedforward", "unet-convgru",
+            "unet-xlif-encoder"]
+RECURRENT = ["ev-mgrflownet", "convgru-ev-flownet", "xlif-ev-flownet", "unet-convgru", "unet-xlif-encoder"]
 SCALING = 128.0
 
 
@@ -41,8 +42,9 @@ def count_images(batch: int, height: int, width: int, seed: int = 0) -> torch.Te
 
 
 def build(name: str, seed: int = 0, **kwargs) -> torch.nn.Module:
+    """A CPU-width model reading 2-channel count images (EV-FlowNet's count-only variant)."""
     torch.manual_seed(seed)
-    return make_model(name, width="cpu", **kwargs)
+    return make_model(name, width="cpu", **{"in_channels": 2, **kwargs})
 
 
 @pytest.fixture(scope="module")
@@ -360,7 +362,7 @@ def test_arctan_spike_forward_step_and_surrogate_gradient():
 
 
 def test_xlif_encoder_spikes_and_learns():
-    model = build("xlif-ev-flownet")
+    model = build("unet-xlif-encoder")
     flows, state = model(count_images(1, 32, 32) * 5, None)
     flows, state = model(count_images(1, 32, 32, seed=1) * 5, state)
     assert set(torch.unique(state["encoder1_z"]).tolist()) <= {0.0, 1.0}
@@ -412,9 +414,12 @@ def test_parameter_counts_at_paper_width():
     assert counts["ConvGRU-EV-FlowNet"] < counts["EV-MGRFlowNet w/o ST-ConvGRU"] < full
     assert counts["EV-MGRFlowNet w/o prior flows"] < full
     assert counts["EV-FlowNet"] < counts["ConvGRU-EV-FlowNet"]
-    # Without both switches EV-MGRFlowNet is ConvGRU-EV-FlowNet.
+    # Without both switches EV-MGRFlowNet is the project's ConvGRU U-Net (eq. 4 GRUs, 3x3 heads),
+    # which differs from Hagenaars' ConvGRU-EV-FlowNet only in its heads (3x3 against 1x1).
     plain = make_model("ev-mgrflownet", use_st_convgru=False, use_prior_flow=False)
-    assert count_parameters(plain) == counts["ConvGRU-EV-FlowNet"]
+    assert count_parameters(plain) == count_parameters(make_model("unet-convgru"))
+    head_difference = sum(2 * (9 - 1) * c for c in (256, 128, 64, 32))
+    assert count_parameters(plain) - counts["ConvGRU-EV-FlowNet"] == head_difference
 
 
 @pytest.mark.parametrize("name", ["ev-flownet", "convgru-ev-flownet"])
@@ -717,3 +722,185 @@ def test_bench_agents_parts_rows():
         for piece in ("forward warp", "pair update", "FGD refiners", "DeepMemoryUp"):
             assert any(piece in name and input_label in name for name in names), (piece, input_label)
     assert all(value > 0 and unit == "ms" for _, value, unit in rows)
+
+
+# ---------------------------------------------------------------- published baselines vs their equations
+
+from agents.baselines import SpikingFlowDecoder  # noqa: E402
+from agents.layers import ConvUpNearestReflect, HagenaarsConvGRU, ZhuResidualBlock  # noqa: E402
+from agents.spiking import XLIFLayer, arctan_surrogate_spike  # noqa: E402
+
+
+def _conv(x, conv, stride=1, padding=None):
+    """conv's weight and bias applied with F.conv2d, 'same' padding unless given."""
+    k = conv.weight.shape[-1]
+    return F.conv2d(x, conv.weight, conv.bias, stride=stride, padding=k // 2 if padding is None else padding)
+
+
+def test_hagenaars_convgru_matches_its_equations_and_init():
+    """z = sig(Wz*[X,H]), r = sig(Wr*[X,H]), Hhat = tanh(Wh*[X, r.H]) (reset before the
+    convolution), H' = (1-z).H + z.Hhat; orthogonal kernels, zero biases; None = zeros."""
+    torch.manual_seed(0)
+    gru = HagenaarsConvGRU(3, 4).double()
+    x, h = torch.randn(2, 3, 5, 6, dtype=torch.float64), torch.randn(2, 4, 5, 6, dtype=torch.float64)
+    xh = torch.cat([x, h], 1)
+    z = torch.sigmoid(_conv(xh, gru.update_gate))
+    r = torch.sigmoid(_conv(xh, gru.reset_gate))
+    candidate = torch.tanh(_conv(torch.cat([x, r * h], 1), gru.candidate))
+    torch.testing.assert_close(gru(x, h), (1 - z) * h + z * candidate)
+    assert torch.equal(gru(x, None), gru(x, torch.zeros_like(h)))
+    for conv in (gru.update_gate, gru.reset_gate, gru.candidate):
+        w = conv.weight.reshape(4, -1)
+        torch.testing.assert_close(w @ w.T, torch.eye(4, dtype=torch.float64), rtol=0, atol=1e-6)  # orthonormal rows (float32 init)
+        assert torch.all(conv.bias == 0)
+
+
+def test_arctan_surrogate_has_hagenaars_form():
+    x = torch.tensor([-0.5, -0.01, 0.0, 0.01, 0.5], requires_grad=True)
+    spikes = arctan_surrogate_spike(x, 10.0)
+    assert spikes.tolist() == [0.0, 0.0, 0.0, 1.0, 1.0]
+    spikes.sum().backward()
+    torch.testing.assert_close(x.grad, 1.0 / (1.0 + 10.0 * x.detach() ** 2))  # 1 / (1 + width x^2)
+
+
+@pytest.mark.parametrize("recurrent", [False, True])
+def test_xlif_layer_matches_its_equations_over_two_steps(recurrent):
+    """pt_k = b pt + (1-b) avgpool(mean|x|); v_k = a v + (1-a)(W*x [+ R*z]) - sg(z) theta(pt);
+    z_k = H(v_k - theta(pt_k)), theta = clamp(t0, 0.01) + clamp(t1, 0) pt, per channel."""
+    torch.manual_seed(1)
+    layer = XLIFLayer(3, 4, stride=1 if recurrent else 2, recurrent=recurrent).double()
+    stride = 1 if recurrent else 2
+    assert {n for n, _ in layer.named_buffers()} == {"t0", "t1"}  # thresholds fixed by default
+    assert {"leak_v", "leak_pt"} <= {n for n, _ in layer.named_parameters()}
+    assert torch.all(layer.t0.float() == 0.01) and torch.all(layer.t1.float() == 1.8)
+    bound = (1 / 3) ** 0.5
+    assert layer.ff.weight.abs().max() <= bound and layer.ff.bias is None
+    state, v, z, pt = None, 0.0, 0.0, 0.0
+    for step in range(2):
+        x = (torch.rand(1, 3, 6, 8, dtype=torch.float64) * 4).requires_grad_()
+        a, b = torch.sigmoid(layer.leak_v), torch.sigmoid(layer.leak_pt)
+        current = _conv(x, layer.ff, stride=stride)
+        if recurrent:
+            current = current + _conv(torch.as_tensor(z, dtype=torch.float64).expand_as(current), layer.rec)
+        trace_in = F.avg_pool2d(x.abs().mean(1, keepdim=True), 3, stride, padding=1)
+        pt_new = b * pt + (1 - b) * trace_in
+        theta = lambda trace: layer.t0.clamp_min(0.01) + layer.t1.clamp_min(0) * trace  # noqa: E731
+        v_new = a * v + (1 - a) * current - torch.as_tensor(z).detach() * theta(pt)
+        z_new = (v_new > theta(pt_new)).double()
+        out, state = layer(x, state)
+        torch.testing.assert_close(state[0], v_new)
+        torch.testing.assert_close(state[2], pt_new)
+        assert torch.equal(out, z_new) and torch.equal(state[1], z_new)
+        v, z, pt = state[0].detach(), state[1].detach(), state[2].detach()
+        state = tuple(t.detach() for t in state)
+    assert z.sum() > 0  # some neurons fired at step 2
+    # the reset's spike is detached: the loss reaches the previous spikes only through R * z
+    v0, z0, pt0 = (t.clone().requires_grad_() for t in state)
+    _, (v1, _, _) = layer(torch.rand(1, 3, 6, 8, dtype=torch.float64), (v0, z0, pt0))
+    v1.sum().backward()
+    if recurrent:
+        rec_only = F.conv_transpose2d((1 - torch.sigmoid(layer.leak_v)).expand_as(v1), layer.rec.weight, padding=1)
+        torch.testing.assert_close(z0.grad, rec_only)
+    else:
+        assert z0.grad is None or torch.all(z0.grad == 0)
+    # clamped thresholds: t0 below 0.01 acts as 0.01, t1 below 0 as 0
+    layer.t0.fill_(-1.0)
+    layer.t1.fill_(-1.0)
+    x = torch.rand(1, 3, 6, 8, dtype=torch.float64)
+    out, (v2, _, _) = layer(x, None)
+    assert torch.equal(out, (v2 > 0.01).double())
+
+
+def test_xlif_ev_flownet_is_its_layers_composed():
+    """One window of XLIF-EV-FlowNet against the composition written out: encoders ff (stride 2)
+    then recurrent XLIF; two spiking residual blocks (spikes + input); decoders bilinear x2 then
+    XLIF; 1x1 tanh heads with U(+-0.01) weights and zero biases; flows x flow_scaling."""
+    model = build("xlif-ev-flownet", base_width=2, flow_scaling=16.0).double()
+    model.channels_last = False
+    x = count_images(1, 32, 48).double() * 3
+    skips, h = [], x
+    for ff, rec in zip(model.encoder_ff, model.encoder_rec):
+        h = rec(ff(h, None)[0], None)[0]
+        skips.append(h)
+    r = h
+    for conv1, conv2 in model.residual:
+        r = conv2(conv1(r, None)[0], None)[0] + r  # spikes plus the block's input
+    decoder = model.decoder
+    assert isinstance(decoder, SpikingFlowDecoder)
+    d, flows = r, []
+    for level in range(4):
+        parts = [d, skips[3 - level]] + flows[-1:]
+        d = decoder.layers[level](F.interpolate(torch.cat(parts, 1), scale_factor=2, mode="bilinear"), None)[0]
+        head = decoder.heads[level]
+        assert head.kernel_size == (1, 1) and head.weight.abs().max() <= 0.01 and torch.all(head.bias == 0)
+        flows.append(torch.tanh(_conv(d, head)))
+    got, state = model(x, None)
+    for want, have in zip(flows, got):
+        torch.testing.assert_close(have, want * 16.0)
+    assert {"encoder1_ff_v", "encoder4_rec_pt", "residual2_conv2_z", "decoder4_v"} <= set(state)
+
+
+def test_convgru_ev_flownet_is_its_layers_composed():
+    """Hagenaars' ConvGRU-EV-FlowNet, one window: F_l = GRU(relu(conv_s2(F_{l-1}))), residual
+    blocks relu(conv(relu(conv x)) + x), decoders relu(conv3x3(bilinear_x2([D, F, u]))), 1x1 tanh heads."""
+    model = build("convgru-ev-flownet", base_width=2, flow_scaling=16.0).double()
+    model.channels_last = False
+    x = count_images(1, 32, 48).double()
+    skips, h = [], x
+    for down, gru in zip(model.downs, model.grus):
+        assert isinstance(gru, HagenaarsConvGRU)
+        h = gru(F.relu(_conv(h, down.conv, stride=2)), None)
+        skips.append(h)
+    r = h
+    for block in model.residual:
+        r = F.relu(_conv(F.relu(_conv(r, block.conv1)), block.conv2) + r)
+    d, flows = r, []
+    for level in range(4):
+        parts = [d, skips[3 - level]] + flows[-1:]
+        up = F.interpolate(torch.cat(parts, 1), scale_factor=2, mode="bilinear", align_corners=False)
+        d = F.relu(_conv(up, model.decoder.upsamples[level].conv))
+        assert model.decoder.heads[level].kernel_size == (1, 1)
+        flows.append(torch.tanh(_conv(d, model.decoder.heads[level])))
+    got, state = model(x, None)
+    for want, have in zip(flows, got):
+        torch.testing.assert_close(have, want * 16.0)
+    assert set(state) == {f"encoder{l}" for l in range(1, 5)}
+
+
+def test_zhu_ev_flownet_is_its_layers_composed():
+    """Zhu's EV-FlowNet, one window on the 4-channel input: F_l = relu(conv_s2(F_{l-1})),
+    residual blocks x + relu(conv(relu(conv x))), decoders relu(conv3x3_valid(reflect_pad_1(
+    nearest_x2([D, F, u])))), 1x1 tanh heads; every kernel from a truncated normal of std
+    sqrt(1.3 * 0.1 / fan_in), biases 0."""
+    torch.manual_seed(0)
+    model = make_model("ev-flownet", base_width=2, flow_scaling=16.0).double()
+    assert model.in_channels == 4  # counts and latest timestamps per polarity
+    model.channels_last = False
+    x = torch.cat([count_images(1, 32, 48), torch.rand(1, 2, 32, 48)], 1).double()
+    skips, h = [], x
+    for down in model.downs:
+        h = F.relu(_conv(h, down.conv, stride=2))
+        skips.append(h)
+    r = h
+    for block in model.residual:
+        assert isinstance(block, ZhuResidualBlock)
+        r = r + F.relu(_conv(F.relu(_conv(r, block.conv1)), block.conv2))
+    d, flows = r, []
+    for level in range(4):
+        parts = torch.cat([d, skips[3 - level]] + flows[-1:], 1)
+        up = parts.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3)  # nearest x2
+        rows = torch.cat([up[:, :, 1:2], up, up[:, :, -2:-1]], 2)  # reflection: the neighbour, not the edge
+        padded = torch.cat([rows[..., 1:2], rows, rows[..., -2:-1]], 3)
+        assert isinstance(model.decoder.upsamples[level], ConvUpNearestReflect)
+        d = F.relu(_conv(padded, model.decoder.upsamples[level].conv, padding=0))
+        flows.append(torch.tanh(_conv(d, model.decoder.heads[level])))
+    got, state = model(x, None)
+    assert state == {}
+    for want, have in zip(flows, got):
+        torch.testing.assert_close(have, want * 16.0)
+    big = make_model("ev-flownet")  # init statistics on the paper-width layers
+    for conv in [m for m in big.modules() if isinstance(m, torch.nn.Conv2d)][:6]:
+        w = conv.weight.detach().double()
+        std = (1.3 * 0.1 / (w.shape[1] * w.shape[2] * w.shape[3])) ** 0.5
+        assert w.abs().max() <= 2 * std + 1e-12 and torch.all(conv.bias == 0)
+        assert 0.7 * std < w.std() < 1.0 * std  # a normal truncated at 2 sigma keeps ~0.88 of its std

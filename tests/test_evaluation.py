@@ -26,7 +26,7 @@ import evaluate as evaluate_script  # noqa: E402
 
 def _policy(seed=0):
     torch.manual_seed(seed)
-    return RecurrentPolicy(make_model("ev-flownet", base_width=4).eval())
+    return RecurrentPolicy(make_model("unet-feedforward", base_width=4).eval())
 
 
 def _rows(results):

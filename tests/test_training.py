@@ -40,7 +40,7 @@ def test_tiny_model_overfits_one_fixed_batch(recording):
         images.append(obs["count_image"])
         obs, *_, info = env.step(info["flow_gt"])
     torch.manual_seed(0)
-    policy = RecurrentPolicy(make_model("ev-flownet", base_width=4, flow_scaling=32.0))
+    policy = RecurrentPolicy(make_model("unet-feedforward", base_width=4, flow_scaling=32.0))
     optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
     batches = [EventBatch.from_windows([w]) for w in windows]
     zero = np.mean([float(hmc_loss(torch.zeros(1, 2, 32, 32), b, flow_scaling=32.0).loss) for b in batches])
@@ -330,9 +330,10 @@ def test_head_init_starts_every_builtin_model_near_zero_flow():
     from agents.learner import init_flow_heads
 
     x = torch.rand(2, 2, 32, 48) * 3
-    for name in ("ev-mgrflownet", "convgru-ev-flownet", "ev-flownet", "xlif-ev-flownet"):
+    for name in ("ev-mgrflownet", "convgru-ev-flownet", "ev-flownet", "xlif-ev-flownet", "unet-feedforward",
+                 "unet-convgru", "unet-xlif-encoder"):
         torch.manual_seed(0)
-        model = make_model(name, base_width=4, flow_scaling=32.0)
+        model = make_model(name, base_width=4, flow_scaling=32.0, in_channels=2)
         init_flow_heads(model, 1e-3)
         flows, state = model(x, None)
         flows, _ = model(x, state)  # second window: the prior flow path too
@@ -356,3 +357,20 @@ def test_main_job_runs_end_to_end_on_mini_data(tmp_path, capsys, stage):
     assert "| zero flow |" in (out / "eval" / "table.md").read_text()
     assert (out / "demo" / "checkpoint.pt").exists() and "| demo model |" in (out / "demo-eval" / "table.md").read_text()
     assert "L_HMC ratio" in printed and "scripts/train.py --model ev-mgrflownet" in printed
+
+
+def test_ev_flownet_trains_on_its_four_channel_input():
+    """Zhu's EV-FlowNet reads the observation "count_time_image" (counts and latest timestamps
+    per polarity): the learner builds it with 4 input channels and steps it."""
+    from agents.learner import Learner, TrainConfig
+
+    learner = Learner(TrainConfig(model="ev-flownet", input="count_time_image", width=2, data="synthetic-mini",
+                                  num_envs=1, unroll=2))
+    try:
+        assert learner.policy.model.in_channels == 4 and learner.obs["count_time_image"].shape[1] == 4
+        before = [p.detach().clone() for p in learner.policy.parameters()]
+        stats = learner.update()
+    finally:
+        learner.close()
+    assert np.isfinite(stats["loss"])
+    assert any(not torch.equal(a, b) for a, b in zip(before, learner.policy.parameters()))
