@@ -19,7 +19,7 @@ from envs.simulator import AffineMotion, EventEmulator, Scene, SceneConfig, Sens
 from envs.simulator.export import OUTPUT_FORMATS, write_sequence
 from envs.simulator.randomize import STRESS_FACTORS, TRAIN_FACTORS, draw_scene, peak_flow_px
 from envs.simulator.textures import make_texture
-from envs.synthetic import clear_cache, get_spec, list_sequences, load_sequence
+from envs.synthetic import SyntheticH5Reader, clear_cache, generate_split, get_spec, list_sequences, load_sequence
 from tests.test_simulator import _bilinear, _iwe_variance
 
 FLAT = TextureConfig(family="flat", log_min=-1.0, log_max=-1.0, shading=0.0)
@@ -219,7 +219,7 @@ def test_new_motions_frames_agree_after_warping_by_ground_truth(new_motion):
 
 
 @pytest.mark.parametrize("family", ["noise", "edges", "lines", "checker", "glyphs", "gradient", "flat", "dots", "plaid"])
-def test_texture_families_are_periodic_and_in_range(family):
+def test_texture_families_fill_their_range(family):
     config = TextureConfig(family=family, log_min=-2.0, log_max=0.0, shading=0.0, blur_sigma=0.0)
     texture = make_texture(np.random.default_rng(0), 128, config)
     assert texture.shape == (128, 128) and texture.dtype == np.float32
@@ -319,3 +319,25 @@ def test_load_dr_sequence_and_write_every_format(tmp_path, monkeypatch):
             if fmt != "ecd-text":  # text holds no ground truth
                 grid = back.flow_timestamps()
                 np.testing.assert_allclose(back.flow_between(int(grid[1]), int(grid[2]))[0], seq.flow_between(int(grid[1]), int(grid[2]))[0], atol=1e-5)
+
+
+def test_generate_split_in_worker_processes_and_into_the_cache(tmp_path, monkeypatch):
+    from envs.readers import open_recording
+
+    written = generate_split("synthetic-mini", tmp_path / "out", fmt="hagenaars", num=2, workers=2, progress=False)
+    assert [p.name for p in written] == ["synthetic-mini-0.h5", "synthetic-mini-1.h5"]
+    exact = get_spec("synthetic-mini", 1).simulate()
+    with open_recording(written[1]) as reader:  # a worker's file: the same sequence, byte for byte
+        np.testing.assert_array_equal(reader.events_range(0, reader.num_events).t, exact.events.t)
+    assert generate_split("synthetic-mini", tmp_path / "out", fmt="hagenaars", num=2, progress=False) == []  # kept
+    monkeypatch.setenv("EVFLOW_CACHE", str(tmp_path / "cache"))
+    clear_cache()
+    try:
+        (cached,) = generate_split("synthetic-mini", None, num=1, progress=False)
+        stamp = cached.stat().st_mtime_ns
+        reader = load_sequence("synthetic-mini", 0)  # found in the cache, not simulated again
+        assert isinstance(reader, SyntheticH5Reader) and cached.stat().st_mtime_ns == stamp
+        assert reader.num_events == len(get_spec("synthetic-mini", 0).simulate().events)
+        reader.close()
+    finally:
+        clear_cache()
