@@ -63,3 +63,29 @@ def flops_table(width: str = "paper", batch: int = 1, height: int = 256, size_w:
         (label, forward_flops(make_model(name, width=width, **kwargs), batch, height, size_w))
         for label, name, kwargs in MODEL_VARIANTS
     ]
+
+
+def forward_latency_ms(model: nn.Module, height: int = 128, width: int = 128, *, device: str = "cpu",
+                       repeats: int = 20) -> float:
+    """Median wall time (milliseconds) of one forward window of ``model`` with a carried state
+    (batch 1, ``height`` x ``width``, no gradients, the model's own layout), after two warm-up
+    windows; a machine shared with other jobs makes it longer."""
+    import time
+
+    x = torch.zeros(1, getattr(model, "in_channels", 2), height, width, device=device)
+    x[:, :, ::3, ::5] = 1.0
+    model = model.to(device)
+    times = []
+    with torch.no_grad():
+        _, state = model(x, None)
+        _, state = model(x, state)
+        for _ in range(repeats):
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            began = time.perf_counter()
+            _, state = model(x, state)
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            times.append(time.perf_counter() - began)
+    times.sort()
+    return 1e3 * times[len(times) // 2]

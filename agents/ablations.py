@@ -1,0 +1,573 @@
+"""The paper's ablations (its Tables 2-4) with the project's recipe, one budget for all.
+
+Every configuration is trained the same way, in two stages through ``scripts/train.py``:
+
+1. **teacher**: distil per-window contrast-maximisation targets, solved once for the training
+   split (``agents/teacher.py``), into the network from scratch (``--loss teacher
+   --teacher-cache``); the targets minimise the configuration's loss (L_HMC, or L_AT: the same
+   solver with lambda_1 = 0);
+2. **fine-tune**: the configuration's loss itself (``--loss hmc`` or ``--loss at``) from the
+   teacher stage's weights.
+
+Then each is evaluated on the same splits and window lengths (AEE, outliers, cosine, L_HMC,
+FWL, RSAT), and its cost measured (parameters, arithmetic and time per window). A finished
+configuration's row is appended at once to ``OUT/rows.jsonl``; the Markdown tables and the
+validation curves are regenerated from those rows after every row.
+
+Resumable: a (configuration, seed) with a row is skipped; a stage with a checkpoint but no
+``done.json`` continues from it (``--resume``); an evaluation keeps its finished parts. A stage
+that returns before its budget (SIGTERM / Ctrl-C: train.py saves and returns) stops the runner,
+so the same command continues later. One runner per output folder (a lock file says so).
+
+Seeds: the full model runs every seed given (3); another configuration runs the first seed, and
+the second too where its primary number (synthetic-test AEE at dt = 1, the first split and
+window length evaluated) differs from the full model's mean by at most two of the full model's
+sample standard deviations (:func:`needs_second_seed`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import fcntl
+import json
+import math
+import os
+import statistics
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Literal
+
+import torch
+
+from .checkpoint import load_checkpoint, load_model
+from .evaluation import evaluate, results_json
+from .policy import RecurrentPolicy
+from .summary import count_parameters, forward_flops, forward_latency_ms
+from .teacher import TeacherSettings, TeacherTargets, compute_teacher_targets
+
+__all__ = ["Configuration", "CONFIGURATIONS", "Budget", "AblationRunner", "needs_second_seed", "render_tables",
+           "read_rows", "plot_validation_curves", "PAPER_MVSEC_DT1"]
+
+Loss = Literal["hmc", "at"]
+LOSSES: tuple[str, ...] = ("hmc", "at")
+
+#: The paper's MVSEC dt = 1 AEE (outdoor_day1, indoor_flying1, 2, 3), from docs REFERENCE section 7.
+PAPER_MVSEC_DT1: dict[str, tuple[float, float, float, float]] = {
+    "mgr-hmc": (0.28, 0.41, 0.70, 0.59),
+    "mgr-no-st": (0.32, 0.45, 0.80, 0.67),
+    "mgr-no-prior": (0.30, 0.41, 0.78, 0.63),
+    "mgr-at": (0.37, 0.52, 0.96, 0.79),
+    "convgru-at": (0.47, 0.60, 1.17, 0.93),
+}
+
+
+@dataclass(frozen=True)
+class Configuration:
+    """One row of the tables: a network (registry name + switches) and the loss it learns."""
+
+    name: str  # short key: run folders, rows, --only
+    label: str  # the table's wording
+    model: str  # registry name
+    loss: Loss  # the teacher's loss and the fine-tuning loss
+    model_kwargs: dict = field(default_factory=dict)
+    tables: tuple[int, ...] = ()  # the paper tables (2, 3, 4) it appears in
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"Configuration.loss must be one of {LOSSES}, got {self.loss!r}")
+
+
+FULL = "mgr-hmc"
+CONFIGURATIONS: dict[str, Configuration] = {c.name: c for c in [
+    Configuration(FULL, "EV-MGRFlowNet, L_HMC", "ev-mgrflownet", "hmc", tables=(2, 3)),
+    Configuration("mgr-no-st", "without ST-ConvGRU (plain ConvGRU), L_HMC", "ev-mgrflownet", "hmc",
+                  {"use_st_convgru": False}, tables=(2,)),
+    Configuration("mgr-no-prior", "without prior flows, L_HMC", "ev-mgrflownet", "hmc",
+                  {"use_prior_flow": False}, tables=(2,)),
+    Configuration("mgr-no-both", "without both, L_HMC", "ev-mgrflownet", "hmc",
+                  {"use_st_convgru": False, "use_prior_flow": False}, tables=(2,)),
+    Configuration("mgr-at", "EV-MGRFlowNet, L_AT", "ev-mgrflownet", "at", tables=(3,)),
+    Configuration("convgru-hmc", "ConvGRU-EV-FlowNet, L_HMC", "convgru-ev-flownet", "hmc", tables=(3, 4)),
+    Configuration("convgru-at", "ConvGRU-EV-FlowNet, L_AT", "convgru-ev-flownet", "at", tables=(3, 4)),
+    Configuration("xlif-hmc", "XLIF-EV-FlowNet, L_HMC", "xlif-ev-flownet", "hmc", tables=(3,)),
+    Configuration("xlif-at", "XLIF-EV-FlowNet, L_AT", "xlif-ev-flownet", "at", tables=(3,)),
+    Configuration("evflownet-hmc", "EV-FlowNet (no recurrence), L_HMC", "ev-flownet", "hmc", tables=(3,)),
+]}
+
+
+@dataclass(frozen=True)
+class Budget:
+    """What every configuration gets: the same data, crops, window lengths, steps and evaluation.
+
+    The defaults are the documented budget (docs/results.md, Ablations); the stage options are
+    those of the recipe in ``scripts/main.py`` (CACHED_RECIPE, HMC_STAGE), with the teacher
+    stage's step size decaying to 0 over its steps so that a fixed step count ends converged.
+    """
+
+    teacher_steps: int = 6000
+    """Adam steps of the teacher stage (about 30 minutes of EV-MGRFlowNet on 2 CPU cores)."""
+    finetune_steps: int = 1500
+    """Adam steps of the fine-tuning stage on the configuration's own loss (0: none)."""
+    train_data: str = "synthetic-train"
+    """Training split (its teacher targets are solved once per loss)."""
+    val_data: str = "synthetic-dr-val"
+    """Validation split of the curves (train.py --val-data; '' for none)."""
+    val_every: int = 500
+    val_windows: int = 20
+    """Windows per validation sequence."""
+    eval_splits: tuple[str, ...] = ("synthetic-test", "synthetic-stress")
+    eval_dts: tuple[int, ...] = (1, 4)
+    """Window lengths evaluated, in ground-truth frames."""
+    eval_windows: int | None = None
+    """Windows per evaluated sequence (None: all)."""
+    width: str | int = "cpu"
+    crop: int = 64
+    """Side of the random training crop (pixels)."""
+    num_envs: int = 8
+    unroll: int = 4
+    teacher_window_sizes: tuple[int, ...] = (1, 2, 3, 4)
+    finetune_window_sizes: tuple[int, ...] = (4,)
+    teacher_lr: float = 1e-3
+    finetune_lr: float = 3e-4
+    warmup_steps: int = 100
+    flow_scaling: float = 32.0
+    head_init: float = 0.1
+    teacher: TeacherSettings = field(default_factory=TeacherSettings)
+    """The contrast-maximisation solve of the targets (lambda_1 is set per loss)."""
+    cost_size: tuple[int, int] = (128, 128)
+    """Input size (H, W) of the arithmetic and latency columns (synthetic-test's frame)."""
+
+    def common_options(self) -> list[str]:
+        return ["--width", str(self.width), "--input", "voxel_grid", "--data", self.train_data,
+                "--crop", str(self.crop), str(self.crop), "--random-crop", "--flow-scaling", f"{self.flow_scaling:g}",
+                "--num-envs", str(self.num_envs), "--unroll", str(self.unroll)]
+
+    def teacher_options(self, targets: Path) -> list[str]:
+        """train.py options of stage 1 (main.py's CACHED_RECIPE with a decaying step size)."""
+        return [*self.common_options(), "--loss", "teacher", "--teacher-cache", str(targets), "--teacher-pixels", "all",
+                "--window-size", *map(str, self.teacher_window_sizes), "--lr", f"{self.teacher_lr:g}",
+                "--warmup-steps", str(self.warmup_steps), "--decay", "cosine", "--head-init", f"{self.head_init:g}",
+                "--steps", str(self.teacher_steps)]
+
+    def finetune_options(self, loss: Loss, init: Path) -> list[str]:
+        """train.py options of stage 2 (main.py's HMC_STAGE, with the configuration's loss)."""
+        return [*self.common_options(), "--loss", loss, "--window-size", *map(str, self.finetune_window_sizes),
+                "--lr", f"{self.finetune_lr:g}", "--init", str(init), "--steps", str(self.finetune_steps)]
+
+    def describe(self) -> str:
+        stages = f"{self.teacher_steps} teacher steps"
+        if self.finetune_steps:
+            stages += f" + {self.finetune_steps} fine-tuning steps"
+        return (f"{stages}; {self.train_data}, {self.crop}x{self.crop} random crops, B = {self.num_envs}, "
+                f"L = {self.unroll}, voxel-grid input, width {self.width}, flow scaling {self.flow_scaling:g}")
+
+
+def needs_second_seed(values: list[float], full_values: list[float]) -> bool:
+    """Whether a configuration needs another seed: its mean is within two of the full model's
+    sample standard deviations of the full model's mean (the difference is not yet clear).
+    values / full_values: the primary number (lower is better) of each finished seed."""
+    if len(values) >= 2 or not values:
+        return False
+    if len(full_values) < 2:
+        raise ValueError("needs_second_seed: the full model needs at least 2 seeds for a spread")
+    spread = statistics.stdev(full_values)
+    return abs(statistics.mean(values) - statistics.mean(full_values)) <= 2 * spread
+
+
+def read_rows(path: Path) -> list[dict]:
+    """The rows of ``rows.jsonl`` (one per finished configuration and seed; a later row of the
+    same configuration and seed replaces an earlier one; a line cut by a kill is skipped)."""
+    if not path.exists():
+        return []
+    rows: dict[tuple[str, int], dict] = {}
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        rows[(row["config"], int(row["seed"]))] = row
+    return list(rows.values())
+
+
+def _write_json(path: Path, payload) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=1, default=str) + "\n")
+    os.replace(tmp, path)
+
+
+def _validation_points(metrics: Path, offset: int) -> list[tuple[int, float, float]]:
+    """(step, val AEE of the model, of zero flow) lines of a train.py metrics.jsonl, one per
+    step (a validation repeated at the same step, e.g. the last periodic one and the final one,
+    counts once)."""
+    points: dict[int, tuple[int, float, float]] = {}
+    if metrics.exists():
+        for line in metrics.read_text().splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if "val_aee_model" in row:
+                step = offset + int(row["step"])
+                points[step] = (step, row["val_aee_model"], row.get("val_aee_zero"))
+    return [points[step] for step in sorted(points)]
+
+
+class RunnerStopped(RuntimeError):
+    """A training stage returned before its budget (interrupted): rerun the command to continue."""
+
+
+class AblationRunner:
+    """Trains, evaluates and tabulates the configurations under ``out``.
+
+    train: the training command as a function of its argv (``scripts/train.py``'s ``main``).
+    """
+
+    def __init__(self, out: str | os.PathLike, budget: Budget, train: Callable[[list[str]], object], *,
+                 seeds: tuple[int, ...] = (0, 1, 2), only: list[str] | None = None, device: str = "cpu",
+                 targets: dict[str, str] | None = None, log: Callable[[str], None] = print) -> None:
+        unknown = sorted(set(only or []) - set(CONFIGURATIONS))
+        if unknown:
+            raise ValueError(f"unknown configuration(s) {unknown}; known: {list(CONFIGURATIONS)}")
+        if not seeds:
+            raise ValueError("seeds: at least one")
+        self.out = Path(out)
+        self.budget = budget
+        self.train = train
+        self.seeds = tuple(seeds)
+        self.names = [name for name in CONFIGURATIONS if only is None or name in only]
+        self.device = device
+        self.given_targets = dict(targets or {})
+        self.log = log
+        self.rows_path = self.out / "rows.jsonl"
+
+    # -- the plan ------------------------------------------------------------------------------
+
+    def run(self, report: Path | None = None) -> list[dict]:
+        """Run every (configuration, seed) still missing, in this order: the full model's first
+        seed, every other configuration's first seed, the full model's other seeds, then second
+        seeds where :func:`needs_second_seed` says so. Returns the rows."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        with open(self.out / "runner.lock", "w") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise RuntimeError(f"{self.out}: another ablation runner is working here (runner.lock)") from None
+            lock.write(f"{os.getpid()}\n")
+            lock.flush()
+            _write_json(self.out / "budget.json", dataclasses.asdict(self.budget))
+            others = [name for name in self.names if name != FULL]
+            full = [FULL] if FULL in self.names else []
+            for name, seed in [(n, self.seeds[0]) for n in full + others] + [(FULL, s) for s in self.seeds[1:] if full]:
+                self._ensure(name, seed, report)
+            if len(self.seeds) > 1 and full:
+                for name in others:
+                    if needs_second_seed(self._primary(name), self._primary(FULL)):
+                        self._ensure(name, self.seeds[1], report)
+        return read_rows(self.rows_path)
+
+    def _primary(self, name: str) -> list[float]:
+        split, dt = self.budget.eval_splits[0], f"dt{self.budget.eval_dts[0]}"
+        return [row["eval"][split][dt]["aee"] for row in read_rows(self.rows_path) if row["config"] == name]
+
+    def _ensure(self, name: str, seed: int, report: Path | None) -> None:
+        if any(r["config"] == name and r["seed"] == seed for r in read_rows(self.rows_path)):
+            return
+        row = self.run_one(CONFIGURATIONS[name], seed)
+        with open(self.rows_path, "a") as f:
+            f.write(json.dumps(row, default=str) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        self.write_outputs(report)
+
+    def write_outputs(self, report: Path | None = None) -> str:
+        """Regenerate OUT/tables.md, the validation curves and, with ``report``, the tables in it."""
+        rows = read_rows(self.rows_path)
+        zero = self.zero_flow()
+        text = render_tables(rows, zero, self.budget, self.seeds)
+        (self.out / "tables.md").write_text(text + "\n")
+        for name in {r["config"] for r in rows}:
+            plot_validation_curves([r for r in rows if r["config"] == name], self.out / "curves" / f"{name}.png")
+        if report is not None:
+            write_report(report, text)
+        return text
+
+    # -- one configuration ---------------------------------------------------------------------
+
+    def targets(self, loss: Loss) -> Path:
+        """The teacher targets of ``loss`` on the training split, solved once (resumable)."""
+        settings = dataclasses.replace(self.budget.teacher, lambda_1=1.0 if loss == "hmc" else 0.0)
+        path = Path(self.given_targets.get(loss) or self.out / "targets" / f"{loss}.h5")
+        if path.exists():
+            stored = TeacherTargets(path).config
+            if float(stored.get("lambda_1", 1.0)) != settings.lambda_1:
+                raise ValueError(f"{path}: targets solved with lambda_1 = {stored.get('lambda_1')}, "
+                                 f"loss {loss!r} needs {settings.lambda_1}")
+            return path
+        self.log(f"[ablations] solving the {loss} teacher's targets of {self.budget.train_data} into {path}")
+        return compute_teacher_targets(self.budget.train_data, path, window_sizes=self.budget.teacher_window_sizes,
+                                       settings=settings, device=self.device)
+
+    def _stage(self, folder: Path, options: list[str], steps: int, seed: int) -> Path:
+        """Run (or continue, or skip) one training stage; returns its checkpoint."""
+        checkpoint = folder / "checkpoint.pt"
+        if (folder / "done.json").exists():
+            return checkpoint
+        run = ["--out", str(folder), "--no-progress", "--device", self.device, "--ckpt-every", "100"]
+        if self.budget.val_data:
+            run += ["--val-data", self.budget.val_data, "--val-every", str(self.budget.val_every),
+                    "--val-windows", str(self.budget.val_windows)]
+        else:
+            run += ["--val-data", ""]
+        if checkpoint.exists():
+            self.log(f"[ablations] {folder}: resuming from step {load_checkpoint(checkpoint)['step']}")
+            self.train(["--resume", *run])
+        else:
+            (folder / "metrics.jsonl").unlink(missing_ok=True)  # killed before its first checkpoint
+            self.log(f"[ablations] {folder}: training {steps} steps")
+            self.train([*options, "--seed", str(seed), *run])
+        step = load_checkpoint(checkpoint)["step"] if checkpoint.exists() else 0
+        if step < steps:
+            raise RunnerStopped(f"{folder}: stopped at step {step} of {steps}; rerun the command to continue")
+        _write_json(folder / "done.json", {"step": step, "date": datetime.datetime.now().isoformat(timespec="seconds")})
+        return checkpoint
+
+    def run_one(self, config: Configuration, seed: int) -> dict:
+        """Train (both stages), evaluate and measure one configuration; returns its row."""
+        folder = self.out / f"{config.name}-s{seed}"
+        model_options = ["--model", config.model]
+        for key, value in config.model_kwargs.items():
+            model_options += ["--model-kwarg", f"{key}={json.dumps(value)}"]
+        b = self.budget
+        checkpoint = self._stage(folder / "teacher", [*model_options, *b.teacher_options(self.targets(config.loss))],
+                                 b.teacher_steps, seed)
+        if b.finetune_steps:
+            checkpoint = self._stage(folder / "finetune", [*model_options, *b.finetune_options(config.loss, checkpoint)],
+                                     b.finetune_steps, seed)
+        model, payload = load_model(checkpoint, map_location=self.device)
+        cfg = payload.get("config") or {}
+        policy = RecurrentPolicy(model, device=self.device, input_key=cfg.get("input", "voxel_grid"),
+                                 voxel_bins=cfg.get("voxel_bins", 5))
+        evaluated = self._evaluate(folder / "eval", policy)
+        height, width = b.cost_size
+        return {
+            "config": config.name, "label": config.label, "seed": seed, "model": config.model,
+            "model_kwargs": config.model_kwargs, "loss": config.loss,
+            "steps": {"teacher": b.teacher_steps, "finetune": b.finetune_steps},
+            "eval": evaluated,
+            "parameters": count_parameters(model),
+            "gflop_per_window": forward_flops(model.cpu(), 1, height, width) / 1e9,
+            "latency_ms": forward_latency_ms(model, height, width, device=self.device),
+            "latency_threads": torch.get_num_threads(),
+            "validation": [list(p) for p in self.validation_curve(folder)],
+            "date": datetime.date.today().isoformat(),
+        }
+
+    def validation_curve(self, folder: Path) -> list[tuple[int, float, float]]:
+        """(step over both stages, val AEE, zero flow's val AEE) of one run."""
+        points = _validation_points(folder / "teacher" / "metrics.jsonl", 0)
+        return points + _validation_points(folder / "finetune" / "metrics.jsonl", self.budget.teacher_steps)
+
+    def _evaluate(self, folder: Path, policy) -> dict:
+        """{split: {"dtK": pooled metrics}}; each split and window length cached in ``folder``."""
+        out: dict = {}
+        for split in self.budget.eval_splits:
+            for dt in self.budget.eval_dts:
+                part = folder / f"{split}-dt{dt}.json"
+                if not part.exists():
+                    rows = evaluate(policy, split, window="frames", window_size=dt,
+                                    max_windows=self.budget.eval_windows, progress=False)
+                    _write_json(part, json.loads(results_json({f"dt{dt}": {"model": rows}}))["overall"][f"dt{dt}"])
+                out.setdefault(split, {})[f"dt{dt}"] = json.loads(part.read_text())
+        return out
+
+    def zero_flow(self) -> dict:
+        """Zero flow's metrics on the evaluated splits (computed once, cached)."""
+        return self._evaluate(self.out / "zero-flow", None)
+
+
+# -- tables ------------------------------------------------------------------------------------
+
+START, END = "<!-- ablations:start -->", "<!-- ablations:end -->"
+
+
+def _cell(values: list[float], digits: int) -> str:
+    values = [v for v in values if v is not None and math.isfinite(v)]
+    if not values:
+        return "-"
+    if len(values) == 1:
+        return f"{values[0]:.{digits}f}"
+    return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
+
+
+def _paper(name: str) -> str:
+    figures = PAPER_MVSEC_DT1.get(name)
+    if figures is None:
+        return "n/a"
+    return f"{sum(figures) / 4:.3f} ({' / '.join(f'{v:.2f}' for v in figures)})"
+
+
+def _curve_change(row: dict) -> float | None:
+    """Relative change of the val AEE over the last quarter of the steps (flat: near 0)."""
+    points = row.get("validation") or []
+    if len(points) < 2:
+        return None
+    last_step = points[-1][0]
+    earlier = [p for p in points if p[0] <= 0.75 * last_step] or points[:1]
+    return (points[-1][1] - earlier[-1][1]) / earlier[-1][1]
+
+
+def render_tables(rows: list[dict], zero: dict, budget: Budget, seeds: tuple[int, ...]) -> str:
+    """The Markdown block (between the report markers) of the paper's Tables 2-4 layouts."""
+    by_name: dict[str, list[dict]] = {}
+    for row in sorted(rows, key=lambda r: r["seed"]):
+        by_name.setdefault(row["config"], []).append(row)
+    splits, dts = budget.eval_splits, [f"dt{k}" for k in budget.eval_dts]
+
+    def metric(name: str, split: str, dt: str, key: str) -> list[float]:
+        return [r["eval"][split][dt].get(key) for r in by_name[name]]
+
+    def short(split: str) -> str:
+        return split.replace("synthetic-", "")
+
+    accuracy = [(s, d) for s in splits for d in dts]
+    head = (["configuration", "seeds"] + [f"AEE {short(s)} {d}" for s, d in accuracy]
+            + [f"% out {short(splits[0])} {dts[0]}", f"cos {short(splits[0])} {dts[0]}",
+               f"L_HMC {short(splits[0])} {dts[0]}", "val AEE change, last quarter", "parameters",
+               f"GFLOP / {budget.cost_size[0]}x{budget.cost_size[1]} window", "ms / window",
+               "paper MVSEC dt=1 AEE: mean (outdoor_day1 / indoor_flying1 / 2 / 3)"])
+
+    def accuracy_row(name: str) -> str:
+        runs = by_name[name]
+        cells = [runs[0]["label"], ", ".join(str(r["seed"]) for r in runs)]
+        cells += [_cell(metric(name, s, d, "aee"), 3) for s, d in accuracy]
+        cells += [_cell(metric(name, splits[0], dts[0], "outlier_pct"), 1),
+                  _cell(metric(name, splits[0], dts[0], "cosine"), 2), _cell(metric(name, splits[0], dts[0], "hmc"), 4),
+                  _cell([_curve_change(r) for r in runs], 3), f"{runs[0]['parameters']:,}",
+                  f"{runs[0]['gflop_per_window']:.3f}", _cell([r["latency_ms"] for r in runs], 1), _paper(name)]
+        return "| " + " | ".join(cells) + " |"
+
+    zero_cells = (["zero flow (reference)", "-"] + [_cell([zero[s][d].get("aee")], 3) for s, d in accuracy]
+                  + [_cell([zero[splits[0]][dts[0]].get("outlier_pct")], 1), "-",
+                     _cell([zero[splits[0]][dts[0]].get("hmc")], 4), "-", "0", "0", "-", "-"])
+
+    def table(number: int, title: str) -> list[str]:
+        names = [n for n, c in CONFIGURATIONS.items() if number in c.tables and n in by_name]
+        return [f"**Table {number} layout: {title}**", "", "| " + " | ".join(head) + " |",
+                "|---|---|" + "---:|" * (len(head) - 3) + "---|", "| " + " | ".join(zero_cells) + " |",
+                *[accuracy_row(n) for n in names], ""]
+
+    quality = [(s, d, key) for s in splits for d in dts for key in ("fwl", "rsat")]
+    table4 = ["**Table 4 layout: FWL (higher is better) and RSAT (lower is better), scored from the events alone "
+              "(no ground truth read)**", "",
+              "| configuration | seeds | " + " | ".join(f"{k.upper()} {short(s)} {d}" for s, d, k in quality) + " |",
+              "|---|---|" + "---:|" * len(quality),
+              "| zero flow (reference) | - | " + " | ".join("1.000" for _ in quality) + " |"]
+    for name in [n for n, c in CONFIGURATIONS.items() if 4 in c.tables and n in by_name]:
+        table4.append(f"| {by_name[name][0]['label']} | {', '.join(str(r['seed']) for r in by_name[name])} | "
+                      + " | ".join(_cell(metric(name, s, d, k), 3) for s, d, k in quality) + " |")
+    dates = sorted({r["date"] for r in rows})
+    lines = [
+        START,
+        f"Budget per configuration: {budget.describe()}. Seeds {', '.join(map(str, seeds))} for the full model; "
+        f"the others seed {seeds[0]}, and seed {seeds[1] if len(seeds) > 1 else '-'} too where their "
+        f"{short(splits[0])} {dts[0]} AEE is within 2 standard deviations of the full model's. "
+        f"Mean ± sample standard deviation over seeds. Evaluated on every window"
+        + (f" (the first {budget.eval_windows} per sequence)" if budget.eval_windows else "")
+        + f" of {', '.join(f'`{s}`' for s in splits)} at their own sensor size. "
+        f"Rows finished: {len(rows)}" + (f", {dates[0]} to {dates[-1]}" if dates else "") + ". "
+        "The paper column is MVSEC, another data set: compare orderings, not values. "
+        "Validation curves: `curves/<configuration>.png` in the run folder.",
+        "",
+        *table(2, "network ablations (L_HMC)"),
+        *table(3, "losses and baselines"),
+        *table4,
+        END,
+    ]
+    return "\n".join(lines)
+
+
+def write_report(path: Path, block: str) -> None:
+    """Put ``block`` between the markers of ``path`` (appended as a section if it has none)."""
+    text = path.read_text() if path.exists() else ""
+    if START in text and END in text:
+        text = text[: text.index(START)] + block + text[text.index(END) + len(END):]
+    else:
+        text = text.rstrip() + "\n\n## Ablations (paper Tables 2-4 layout)\n\n" + block + "\n"
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+# -- validation curves -------------------------------------------------------------------------
+
+def _dashed(draw, start: tuple[float, float], end: tuple[float, float], colour: str, dash: float = 6.0) -> None:
+    """A dashed line from ``start`` to ``end`` (pixels)."""
+    length = math.hypot(end[0] - start[0], end[1] - start[1])
+    for i in range(0, int(length // dash) + 1, 2):
+        a, b = i * dash / max(length, 1e-9), min(1.0, (i + 1) * dash / max(length, 1e-9))
+        draw.line([start[0] + a * (end[0] - start[0]), start[1] + a * (end[1] - start[1]),
+                   start[0] + b * (end[0] - start[0]), start[1] + b * (end[1] - start[1])], fill=colour)
+
+
+def plot_validation_curves(rows: list[dict], path: Path, size: tuple[int, int] = (640, 400)) -> Path:
+    """A PNG of val AEE against step (both stages) for the runs of one configuration, one line
+    per seed, zero flow's val AEE dashed, the start of the fine-tuning stage dotted (Pillow)."""
+    from PIL import Image, ImageDraw
+
+    width, height = size
+    left, right, top, bottom = 60, 20, 30, 40
+    image = Image.new("RGB", size, "white")
+    draw = ImageDraw.Draw(image)
+    curves = [[(p[0], p[1], p[2]) for p in r.get("validation") or []] for r in rows]
+    points = [p for c in curves for p in c]
+    title = f"{rows[0]['label'] if rows else ''}: validation AEE (px) vs step"
+    draw.text((left, 8), title, fill="black")
+    if points:
+        x_max = max(p[0] for p in points) or 1
+        values = [p[1] for p in points] + [p[2] for p in points if p[2] is not None]
+        y_min, y_max = min(values), max(values)
+        if y_max - y_min < 1e-9:
+            y_min, y_max = y_min - 0.5, y_max + 0.5
+        pad = 0.05 * (y_max - y_min)
+        y_min, y_max = y_min - pad, y_max + pad
+
+        def xy(step: float, value: float) -> tuple[float, float]:
+            return (left + (width - left - right) * step / x_max,
+                    height - bottom - (height - top - bottom) * (value - y_min) / (y_max - y_min))
+
+        draw.rectangle([left, top, width - right, height - bottom], outline="black")
+        for i in range(5):
+            value = y_min + (y_max - y_min) * i / 4
+            _, y = xy(0, value)
+            draw.line([left - 4, y, left, y], fill="black")
+            draw.text((4, y - 6), f"{value:.3f}", fill="black")
+            step = x_max * i / 4
+            x, _ = xy(step, y_min)
+            draw.line([x, height - bottom, x, height - bottom + 4], fill="black")
+            draw.text((x - 12, height - bottom + 8), f"{step:.0f}", fill="black")
+        teacher_steps = rows[0].get("steps", {}).get("teacher")
+        if teacher_steps and rows[0].get("steps", {}).get("finetune"):
+            x, _ = xy(teacher_steps, y_min)
+            for y in range(top, height - bottom, 6):
+                draw.point((x, y), fill="gray")
+            draw.text((x + 3, top + 3), "fine-tuning", fill="gray")
+        zero = sorted({(p[0], p[2]) for p in points if p[2] is not None})
+        for (s0, z0), (s1, z1) in zip(zero, zero[1:]):
+            _dashed(draw, xy(s0, z0), xy(s1, z1), "gray")
+        colours = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd"]
+        for i, (row, curve) in enumerate(zip(rows, curves)):
+            colour = colours[i % len(colours)]
+            line = [xy(s, v) for s, v, _ in curve]
+            if len(line) > 1:
+                draw.line(line, fill=colour, width=2)
+            for x, y in line:
+                draw.ellipse([x - 2, y - 2, x + 2, y + 2], fill=colour)
+            draw.text((width - right - 150, top + 6 + 14 * i), f"seed {row['seed']}", fill=colour)
+        draw.text((width - right - 150, top + 6 + 14 * len(rows)), "zero flow (grey)", fill="gray")
+    else:
+        draw.text((left, height // 2), "no validation points", fill="black")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    image.save(path)
+    return path

@@ -1,0 +1,203 @@
+"""The ablation switches change exactly what they name, and the ablation runner resumes and
+skips (agents/ablations.py, scripts/ablations.py)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from agents.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped, needs_second_seed, read_rows
+from agents.layers import ConvGRU, STConvGRU
+from agents.registry import make_model
+from agents.teacher import TeacherSettings
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+
+import train as train_script  # noqa: E402
+
+HEIGHT, WIDTH = 32, 48
+
+
+def tiny(**switches) -> torch.nn.Module:
+    torch.manual_seed(0)
+    return make_model("ev-mgrflownet", base_width=2, in_channels=2, flow_scaling=8.0, **switches).eval()
+
+
+def windows(n: int = 2) -> list[torch.Tensor]:
+    generator = torch.Generator().manual_seed(1)
+    return [(torch.rand(1, 2, HEIGHT, WIDTH, generator=generator) < 0.2).float() * 3 for _ in range(n)]
+
+
+def parameter_shapes(model: torch.nn.Module) -> dict[str, tuple]:
+    return {name: tuple(p.shape) for name, p in model.named_parameters()}
+
+
+# -- without prior flows -----------------------------------------------------------------------
+
+def test_without_prior_flows_the_decoder_is_fed_nothing_and_ignores_the_previous_flow():
+    ablated = tiny(use_prior_flow=False)
+    priors = []
+    ablated.decoder.register_forward_pre_hook(lambda module, args: priors.append(args[2]))
+    first, second = windows()
+    with torch.no_grad():
+        _, state = ablated(first, None)
+        assert "prior_flow" not in state  # nothing of the previous flow is carried
+        plain, _ = ablated(second, state)
+        planted, _ = ablated(second, {**state, "prior_flow": 5 * torch.randn(1, 2, HEIGHT, WIDTH)})
+    assert priors == [None, None, None]  # the FGD input is the fresh sequence's: zero
+    assert ablated.decoder.refiners is None  # u_l = uhat_l
+    for a, b in zip(plain, planted):
+        assert torch.equal(a, b)
+
+
+def test_the_full_model_uses_the_previous_flow():
+    full = tiny()
+    first, second = windows()
+    with torch.no_grad():
+        _, state = full(first, None)
+        carried, _ = full(second, state)
+        planted, _ = full(second, {**state, "prior_flow": 5 * torch.randn(1, 2, HEIGHT, WIDTH)})
+    assert not torch.allclose(carried[-1], planted[-1])
+
+
+def test_without_prior_flows_only_the_decoder_refiners_go():
+    full, ablated = tiny(), tiny(use_prior_flow=False)
+    full_shapes, ablated_shapes = parameter_shapes(full), parameter_shapes(ablated)
+    assert set(ablated_shapes) < set(full_shapes)
+    assert all(name.startswith("decoder.refiners.") for name in set(full_shapes) - set(ablated_shapes))
+    assert all(full_shapes[name] == shape for name, shape in ablated_shapes.items())
+    # same weights where they share them: the encoder's states are the same window after window
+    missing, unexpected = ablated.load_state_dict(full.state_dict(), strict=False)
+    assert not missing and all(name.startswith("decoder.refiners.") for name in unexpected)
+    full_state, ablated_state = None, None
+    with torch.no_grad():
+        for x in windows(3):
+            _, full_state = full(x, full_state)
+            _, ablated_state = ablated(x, ablated_state)
+            assert set(full_state) - set(ablated_state) == {"prior_flow"}
+            for key in ablated_state:
+                torch.testing.assert_close(ablated_state[key], full_state[key])
+
+
+# -- without ST-ConvGRU ------------------------------------------------------------------------
+
+def test_without_st_convgru_the_spatio_temporal_memory_path_is_absent():
+    full, ablated = tiny(), tiny(use_st_convgru=False)
+    assert isinstance(full.grus[0], STConvGRU) and full.deep_memory_up is not None
+    assert type(ablated.grus[0]) is ConvGRU and ablated.deep_memory_up is None
+    full_shapes, ablated_shapes = parameter_shapes(full), parameter_shapes(ablated)
+    changed = (set(full_shapes) ^ set(ablated_shapes)) | {n for n in set(full_shapes) & set(ablated_shapes)
+                                                           if full_shapes[n] != ablated_shapes[n]}
+    assert changed and all(name.startswith(("grus.0.", "deep_memory_up.")) for name in changed)
+    assert not any(name.startswith(("grus.0.gru_deep", "deep_memory_up")) for name in ablated_shapes)
+    module1 = {}  # F1, module 1's output (the first skip), of the last call
+    full.grus[0].register_forward_hook(lambda m, args, out: module1.__setitem__("full", out[0]))
+    ablated.grus[0].register_forward_hook(lambda m, args, out: module1.__setitem__("ablated", out))
+    with torch.no_grad():
+        first, second = windows()
+        _, full_state = full(first, None)
+        _, ablated_state = ablated(first, None)
+        assert set(full_state) == set(ablated_state) == {"encoder1", "encoder2", "encoder3", "encoder4", "prior_flow"}
+        # module 1's output F1 depends on the deepest memory S4 only through the M path (eqs. 5-6)
+        other_deep = {"encoder4": 3 * torch.randn_like(full_state["encoder4"])}
+        outputs = {}
+        for name, model, state in (("full", full, full_state), ("ablated", ablated, ablated_state)):
+            model(second, state)
+            carried = module1[name]
+            model(second, {**state, **other_deep})
+            outputs[name] = (carried, module1[name])
+    assert not torch.allclose(*outputs["full"])
+    assert torch.equal(*outputs["ablated"])
+
+
+def test_without_st_convgru_the_prior_flow_stays():
+    ablated = tiny(use_st_convgru=False)
+    first, second = windows()
+    with torch.no_grad():
+        _, state = ablated(first, None)
+        carried, _ = ablated(second, state)
+        planted, _ = ablated(second, {**state, "prior_flow": 5 * torch.randn(1, 2, HEIGHT, WIDTH)})
+    assert not torch.allclose(carried[-1], planted[-1])
+
+
+def test_the_configurations_name_their_switches():
+    assert CONFIGURATIONS["mgr-no-st"].model_kwargs == {"use_st_convgru": False}
+    assert CONFIGURATIONS["mgr-no-prior"].model_kwargs == {"use_prior_flow": False}
+    assert CONFIGURATIONS["mgr-no-both"].model_kwargs == {"use_st_convgru": False, "use_prior_flow": False}
+    for name, config in CONFIGURATIONS.items():  # every configuration builds with its switches
+        model = make_model(config.model, base_width=2, in_channels=5, **config.model_kwargs)
+        for key, value in config.model_kwargs.items():
+            assert getattr(model, key) is value, name
+    with pytest.raises(ValueError, match="Configuration.loss"):
+        type(CONFIGURATIONS["mgr-hmc"])("x", "x", "ev-flownet", "supervised")
+
+
+# -- seeds -------------------------------------------------------------------------------------
+
+def test_a_second_seed_where_the_difference_is_within_two_standard_deviations():
+    full = [1.0, 1.1, 0.9]  # mean 1.0, sample std 0.1
+    assert needs_second_seed([1.15], full)
+    assert needs_second_seed([0.81], full)
+    assert not needs_second_seed([1.25], full)
+    assert not needs_second_seed([0.7], full)
+    assert not needs_second_seed([1.0, 1.0], full)  # has its second seed
+    with pytest.raises(ValueError):
+        needs_second_seed([1.0], [1.0])
+
+
+# -- the runner --------------------------------------------------------------------------------
+
+TINY = Budget(teacher_steps=3, finetune_steps=2, train_data="synthetic-mini", val_data="synthetic-mini", val_every=2,
+              val_windows=2, eval_splits=("synthetic-mini",), eval_dts=(1,), eval_windows=2, width=2, crop=32,
+              num_envs=2, unroll=2, teacher_window_sizes=(1,), finetune_window_sizes=(1,),
+              teacher=TeacherSettings(grids=(2,), steps=2), cost_size=(32, 32))
+
+
+def test_the_runner_resumes_a_killed_configuration_and_skips_finished_ones(tmp_path):
+    calls: list[list[str]] = []
+
+    def killed_after_one_step(argv):
+        calls.append(argv)
+        return train_script.main([*argv, "--minutes", "0"])  # stops (and saves) after its first step
+
+    def train(argv):
+        calls.append(argv)
+        return train_script.main(argv)
+
+    out = tmp_path / "ablations"
+    report = tmp_path / "results.md"
+    report.write_text("# Results\n\nkept text\n")
+    runner = AblationRunner(out, TINY, killed_after_one_step, seeds=(0,), only=["mgr-hmc"], log=lambda _: None)
+    with pytest.raises(RunnerStopped, match="step 1 of 3"):
+        runner.run(report)
+    teacher = out / "mgr-hmc-s0" / "teacher"
+    assert (teacher / "checkpoint.pt").exists() and not (teacher / "done.json").exists()
+    assert read_rows(out / "rows.jsonl") == []
+
+    calls.clear()
+    runner = AblationRunner(out, TINY, train, seeds=(0,), only=["mgr-hmc"], log=lambda _: None)
+    rows = runner.run(report)
+    assert calls[0][0] == "--resume" and "--init" in calls[1]  # continued, then the fine-tuning stage
+    steps = [json.loads(line)["step"] for line in (teacher / "metrics.jsonl").read_text().splitlines()
+             if "loss" in json.loads(line)]
+    assert steps == [1, 2, 3]  # each step once: resumed from step 1, not restarted
+    assert [(r["config"], r["seed"]) for r in rows] == [("mgr-hmc", 0)]
+    row = rows[0]
+    assert math.isfinite(row["eval"]["synthetic-mini"]["dt1"]["aee"])
+    assert row["parameters"] > 0 and row["gflop_per_window"] > 0 and row["latency_ms"] > 0
+    # both stages (the fine-tuning stage's after the teacher's 3 steps); the killed run's step 1 stays
+    assert [p[0] for p in row["validation"]] == [1, 2, 3, 5]
+    assert (out / "curves" / "mgr-hmc.png").stat().st_size > 0
+    text = report.read_text()
+    assert "kept text" in text and "Table 2 layout" in text and "EV-MGRFlowNet, L_HMC | 0 |" in text
+
+    calls.clear()
+    AblationRunner(out, TINY, train, seeds=(0,), only=["mgr-hmc"], log=lambda _: None).run(report)
+    assert calls == []  # finished: nothing trained again
+    assert len((out / "rows.jsonl").read_text().splitlines()) == 1
