@@ -115,6 +115,10 @@ class RandomizedSpec:
     factors: str = "train"
     fps: float = 30.0
 
+    def __post_init__(self) -> None:
+        if self.factors != "train" and self.factors not in STRESS_FACTORS:
+            raise ValueError(f"RandomizedSpec.factors must be 'train' or one of {tuple(STRESS_FACTORS)}, got {self.factors!r}")
+
     def ranges(self) -> FactorRanges:
         return TRAIN_FACTORS if self.factors == "train" else STRESS_FACTORS[self.factors]
 

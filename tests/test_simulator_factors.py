@@ -98,24 +98,24 @@ def test_threshold_spread_and_on_off_imbalance_as_set():
     sensor = SensorConfig(contrast_threshold=c, threshold_sigma=sigma, on_off_ratio=ratio, refractory_us=0)
     h, w = 100, 120
     start = np.zeros((h, w), np.float32)
-    emulator = EventEmulator(start, sensor, np.random.default_rng(3))
-    # a ramp of slope k: each pixel's first event comes at its own threshold / k
+    # a ramp of slope +-k: each pixel's first event comes at its own ON / OFF threshold / k
     k, step_us = 1e-4, 50  # log units per us
-    first_on = np.full(h * w, -1.0)
-    previous = start
-    for t in range(0, 6000, step_us):
-        current = np.full((h, w), k * (t + step_us), np.float32)
-        x, y, ts, p = emulator.step(previous, current, t, t + step_us)
-        idx = y.astype(int) * w + x
-        new = first_on[idx] < 0
-        first_on[idx[new]] = ts[new]
-        previous = current
-    measured = k * (first_on + 0.5)  # the integer-us timestamps floor the crossing times
-    assert (first_on >= 0).all()
-    assert abs(measured.mean() - c * np.sqrt(ratio)) < 0.01 * c
-    assert abs(measured.std() / sigma - 1.0) < 0.06
-    assert abs(emulator.c_off.mean() - c / np.sqrt(ratio)) < 0.01 * c
-    assert abs(emulator.c_off.std() / sigma - 1.0) < 0.06
+    for sign, mean in ((1.0, c * np.sqrt(ratio)), (-1.0, c / np.sqrt(ratio))):
+        emulator = EventEmulator(start, sensor, np.random.default_rng(3))
+        first = np.full(h * w, -1.0)
+        previous = start
+        for t in range(0, 6000, step_us):
+            current = np.full((h, w), sign * k * (t + step_us), np.float32)
+            x, y, ts, p = emulator.step(previous, current, t, t + step_us)
+            assert np.all(p == sign)
+            idx = y.astype(int) * w + x
+            new = first[idx] < 0
+            first[idx[new]] = ts[new]
+            previous = current
+        assert (first >= 0).all()
+        measured = k * (first + 0.5)  # the integer-us timestamps floor the crossing times
+        assert abs(measured.mean() / mean - 1.0) < 0.01
+        assert abs(measured.std() / sigma - 1.0) < 0.06
 
 
 def test_leak_events_on_a_still_pixel():
