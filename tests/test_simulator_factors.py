@@ -341,3 +341,18 @@ def test_generate_split_in_worker_processes_and_into_the_cache(tmp_path, monkeyp
         reader.close()
     finally:
         clear_cache()
+
+
+def test_env_trains_on_random_crops_of_the_randomised_split():
+    from envs.env import EventFlowEnv
+
+    clear_cache()
+    try:
+        env = EventFlowEnv(data="synthetic-dr-train:1", crop=(64, 64), random_crop=True)
+        _, info = env.reset(seed=0)
+        assert info["sequence"] == "synthetic-dr-train-00000" and info["flow_gt"].shape == (2, 64, 64)
+        *_, info = env.step(np.zeros(env.action_space.shape, np.float32))
+        assert np.isfinite(info["flow_gt"]).all()
+        env.close()
+    finally:
+        clear_cache()
