@@ -5,6 +5,8 @@
 - ``hagenaars`` (one ``.h5`` file, the event_flow / HQF layout of
   :mod:`envs.readers.hagenaars`): ``events/xs, ys, ts (s), ps``, ``images/image<k>`` and
   ``flow_dt1/flow<k>`` with ``timestamp_from`` / ``timestamp`` (start / end of the interval).
+  That layout has no valid mask: its reader takes an exactly zero flow vector as invalid, so a
+  still camera's background loses its (zero) ground truth there; evflow-h5 keeps it.
 - ``ecd-text`` (a folder, as the Event Camera Dataset): ``events.txt`` (a ``width height``
   header, then ``t x y p`` lines, t in seconds, p in {0, 1}), ``images.txt`` and
   ``images/frame_<k>.png``. The text format has no ground truth.
