@@ -50,7 +50,8 @@ class _Baseline(FlowNetBase):
         decoder = FlowDecoder(c, refine=False, **decoder_kwargs) if decoder_kwargs is not None else None
         super().__init__(in_channels, c, flow_scaling, use_prior_flow=False, residual=residual(c) if residual else None,
                          decoder=decoder)
-        self.config = {"in_channels": self.in_channels, "base_width": self.base_width, "flow_scaling": self.flow_scaling}
+        self.config = {"in_channels": self.in_channels, "base_width": self.base_width,
+                       "flow_scaling": self.flow_scaling}
 
 
 # -- the published baselines ------------------------------------------------------------------

@@ -152,7 +152,9 @@ class FlowNetBase(nn.Module):
         self.use_prior_flow = bool(use_prior_flow)
         deepest = 16 * self.base_width
         # Residual module (eq. 8): R = RB2(RB1(F4)).
-        self.residual = residual if residual is not None else nn.Sequential(ResidualBlock(deepest), ResidualBlock(deepest))
+        if residual is None:
+            residual = nn.Sequential(ResidualBlock(deepest), ResidualBlock(deepest))
+        self.residual = residual
         self.decoder = decoder if decoder is not None else FlowDecoder(self.base_width, refine=self.use_prior_flow)
         self.config: dict = {}
 

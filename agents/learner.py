@@ -54,7 +54,7 @@ class TrainConfig:
     model: str = "ev-mgrflownet"  # registry name or package.module:factory
     width: str | int = "cpu"  # "paper" (base width 32), "cpu" (8) or an int
     model_kwargs: dict = field(default_factory=dict)  # e.g. {"use_st_convgru": False}
-    input: str = "count_image"  # network input: "count_image" (paper eq. 2), "voxel_grid" or "count_time_image" (EV-FlowNet's)
+    input: str = "count_image"  # "count_image" (paper eq. 2), "voxel_grid" or "count_time_image" (EV-FlowNet's)
     voxel_bins: int = 5
     data: Any = "synthetic-train"
     window: str = "frames"
@@ -73,7 +73,7 @@ class TrainConfig:
     loss: str = "hmc"  # "hmc", "at", "teacher" (regress per-window contrast-maximisation flows), or
     # "supervised" (endpoint error against ground truth: a reference bound, not the method)
     loss_mode: str = "window"  # "window" (per-window, default) or "accumulated"
-    loss_scales: str = "all"  # "all": every decoder scale, loss averaged over scales; "finest": the full-resolution flow only
+    loss_scales: str = "all"  # "all": every decoder scale, the loss averaged over scales; "finest": the finest only
     upsampling: str = "bilinear"  # coarse scales to full resolution in the loss: "bilinear" or "nearest"
     reference_times: str = "window"  # "window": references at the window bounds; "events": at the first/last event
     at_normalisation: str = "event_pixels"  # L_AT over the pixels holding events, or "sum" (eq. 14 as printed)

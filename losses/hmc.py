@@ -315,7 +315,8 @@ def accumulated_hmc_loss(
         raise ValueError(f"accumulated_hmc_loss: windows give different numbers of scales {[len(s) for s in scales]}")
     for k, per_window in enumerate(scales):
         if per_window[0].shape != scales[0][0].shape:
-            raise ValueError(f"flows[{k}] has shape {tuple(per_window[0].shape)} != flows[0] {tuple(scales[0][0].shape)}")
+            raise ValueError(f"flows[{k}] has shape {tuple(per_window[0].shape)} != flows[0] "
+                             f"{tuple(scales[0][0].shape)}")
     B, _, H, W = scales[0][0].shape
     for k, ev in enumerate(events_list):
         check_events(ev, batch_size=B, name=f"events_list[{k}]")

@@ -751,7 +751,8 @@ def test_hagenaars_convgru_matches_its_equations_and_init():
     assert torch.equal(gru(x, None), gru(x, torch.zeros_like(h)))
     for conv in (gru.update_gate, gru.reset_gate, gru.candidate):
         w = conv.weight.reshape(4, -1)
-        torch.testing.assert_close(w @ w.T, torch.eye(4, dtype=torch.float64), rtol=0, atol=1e-6)  # orthonormal rows (float32 init)
+        eye = torch.eye(4, dtype=torch.float64)
+        torch.testing.assert_close(w @ w.T, eye, rtol=0, atol=1e-6)  # orthonormal rows (drawn in float32)
         assert torch.all(conv.bias == 0)
 
 

@@ -315,7 +315,10 @@ def test_accumulated_per_scale_and_event_references_match_reference(backend):
     for reference_times in ("window", "events"):
         out = accumulated_hmc_loss([[torch.from_numpy(f)[None] for f in per] for per in flows], evs,
                                    reference_times=reference_times)
-        refs, span = ((0.0, float(K)), float(K)) if reference_times == "window" else ((T.min(), T.max()), T.max() - T.min())
+        if reference_times == "window":
+            refs, span = (0.0, float(K)), float(K)
+        else:
+            refs, span = (T.min(), T.max()), T.max() - T.min()
         expected = []
         for j in range(2):
             full = [np.asarray(torch.nn.functional.interpolate(torch.from_numpy(per[j])[None], size=(H, W),
