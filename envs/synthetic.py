@@ -66,6 +66,7 @@ __all__ = [
     "cache_path",
     "load_sequence",
     "generate_split",
+    "start_generation",
     "clear_cache",
     "cache_root",
 ]
@@ -390,3 +391,20 @@ def generate_split(
                 bar.update()
     bar.close()
     return sorted(written)
+
+
+def start_generation(split: str, *, num: int | None = None, workers: int = 1):
+    """Fill the disk cache with a split's sequences in the background (:func:`generate_split`
+    in a separate process, without a progress bar), so that training started meanwhile finds
+    them cached. Returns the started ``multiprocessing.Process``: ``join()`` it to wait,
+    ``terminate()`` it to stop (files are written atomically, so none is left half-written)."""
+    import multiprocessing
+
+    if cache_root() is None:
+        raise ValueError("the disk cache is off (EVFLOW_CACHE=off): nothing to fill in the background")
+    list_sequences(split)  # an unknown split fails here, not in the background
+    process = multiprocessing.get_context("spawn").Process(
+        target=generate_split, args=(split, None), kwargs={"num": num, "workers": workers, "progress": False}, name=f"generate {split}"
+    )
+    process.start()
+    return process

@@ -19,7 +19,15 @@ from envs.simulator import AffineMotion, EventEmulator, Scene, SceneConfig, Sens
 from envs.simulator.export import OUTPUT_FORMATS, write_sequence
 from envs.simulator.randomize import STRESS_FACTORS, TRAIN_FACTORS, draw_scene, peak_flow_px
 from envs.simulator.textures import make_texture
-from envs.synthetic import SyntheticH5Reader, clear_cache, generate_split, get_spec, list_sequences, load_sequence
+from envs.synthetic import (
+    SyntheticH5Reader,
+    clear_cache,
+    generate_split,
+    get_spec,
+    list_sequences,
+    load_sequence,
+    start_generation,
+)
 from tests.test_simulator import _bilinear, _iwe_variance
 
 FLAT = TextureConfig(family="flat", log_min=-1.0, log_max=-1.0, shading=0.0)
@@ -339,6 +347,10 @@ def test_generate_split_in_worker_processes_and_into_the_cache(tmp_path, monkeyp
         assert isinstance(reader, SyntheticH5Reader) and cached.stat().st_mtime_ns == stamp
         assert reader.num_events == len(get_spec("synthetic-mini", 0).simulate().events)
         reader.close()
+        process = start_generation("synthetic-mini", num=2)  # the next one, in the background
+        process.join(timeout=120)
+        assert process.exitcode == 0
+        assert len(list((tmp_path / "cache" / "synthetic" / "synthetic-mini").glob("synthetic-mini-1-*.h5"))) == 1
     finally:
         clear_cache()
 
