@@ -905,3 +905,25 @@ def test_zhu_ev_flownet_is_its_layers_composed():
         std = (1.3 * 0.1 / (w.shape[1] * w.shape[2] * w.shape[3])) ** 0.5
         assert w.abs().max() <= 2 * std + 1e-12 and torch.all(conv.bias == 0)
         assert 0.7 * std < w.std() < 1.0 * std  # a normal truncated at 2 sigma keeps ~0.88 of its std
+
+
+def test_xlif_options_choose_what_trains():
+    """learn_threshold=True makes t0, t1 per-channel parameters (clamped in use, so a gradient
+    reaches them only above the clamp); learn_leak=False fixes the leaks as buffers. The network
+    passes both options to every spiking layer and rebuilds from its config."""
+    layer = XLIFLayer(2, 3, learn_leak=False, learn_threshold=True)
+    assert {n for n, _ in layer.named_parameters()} == {"ff.weight", "t0", "t1"}
+    assert {n for n, _ in layer.named_buffers()} == {"leak_v", "leak_pt"}
+    layer.t0.data.fill_(0.5)  # above the 0.01 clamp: the threshold's gradient reaches t0
+    x = torch.rand(1, 2, 6, 6) * 3
+    _, state = layer(x, None)
+    out, (v, _, _) = layer(x, state)
+    v.sum().backward(retain_graph=True)  # the reset uses the previous threshold t0 + t1 pt
+    assert layer.t0.grad is not None and layer.t0.grad.abs().sum() > 0 and layer.t1.grad is not None
+    model = build("xlif-ev-flownet", learn_threshold=True, learn_leak=False)
+    spiking = [m for m in model.modules() if isinstance(m, XLIFLayer)]
+    assert len(spiking) == 4 * 2 + 2 * 2 + 4
+    assert all(isinstance(m.t0, torch.nn.Parameter) and not isinstance(m.leak_v, torch.nn.Parameter) for m in spiking)
+    rebuilt = make_model("xlif-ev-flownet", **model.config)
+    rebuilt.load_state_dict(model.state_dict())
+    assert rebuilt.config["learn_threshold"] is True
