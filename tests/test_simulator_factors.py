@@ -154,6 +154,23 @@ def test_rotation_about_an_off_image_point_and_zoom_match_closed_form():
     assert np.abs(flow).max() > 3
 
 
+def test_accelerating_shaking_pan_matches_closed_form():
+    h, w = 20, 30
+    camera = AffineMotion(anchor=(14.5, 9.5), velocity=(30.0, -10.0), acceleration=(200.0, 50.0), shake_amp=(2.0, 1.0),
+                          shake_freq=(8.0, 5.0), shake_phase=(0.2, 0.9), camera=True)
+    scene = Scene(SceneConfig(0, h, w, camera))
+
+    def pan(t):  # T(t), per axis; a camera pan by T moves the image by -T
+        return np.array([30.0 * t + 100.0 * t * t + 2.0 * np.sin(2 * np.pi * 8.0 * t + 0.2),
+                         -10.0 * t + 25.0 * t * t + 1.0 * np.sin(2 * np.pi * 5.0 * t + 0.9)])
+
+    for t0, t1 in ((0.0, 0.033), (0.4, 0.5), (0.31, 0.29)):
+        flow = scene.flow(t0, t1)
+        expected = -(pan(t1) - pan(t0))
+        np.testing.assert_allclose(flow[0], expected[0], atol=1e-4)
+        np.testing.assert_allclose(flow[1], expected[1], atol=1e-4)
+
+
 def _camera(kind: str, h: int, w: int) -> AffineMotion:
     centre = ((w - 1) / 2.0, (h - 1) / 2.0)
     if kind == "roll-off-image":
