@@ -26,7 +26,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import gymnasium
 import numpy as np
@@ -73,10 +73,14 @@ class TrainConfig:
     loss: str = "hmc"  # "hmc", "at", "teacher" (regress per-window contrast-maximisation flows), or
     # "supervised" (endpoint error against ground truth: a reference bound, not the method)
     loss_mode: str = "window"  # "window" (per-window, default) or "accumulated"
-    loss_scales: str = "all"  # "all": every decoder scale, the loss averaged over scales; "finest": the finest only
-    upsampling: str = "bilinear"  # coarse scales to full resolution in the loss: "bilinear" or "nearest"
-    reference_times: str = "window"  # "window": references at the window bounds; "events": at the first/last event
-    at_normalisation: str = "event_pixels"  # L_AT over the pixels holding events, or "sum" (eq. 14 as printed)
+    # The loss readings the paper leaves open (docs/method.md): which decoder scales enter the loss
+    # (all, averaged; or the finest only), how coarse scales reach full resolution, where the two
+    # reference times sit (window bounds, or first/last event), and L_AT over the pixels holding
+    # events or as eq. 14's bare sum.
+    loss_scales: Literal["all", "finest"] = "all"
+    upsampling: Literal["bilinear", "nearest"] = "bilinear"
+    reference_times: Literal["window", "events"] = "window"
+    at_normalisation: Literal["event_pixels", "sum"] = "event_pixels"
     lambda_1: float = 1.0
     lambda_2: float = 1e-3
     alpha: float = 0.6
