@@ -2,6 +2,8 @@
 on full frames) for ``scripts/train.py --loss teacher --teacher-cache FILE``.
 
     python scripts/teacher_targets.py --data synthetic-train --out runs/teacher-targets/train.h5
+    python scripts/teacher_targets.py --data synthetic-dr-train:32 --out runs/teacher-targets/dr32.h5 \
+        --sensor-scales 4 2 1 --steps 40 30 30 --lr-per-frame 0.3 --lr-decay 10     # coarse sensor grid
     python scripts/train.py --loss teacher --teacher-cache runs/teacher-targets/train.h5 --window-size 1 2 3 4 ...
 
 Every window of every recording at each ``--window-size`` (frames) is solved; the file is
@@ -34,7 +36,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--window-size", type=int, nargs="+", default=[1, 2, 3, 4], help="window lengths in frames (default 1 2 3 4)")
     p.add_argument("--grids", type=int, nargs="+", default=list(d.grids),
                    help="coarse-to-fine grid cells along the longer side (default 4 8 16)")
-    p.add_argument("--steps", type=int, default=d.steps, help="Adam steps per level (default 40)")
+    p.add_argument("--steps", type=int, nargs="+", default=[d.steps],
+                   help="Adam steps per level: one for all levels, or one per level (default 40)")
+    p.add_argument("--sensor-scales", type=int, nargs="+", default=None,
+                   help="sensor-grid coarsening per level, e.g. 4 2 1 (default: sensor pixels throughout)")
+    p.add_argument("--lr-decay", type=float, default=d.lr_decay, help="step size falls by this factor over a solve")
     p.add_argument("--lr-per-frame", type=float, default=d.lr_per_frame,
                    help="Adam step size in pixels per frame of window length (default 0.05)")
     p.add_argument("--lambda-2", type=float, default=d.lambda_2, help="smoothness weight (default 0.01)")
@@ -54,8 +60,10 @@ def main(argv=None) -> int:
         print(f"{args.out} exists; delete it to recompute", file=sys.stderr)
         return 1
     data = args.data[0] if len(args.data) == 1 else args.data
-    settings = TeacherSettings(grids=tuple(args.grids), steps=args.steps, lr_per_frame=args.lr_per_frame,
-                               lambda_2=args.lambda_2, flow_scaling=args.flow_scaling)
+    steps = args.steps[0] if len(args.steps) == 1 else tuple(args.steps)
+    settings = TeacherSettings(grids=tuple(args.grids), steps=steps, lr_per_frame=args.lr_per_frame,
+                               lambda_2=args.lambda_2, flow_scaling=args.flow_scaling, lr_decay=args.lr_decay,
+                               sensor_scales=None if args.sensor_scales is None else tuple(args.sensor_scales))
     total = count_windows(data, args.window_size)
     bar = tqdm(total=total, unit="win", disable=args.no_progress)
     start = time.perf_counter()
