@@ -66,10 +66,11 @@ def flops_table(width: str = "paper", batch: int = 1, height: int = 256, size_w:
 
 
 def forward_latency_ms(model: nn.Module, height: int = 128, width: int = 128, *, device: str = "cpu",
-                       repeats: int = 20) -> float:
+                       repeats: int = 20, warmup: int = 5) -> float:
     """Median wall time (milliseconds) of one forward window of ``model`` with a carried state
-    (batch 1, ``height`` x ``width``, no gradients, the model's own layout), after two warm-up
-    windows; a machine shared with other jobs makes it longer."""
+    (batch 1, ``height`` x ``width``, no gradients, the model's own layout), after ``warmup``
+    untimed windows (the first calls compile kernels); a machine shared with other jobs makes it
+    longer."""
     import time
 
     x = torch.zeros(1, getattr(model, "in_channels", 2), height, width, device=device)
@@ -77,8 +78,9 @@ def forward_latency_ms(model: nn.Module, height: int = 128, width: int = 128, *,
     model = model.to(device)
     times = []
     with torch.no_grad():
-        _, state = model(x, None)
-        _, state = model(x, state)
+        state = None
+        for _ in range(warmup):
+            _, state = model(x, state)
         for _ in range(repeats):
             if device.startswith("cuda"):
                 torch.cuda.synchronize()

@@ -3,6 +3,7 @@ skips (agents/ablations.py, scripts/ablations.py)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -201,3 +202,7 @@ def test_the_runner_resumes_a_killed_configuration_and_skips_finished_ones(tmp_p
     AblationRunner(out, TINY, train, seeds=(0,), only=["mgr-hmc"], log=lambda _: None).run(report)
     assert calls == []  # finished: nothing trained again
     assert len((out / "rows.jsonl").read_text().splitlines()) == 1
+    longer = AblationRunner(out, dataclasses.replace(TINY, teacher_steps=4), train, seeds=(0,), only=["mgr-hmc"])
+    with pytest.raises(ValueError, match="another budget .*teacher_steps"):
+        longer.run(report)
+    assert calls == []
