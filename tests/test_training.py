@@ -203,7 +203,7 @@ def test_evaluate_script_writes_table_and_pictures(recording, tmp_path):
     evaluate_script.main(["--checkpoint", str(tmp_path / "run" / "checkpoint.pt"), "--zero", "--data", str(recording),
                           "--out", str(out), "--max-windows", "3", "--no-progress", "--json", str(tmp_path / "r.json")])
     table = (out / "table.md").read_text()
-    assert "| zero flow |" in table and "| run |" in table and "dt = 4 frames" in table
+    assert "| zero flow |" in table and "| run |" in table and "4 x ground-truth intervals" in table
     results = json.loads((tmp_path / "r.json").read_text())
     assert results["method"] == "run" and set(results["overall"]) >= {"dt1", "dt4", "fwl", "rsat"}
     zero = results["baselines"]["zero flow"]["sequences"]["dots"]
@@ -211,7 +211,7 @@ def test_evaluate_script_writes_table_and_pictures(recording, tmp_path):
     speed = np.hypot(200, 100)  # px/s of the recording's known motion
     assert zero["dt1"]["aee"] == pytest.approx(speed * 0.03, rel=1e-5)
     assert zero["dt4"]["aee"] == pytest.approx(speed * 0.12, rel=1e-5)  # 4 frames: chained ground truth
-    assert any(p.name.endswith("_flow.png") for p in (out / "pictures" / "dt1" / "run").iterdir())
+    assert any(p.name.endswith("_w000.png") for p in (out / "pictures" / "dt1" / "run").iterdir())
 
 
 def test_evaluate_without_ground_truth_reports_fwl_only(tmp_path):
@@ -224,7 +224,7 @@ def test_evaluate_without_ground_truth_reports_fwl_only(tmp_path):
     results = json.loads((tmp_path / "e" / "results.json").read_text())
     seq = results["sequences"]["nogt"]
     assert seq["dt1"]["aee"] is None and seq["fwl"] == pytest.approx(1.0) and seq["dt1"]["windows"] == 10  # 33.333 ms time windows over 300 ms
-    assert "| - / - |" in (tmp_path / "e" / "table.md").read_text()
+    assert "| - / - (0) |" in (tmp_path / "e" / "table.md").read_text()
 
 
 def test_bad_checkpoints_and_models_are_named(recording, tmp_path):
@@ -350,11 +350,13 @@ def test_main_job_runs_end_to_end_on_mini_data(tmp_path, capsys, stage):
     # the hmc stage starts from the shipped teacher model (CPU width); the teacher stage from scratch
     extra = ["--width", "4", "--teacher-steps", "2"] if stage == "teacher" else []
     main_script.main(["--demo-minutes", "0.01", "--demo-stage", stage, "--eval-data", "synthetic-mini", "--out", str(out),
+                      "--eval-windows", "2", *(["--no-cmax"] if stage == "hmc" else []),
                       "--", "--data", "synthetic-mini", "--num-envs", "2", "--unroll", "2", *extra])
     printed = capsys.readouterr().out
     assert ("teacher ratio" in printed) == (stage == "teacher")
     assert ("stage-1 model" in printed) == (stage == "hmc")
-    assert "| zero flow |" in (out / "eval" / "table.md").read_text()
+    table = (out / "eval" / "synthetic-mini" / "table.md").read_text()
+    assert "| zero flow |" in table and ("| contrast maximisation (no network) |" in table) == (stage == "teacher")
     assert (out / "demo" / "checkpoint.pt").exists() and "| demo model |" in (out / "demo-eval" / "table.md").read_text()
     assert "L_HMC ratio" in printed and "scripts/train.py --model ev-mgrflownet" in printed
 
