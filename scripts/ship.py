@@ -28,13 +28,13 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+CODE = ROOT  # the checkout whose train.py / evaluate.py run (--code: a fixed snapshot)
 
 
 def validation_score(checkpoint: Path, data: str, windows: int, out: Path) -> tuple[float, dict]:
     """Mean over dt = 1 and 4 of (model AEE / zero flow AEE) on ``data``, and the evaluation JSON."""
     out.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, str(ROOT / "scripts" / "evaluate.py"), "--checkpoint", str(checkpoint), "--name", "model",
+    cmd = [sys.executable, str(CODE / "scripts" / "evaluate.py"), "--checkpoint", str(checkpoint), "--name", "model",
            "--zero", "--data", data, "--dt", "1", "4", "--max-windows", str(windows), "--pictures", "0",
            "--no-progress", "--out", str(out)]
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
@@ -66,7 +66,13 @@ def main(argv=None) -> int:
     p.add_argument("--val-windows", type=int, default=8, help="windows per validation sequence")
     p.add_argument("--note", default="", help="what the run is, for the provenance")
     p.add_argument("--no-commit", action="store_true", help="export improved weights but do not commit them")
+    p.add_argument("--code", default=None,
+                   help="run training and validation from this checkout (e.g. a git worktree of a fixed commit, so "
+                        "edits to this one cannot disturb a long run); weights are still shipped into this one")
     args = p.parse_args(argv[:cut])
+    global CODE
+    CODE = Path(args.code).resolve() if args.code else ROOT
+    sys.path.insert(0, str(CODE))
     recipe = argv[cut + 1 :]
     out = Path(args.out)
     train_dir = out / "train"
@@ -87,7 +93,7 @@ def main(argv=None) -> int:
             cmd = [*recipe, "--out", str(train_dir), "--minutes", minutes, "--val-data", "",
                    *(["--init", init] if init else [])]
         print(f"[ship] chunk {chunk}: train.py {' '.join(cmd)}", flush=True)
-        subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), *cmd, "--no-progress"], check=True)
+        subprocess.run([sys.executable, str(CODE / "scripts" / "train.py"), *cmd, "--no-progress"], check=True)
         score, results = validation_score(checkpoint, args.val_data, args.val_windows, out / "val" / f"chunk{chunk}")
         best = shipped_score(args.name)
         record = {"chunk": chunk, "score": score, "best_before": best, "time": datetime.datetime.now().isoformat()}
@@ -105,7 +111,7 @@ def main(argv=None) -> int:
                                "definition": "mean over dt = 1 and 4 of AEE / zero flow's AEE", "step": steps},
                 "evaluation": results,
             }
-            export_pretrained(checkpoint, args.name, provenance)
+            export_pretrained(checkpoint, args.name, provenance, directory=ROOT / "agents" / "weights")
             record["shipped"] = True
             if not args.no_commit:
                 files = [f"agents/weights/{args.name}.pt", f"agents/weights/{args.name}.json"]
