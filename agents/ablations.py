@@ -143,7 +143,7 @@ class Budget:
                 "--crop", str(self.crop), str(self.crop), "--random-crop", "--flow-scaling", f"{self.flow_scaling:g}",
                 "--num-envs", str(self.num_envs), "--unroll", str(self.unroll)]
 
-    def teacher_options(self, targets: Path) -> list[str]:
+    def teacher_options(self, targets: Path | None) -> list[str]:
         """train.py options of stage 1 (main.py's CACHED_RECIPE with a decaying step size)."""
         return [*self.common_options(), "--loss", "teacher", "--teacher-cache", str(targets), "--teacher-pixels", "all",
                 "--window-size", *map(str, self.teacher_window_sizes), "--lr", f"{self.teacher_lr:g}",
@@ -249,11 +249,12 @@ class AblationRunner:
         seed, every other configuration's first seed, the full model's other seeds, then second
         seeds where :func:`needs_second_seed` says so. Returns the rows."""
         self.out.mkdir(parents=True, exist_ok=True)
-        with open(self.out / "runner.lock", "w") as lock:
+        with open(self.out / "runner.lock", "a") as lock:  # the lock goes with the process, however it ends
             try:
                 fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 raise RuntimeError(f"{self.out}: another ablation runner is working here (runner.lock)") from None
+            lock.truncate(0)
             lock.write(f"{os.getpid()}\n")
             lock.flush()
             self._check_budget()
@@ -354,8 +355,9 @@ class AblationRunner:
         for key, value in config.model_kwargs.items():
             model_options += ["--model-kwarg", f"{key}={json.dumps(value)}"]
         b = self.budget
-        checkpoint = self._stage(folder / "teacher", [*model_options, *b.teacher_options(self.targets(config.loss))],
-                                 b.teacher_steps, seed)
+        teacher = folder / "teacher"
+        targets = None if (teacher / "done.json").exists() else self.targets(config.loss)  # not needed once done
+        checkpoint = self._stage(teacher, [*model_options, *b.teacher_options(targets)], b.teacher_steps, seed)
         if b.finetune_steps:
             checkpoint = self._stage(folder / "finetune", [*model_options, *b.finetune_options(config.loss, checkpoint)],
                                      b.finetune_steps, seed)

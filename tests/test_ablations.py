@@ -206,3 +206,14 @@ def test_the_runner_resumes_a_killed_configuration_and_skips_finished_ones(tmp_p
     with pytest.raises(ValueError, match="another budget .*teacher_steps"):
         longer.run(report)
     assert calls == []
+
+
+def test_one_runner_per_folder(tmp_path):
+    import fcntl
+
+    tmp_path.joinpath("runner.lock").touch()
+    with open(tmp_path / "runner.lock", "a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        runner = AblationRunner(tmp_path, TINY, lambda argv: pytest.fail("trained"), seeds=(0,), only=["mgr-hmc"])
+        with pytest.raises(RuntimeError, match="another ablation runner"):
+            runner.run()
