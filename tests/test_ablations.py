@@ -217,3 +217,20 @@ def test_one_runner_per_folder(tmp_path):
         runner = AblationRunner(tmp_path, TINY, lambda argv: pytest.fail("trained"), seeds=(0,), only=["mgr-hmc"])
         with pytest.raises(RuntimeError, match="another ablation runner"):
             runner.run()
+
+
+def test_the_stages_are_the_recipe_of_main_py():
+    """Budget's two stages are scripts/main.py's CACHED_RECIPE and HMC_STAGE, but for what the
+    ablations change on purpose: the model and loss of the configuration, the targets file, the
+    decaying step size of the teacher stage and the step counts."""
+    import main as main_script
+
+    def config(argv: list[str]) -> dict:
+        return train_script.config_from_args(train_script.parse_args(argv)).to_dict()
+
+    budget = Budget()
+    recipe, ours = config(main_script.CACHED_RECIPE), config(budget.teacher_options(Path("targets.h5")))
+    differ = {key for key in recipe if recipe[key] != ours[key]}
+    assert differ == {"teacher_cache", "steps", "decay", "warmup_steps"}
+    recipe, ours = config(main_script.HMC_STAGE), config(budget.finetune_options("hmc", Path("teacher.pt")))
+    assert {key for key in recipe if recipe[key] != ours[key]} == {"steps"}
