@@ -314,11 +314,15 @@ class AblationRunner:
         """The teacher targets of ``loss`` on the training split, solved once (resumable)."""
         settings = dataclasses.replace(self.budget.teacher, lambda_1=1.0 if loss == "hmc" else 0.0)
         path = Path(self.given_targets.get(loss) or self.out / "targets" / f"{loss}.h5")
-        if path.exists():
+        if path.exists():  # solved earlier, or given: the same data, window lengths and solver
             stored = TeacherTargets(path).config
-            if float(stored.get("lambda_1", 1.0)) != settings.lambda_1:
-                raise ValueError(f"{path}: targets solved with lambda_1 = {stored.get('lambda_1')}, "
-                                 f"loss {loss!r} needs {settings.lambda_1}")
+            wanted = json.loads(json.dumps({"data": self.budget.train_data, **dataclasses.asdict(settings)}))
+            differ = sorted(key for key in wanted if stored.get(key) != wanted[key])
+            if not set(self.budget.teacher_window_sizes) <= set(stored.get("window_sizes", [])):
+                differ.append("window_sizes")
+            if differ:
+                raise ValueError(f"{path}: not the {loss} teacher's targets this budget asks for (differs in "
+                                 f"{', '.join(differ)}: {', '.join(f'{k}={stored.get(k)!r}' for k in differ)})")
             return path
         self.log(f"[ablations] solving the {loss} teacher's targets of {self.budget.train_data} into {path}")
         return compute_teacher_targets(self.budget.train_data, path, window_sizes=self.budget.teacher_window_sizes,

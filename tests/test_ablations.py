@@ -206,6 +206,10 @@ def test_the_runner_resumes_a_killed_configuration_and_skips_finished_ones(tmp_p
     with pytest.raises(ValueError, match="another budget .*teacher_steps"):
         longer.run(report)
     assert calls == []
+    # L_HMC targets given as L_AT ones (lambda_1 = 0) are refused, naming the difference
+    mixed = AblationRunner(out, TINY, train, seeds=(0,), targets={"at": str(out / "targets" / "hmc.h5")})
+    with pytest.raises(ValueError, match="lambda_1=1.0"):
+        mixed.targets("at")
 
 
 def test_one_runner_per_folder(tmp_path):
