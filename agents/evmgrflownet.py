@@ -22,13 +22,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 from .flownet import FlowNetBase, State, resolve_base_width
 from .layers import ConvDown, ConvGRU, STConvGRU, conv3x3, is_channels_last, use_gate_kernels
-
-try:  # the compiled inference pass of DeepMemoryUp; without numba the torch expressions serve
-    from . import _kernels
-except ImportError:  # pragma: no cover
-    _kernels = None
 
 
 def _shifted_upsampling_matrices(n_in: int, n_out: int, like: Tensor) -> Tensor:

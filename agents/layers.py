@@ -17,10 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-try:  # compiled CPU kernels of the gate arithmetic; without numba the torch expressions serve
-    from . import _kernels
-except ImportError:  # pragma: no cover
-    _kernels = None
+from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 
 _CHANNELS_LAST = torch.channels_last
 

@@ -35,9 +35,20 @@ import torch.distributed as dist
 from gymnasium.vector import AutoresetMode
 
 from envs.env import EventFlowEnv
-from losses import (AT_NORMALISATIONS, BORDER_RAMP, REFERENCE_TIMES, UPSAMPLINGS, EventBatch, accumulated_hmc_loss,
-                    at_loss, check_border_ramp, contrast_maximisation_flow, event_pixel_mask, hmc_loss,
-                    to_full_resolution)
+from losses import (
+    AT_NORMALISATIONS,
+    BORDER_RAMP,
+    REFERENCE_TIMES,
+    UPSAMPLINGS,
+    EventBatch,
+    accumulated_hmc_loss,
+    at_loss,
+    check_border_ramp,
+    contrast_maximisation_flow,
+    event_pixel_mask,
+    hmc_loss,
+    to_full_resolution,
+)
 
 from .checkpoint import rng_state, set_rng_state
 from .policy import RecurrentPolicy

@@ -9,7 +9,6 @@ pass and an arctan surrogate in the backward pass.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 

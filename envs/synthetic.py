@@ -52,7 +52,14 @@ import numpy as np
 from envs.h5format import H5Reader
 from envs.readers.base import EventReader, FlowGT
 from envs.simulator import SIMULATOR_VERSION, Scene, SceneConfig, SimulatedSequence, simulate
-from envs.simulator.randomize import RANDOMIZED_VERSION, STRESS_FACTORS, TRAIN_FACTORS, FactorRanges, draw_scene, draw_size
+from envs.simulator.randomize import (
+    RANDOMIZED_VERSION,
+    STRESS_FACTORS,
+    TRAIN_FACTORS,
+    FactorRanges,
+    draw_scene,
+    draw_size,
+)
 
 __all__ = [
     "SequenceSpec",
@@ -309,12 +316,12 @@ def load_sequence(split: str, index_or_name: int | str, *, disk_cache: bool = Tr
             _MEMORY[key] = (path, config)
             return reader
         except (OSError, ValueError) as err:  # unreadable cache file: simulate again
-            warnings.warn(f"ignoring unreadable cache file {path}: {err}")
+            warnings.warn(f"ignoring unreadable cache file {path}: {err}", stacklevel=2)
     sequence = spec.simulate()
     try:
         sequence.to_h5(path, name=spec.name, provenance={"split": _split_folder(split), "spec": asdict(spec)})
     except OSError as err:
-        warnings.warn(f"could not write the synthetic cache {path} ({err}); keeping {spec.name} in memory")
+        warnings.warn(f"could not write the synthetic cache {path} ({err}); keeping {spec.name} in memory", stacklevel=2)
         reader = sequence.reader(spec.name)
         _MEMORY[key] = reader
         return reader

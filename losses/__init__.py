@@ -9,13 +9,33 @@ from .average_timestamp import average_timestamp_loss
 from .contrast import contrast_maximisation_flow
 from .event_count import event_count_loss
 from .events import EventBatch
-from .hmc import (AT_NORMALISATIONS, BORDER_RAMP, REFERENCE_TIMES, UPSAMPLINGS, LossOutput, accumulated_hmc_loss,
-                  at_loss, check_border_ramp, hmc_loss, rebase_to_events, to_full_resolution)
+from .hmc import (
+    AT_NORMALISATIONS,
+    BORDER_RAMP,
+    REFERENCE_TIMES,
+    UPSAMPLINGS,
+    LossOutput,
+    accumulated_hmc_loss,
+    at_loss,
+    check_border_ramp,
+    hmc_loss,
+    rebase_to_events,
+    to_full_resolution,
+)
+from .image_terms import event_image_terms
 from .iwe import average_timestamp_images, warped_corners, warped_event_images
-from .metrics import dense_flow_error, dense_flow_error_torch, flow_error, flow_error_torch, fwl, fwl_torch, rsat, rsat_torch
+from .metrics import (
+    dense_flow_error,
+    dense_flow_error_torch,
+    flow_error,
+    flow_error_torch,
+    fwl,
+    fwl_torch,
+    rsat,
+    rsat_torch,
+)
 from .sampling import sample_flow
 from .smoothness import charbonnier_smoothness, event_pixel_mask
-from .image_terms import event_image_terms
 from .splat import bilinear_splat, crop_padding, padded_corners, splat_rows
 from .warp import forward_warp_flow, warp_events
 
@@ -31,6 +51,8 @@ __all__ = [
     "UPSAMPLINGS",
     "REFERENCE_TIMES",
     "AT_NORMALISATIONS",
+    "BORDER_RAMP",
+    "check_border_ramp",
     "sample_flow",
     "warp_events",
     "forward_warp_flow",

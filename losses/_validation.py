@@ -4,12 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 from .events import EventBatch
-
-try:  # compiled CPU check (one pass, no temporaries); without numba the torch path
-    from . import _kernels
-except ImportError:  # pragma: no cover
-    _kernels = None
 
 
 def check_flow(flow: torch.Tensor, name: str = "flow") -> None:

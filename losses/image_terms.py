@@ -109,10 +109,7 @@ class _EventImageTerms(torch.autograd.Function):
         return grad_u, None, None, None, None, None, None, None, None, None, None
 
 
-try:  # compiled CPU kernels; without numba the torch path serves CPU too
-    from . import _kernels
-except ImportError:  # pragma: no cover - numba is a dependency, but stay usable without it
-    _kernels = None
+from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 
 
 def compiled_available() -> bool:

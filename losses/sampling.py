@@ -5,10 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-try:  # compiled CPU kernel; without numba the torch path serves CPU too
-    from . import _kernels
-except ImportError:  # pragma: no cover
-    _kernels = None
+from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 
 __all__ = ["sample_flow"]
 

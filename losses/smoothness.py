@@ -12,10 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-try:  # compiled CPU kernel; without numba the torch path serves CPU too
-    from . import _kernels
-except ImportError:  # pragma: no cover
-    _kernels = None
+from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 
 __all__ = ["event_pixel_mask", "charbonnier_smoothness"]
 
@@ -94,7 +91,6 @@ class _Charbonnier(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_total):
         ia, ib, slope = ctx.saved_tensors
-        B = ctx.shape[0]
         hw = ctx.shape[2] * ctx.shape[3]
         g = slope * grad_total[ia[0] // (2 * hw)]
         grad = slope.new_zeros(ctx.shape).view(-1)

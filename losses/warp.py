@@ -5,12 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 from .splat import bilinear_splat
-
-try:  # compiled CPU kernel; without numba the torch path serves CPU too
-    from . import _kernels
-except ImportError:  # pragma: no cover
-    _kernels = None
 
 __all__ = ["warp_events", "forward_warp_flow", "outside_distance", "beyond_image", "HOLE_WEIGHT"]
 

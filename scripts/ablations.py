@@ -29,8 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import torch  # noqa: E402
-
 import train as train_script  # noqa: E402
+
 from agents.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped  # noqa: E402
 
 

@@ -46,10 +46,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
+import agents.pretrained as pretrained_module  # noqa: E402
 from agents.checkpoint import load_model  # noqa: E402
 from agents.evaluation import evaluate, results_json, results_table, windowing_of  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
-import agents.pretrained as pretrained_module  # noqa: E402
 from agents.registry import make_model  # noqa: E402
 
 

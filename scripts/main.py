@@ -94,7 +94,7 @@ def prepare_data(splits: list[str]) -> None:
     timed, with a progress bar per split: the demo's minutes then go to training only."""
     from tqdm import tqdm
 
-    from envs.synthetic import list_splits, list_sequences, load_sequence
+    from envs.synthetic import list_sequences, list_splits, load_sequence
 
     for split in dict.fromkeys(splits):
         if split not in list_splits():

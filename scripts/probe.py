@@ -20,9 +20,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import numpy as np  # noqa: E402
-
 import evaluate as evaluate_script  # noqa: E402
+import numpy as np  # noqa: E402
 import train as train_script  # noqa: E402
 
 

@@ -45,12 +45,12 @@ import torch  # noqa: E402
 import torch.distributed as dist  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from agents import pretrained as shipped  # noqa: E402
 from agents.checkpoint import load_checkpoint, save_checkpoint  # noqa: E402
-from envs.atomic import remove_stale_temporaries, temporary_path  # noqa: E402
 from agents.evaluation import evaluate  # noqa: E402
 from agents.learner import PRESETS, Learner, TrainConfig  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
-from agents import pretrained as shipped  # noqa: E402
+from envs.atomic import remove_stale_temporaries, temporary_path  # noqa: E402
 
 
 def parse_kv(items: list[str]) -> dict:

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import re
 
+import aedat  # noqa: F401  (the test extra: these tests must run, not skip)
 import numpy as np
 import pytest
 
-import aedat  # noqa: F401  (the test extra: these tests must run, not skip)
 from envs.events import EventError
 from envs.h5format import FormatError
 from envs.readers import open_recording
@@ -156,7 +156,7 @@ def test_a_cut_file_names_the_file(tmp_path, cache, compression):
     cut = tmp_path / "cut.aedat4"
     for size in (len(MAGIC) + 2, packets_start - 100, packets_start + 30, table_start // 2, table_start - 1):
         cut.write_bytes(data[:size])
-        with pytest.raises(FormatError, match=_at(cut) + rf": .*cannot be read \(.+\).*the file is cut short"):
+        with pytest.raises(FormatError, match=_at(cut) + r": .*cannot be read \(.+\).*the file is cut short"):
             open_recording(cut, cache_dir=cache)
     cut.write_bytes(data[: table_start + 10])  # only the data table is cut: every packet is there
     with open_recording(cut, cache_dir=cache) as r:

@@ -777,7 +777,7 @@ def test_xlif_layer_matches_its_equations_over_two_steps(recurrent):
     bound = (1 / 3) ** 0.5
     assert layer.ff.weight.abs().max() <= bound and layer.ff.bias is None
     state, v, z, pt = None, 0.0, 0.0, 0.0
-    for step in range(2):
+    for _ in range(2):
         x = (torch.rand(1, 3, 6, 8, dtype=torch.float64) * 4).requires_grad_()
         a, b = torch.sigmoid(layer.leak_v), torch.sigmoid(layer.leak_pt)
         current = _conv(x, layer.ff, stride=stride)

@@ -11,9 +11,9 @@ import pytest
 
 from agents.benchmarks import DSECProtocol, DSECSubmissionWriter, HotPixelFilter, MVSECProtocol, dsec_table
 from agents.evaluation import evaluate, results_table
-from envs.readers.dsec import DSECReader, decode_flow_png, encode_flow_png, read_test_timestamps
-from envs.readers.mvsec import MVSECReader, mvsec_eval_windows, mvsec_hood_row, mvsec_scored_span
 from envs.h5format import FormatError
+from envs.readers.dsec import decode_flow_png, encode_flow_png, read_test_timestamps
+from envs.readers.mvsec import MVSECReader, mvsec_eval_windows, mvsec_hood_row, mvsec_scored_span
 from losses.metrics import dense_flow_error
 from tests.test_readers import T_OFFSET, write_dsec, write_mvsec
 
@@ -188,7 +188,7 @@ def test_mvsec_protocol_refuses_bad_choices():
 
 # ----------------------------------------------------------------------------------------- DSEC
 def _brute_force_dsec(flow, gt, valid):
-    epe, ae, n = [], [], 0
+    epe, ae = [], []
     for yy in range(gt.shape[1]):
         for xx in range(gt.shape[2]):
             if not valid[yy, xx]:

@@ -4,7 +4,6 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 
-import envs  # registers the ids
 from envs.env import EventFlowEnv
 from envs.h5format import H5Reader
 from losses import EventBatch, hmc_loss
@@ -243,7 +242,6 @@ def test_make_and_make_vec(recording):
         assert obs["count_image"].shape == (2, 2, 48, 64)
         obs, reward, term, trunc, info = vec.step(np.zeros((2, 2, 48, 64), np.float32))
         assert reward.shape == (2,) and np.all(reward < 0)
-        lengths = {len(info["events"][i]["t"]) for i in range(2)}  # windows of different lengths
         assert all(len(info["events"][i]["x"]) == n for i, n in enumerate(len(info["events"][i]["t"]) for i in range(2)))
         vec.close()
 

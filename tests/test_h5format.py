@@ -1,10 +1,9 @@
-import json
 
 import h5py
 import numpy as np
 import pytest
 
-from envs.events import EventError, Events
+from envs.events import EventError
 from envs.h5format import FormatError, H5Reader, H5Writer, write_h5
 from tests.conftest import random_events
 

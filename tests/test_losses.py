@@ -18,11 +18,13 @@ from losses import (
     event_pixel_mask,
     forward_warp_flow,
     hmc_loss,
+    image_terms,
     sample_flow,
+    sampling,
+    smoothness,
+    warp,
     warped_event_images,
 )
-
-from losses import image_terms, sampling, smoothness, warp
 
 RTOL = 1e-6
 
@@ -93,7 +95,7 @@ def ref_smooth(flow, x, y, scaling, eps=1e-3):
             has[r, c] = True
     f = flow / scaling
     total = 0.0
-    for dr, dc, r0 in ((0, 1, 0), (1, 0, 0), (1, 1, 0), (-1, 1, 1)):  # right, down, d-right, up-right
+    for dr, dc, _ in ((0, 1, 0), (1, 0, 0), (1, 1, 0), (-1, 1, 1)):  # right, down, d-right, up-right
         for r in range(H):
             for c in range(W):
                 r2, c2 = r + dr, c + dc

@@ -106,8 +106,9 @@ def test_predict_script_on_a_prophesee_file_with_per_event_flow(tmp_path, plugin
     import json
     from pathlib import Path
 
-    from envs.readers import open_recording
     from test_prophesee import evt3_words, raw_header, sorted_events, write
+
+    from envs.readers import open_recording
 
     monkeypatch.setenv("EVFLOW_CACHE", str(tmp_path / "cache"))
     x, y, t, p = sorted_events(rng, 5000, (48, 64), 1_000, 300_000, clustered=True)

@@ -17,7 +17,7 @@ import pytest
 
 from envs.simulator import AffineMotion, EventEmulator, Scene, SceneConfig, SensorConfig, TextureConfig, simulate
 from envs.simulator.export import OUTPUT_FORMATS, write_sequence
-from envs.simulator.randomize import STRESS_FACTORS, TRAIN_FACTORS, draw_scene, peak_flow_px
+from envs.simulator.randomize import STRESS_FACTORS, TRAIN_FACTORS, peak_flow_px
 from envs.simulator.textures import make_texture
 from envs.synthetic import (
     SyntheticH5Reader,

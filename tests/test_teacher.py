@@ -12,7 +12,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from agents.teacher import FORMAT, TeacherCacheError, TeacherSettings, TeacherTargets, compute_teacher_targets, count_windows
+from agents.teacher import (
+    FORMAT,
+    TeacherCacheError,
+    TeacherSettings,
+    TeacherTargets,
+    compute_teacher_targets,
+    count_windows,
+)
 from envs.env import EventFlowEnv
 from losses import EventBatch, contrast_maximisation_flow
 from tests.recordings import write_translating_recording

@@ -188,7 +188,7 @@ def test_voxel_grid_input_trains_and_evaluates(recording, tmp_path):
 def test_checkpoint_write_is_atomic_and_checked(tmp_path):
     path = save_checkpoint(tmp_path / "c.pt", {"model_name": "ev-flownet", "model_config": {}, "model": {}})
     before = path.read_bytes()
-    with pytest.raises(Exception):
+    with pytest.raises(Exception):  # noqa: B017 - whatever pickle raises, the old file stays
         save_checkpoint(path, {"model_name": "x", "model_config": {}, "model": {}, "bad": lambda: 0})
     assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["c.pt"]
     (tmp_path / "junk.pt").write_bytes(b"garbage")
@@ -259,8 +259,9 @@ def test_two_process_ddp_smoke(recording, tmp_path):
 
 
 def test_export_and_load_pretrained_by_name(recording, tmp_path, monkeypatch):
-    import agents.pretrained as pretrained
     import export_model as export_script
+
+    import agents.pretrained as pretrained
 
     train_script.main(["--data", str(recording), "--input", "voxel_grid", "--voxel-bins", "3", "--width", "4",
                        "--num-envs", "1", "--unroll", "2", "--steps", "2", "--out", str(tmp_path / "run"),

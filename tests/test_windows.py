@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from envs.h5format import write_h5, H5Reader
+from envs.h5format import H5Reader, write_h5
 from envs.readers import ArrayReader
 from envs.windows import iter_windows, window_bounds, window_grid
 from tests.conftest import random_events

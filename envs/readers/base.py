@@ -86,7 +86,7 @@ class EventReader(ABC):
         raise KeyError(f"{self.name}: this recording has no frames")
 
     # --- lifecycle ---------------------------------------------------------------------
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - a reader without open files has nothing to close
         pass
 
     def __enter__(self):

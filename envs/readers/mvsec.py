@@ -48,8 +48,16 @@ import numpy as np
 
 from envs.events import Events
 from envs.h5format import FormatError
-from envs.readers._common import (SortedColumn, check_finite, check_pixel_coordinates, crop_events, open_h5, require,
-                                  resolve_crop, seconds_to_us)
+from envs.readers._common import (
+    SortedColumn,
+    check_finite,
+    check_pixel_coordinates,
+    crop_events,
+    open_h5,
+    require,
+    resolve_crop,
+    seconds_to_us,
+)
 from envs.readers.base import EventReader, FlowGT
 from envs.readers.flowgt import flow_from_displacements, valid_of
 
