@@ -294,6 +294,8 @@ class AblationRunner:
             f.write(json.dumps(row, default=str) + "\n")
             f.flush()
             os.fsync(f.fileno())
+        split, dt = self.budget.eval_splits[0], f"dt{self.budget.eval_dts[0]}"
+        self.log(f"[ablations] {name} seed {seed}: done, {split} {dt} AEE {row['eval'][split][dt]['aee']}")
         self.write_outputs(report)
 
     def write_outputs(self, report: Path | None = None) -> str:
