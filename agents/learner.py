@@ -24,8 +24,9 @@ takes the same number of optimizer steps whatever the length of its shard.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import gymnasium
@@ -36,10 +37,7 @@ from gymnasium.vector import AutoresetMode
 
 from envs.env import EventFlowEnv
 from losses import (
-    AT_NORMALISATIONS,
     BORDER_RAMP,
-    REFERENCE_TIMES,
-    UPSAMPLINGS,
     EventBatch,
     accumulated_hmc_loss,
     at_loss,
@@ -51,97 +49,176 @@ from losses import (
 )
 
 from .checkpoint import rng_state, set_rng_state
+from .options import check_choices, choices_of, option, to_argv
 from .policy import RecurrentPolicy
 from .registry import make_model
 from .teacher import TeacherTargets
 
-__all__ = ["TrainConfig", "Learner", "make_vector_env", "PRESETS", "preset_config", "CHOICES"]
+__all__ = ["TrainConfig", "Learner", "make_vector_env", "PRESETS", "preset_config", "preset_options", "CHOICES"]
+
+
+def _width(text: str | int) -> str | int:
+    """'paper', 'cpu' or an integer base width (given as digits on the command line)."""
+    return int(text) if str(text).isdigit() else text
+
+
+def _one_or_list(values):
+    """Several command-line values as a list, one as itself (a field value passes unchanged)."""
+    return values[0] if isinstance(values, list) and len(values) == 1 else values
+
+
+def _key_values(items) -> dict:
+    """``KEY=VALUE`` items (VALUE read as JSON where it parses) as a dict; a dict passes unchanged."""
+    if isinstance(items, dict):
+        return items
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--model-kwarg expects key=value, got {item!r}")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
 
 
 @dataclass
 class TrainConfig:
-    """Everything a training run depends on (saved in every checkpoint)."""
+    """Everything a training run depends on (saved in every checkpoint). Each field is one option
+    of ``scripts/train.py`` (agents/options.py writes the command line from this class); the
+    string under a field is its help."""
 
-    model: str = "ev-mgrflownet"  # registry name or package.module:factory
-    width: str | int = "cpu"  # "paper" (base width 32), "cpu" (8) or an int
-    model_kwargs: dict = field(default_factory=dict)  # e.g. {"use_st_convgru": False}
-    input: str = "count_image"  # "count_image" (paper eq. 2), "voxel_grid" or "count_time_image" (EV-FlowNet's)
+    model: str = "ev-mgrflownet"
+    """registry name (ev-mgrflownet; the published baselines ev-flownet (with --input count_time_image),
+    convgru-ev-flownet, xlif-ev-flownet; unet-feedforward, unet-convgru, unet-xlif-encoder) or package.module:factory"""
+    width: str | int = option("cpu", type=_width)
+    """'paper' (base width 32), 'cpu' (8) or an integer base width"""
+    model_kwargs: dict = option(flag="--model-kwarg", action="append", metavar="KEY=VALUE", convert=_key_values,
+                                default_factory=dict)
+    """extra model argument, e.g. use_st_convgru=false (repeatable)"""
+    input: Literal["count_image", "voxel_grid", "count_time_image"] = "count_image"
+    """network input: the paper's 2-channel count image (eq. 2), a voxel grid (--voxel-bins), or EV-FlowNet's
+    4-channel counts and latest timestamps"""
     voxel_bins: int = 5
-    data: Any = "synthetic-train"
-    window: str = "frames"
-    window_size: int | list | None = None  # a list: one size drawn per episode
-    crop: tuple | None = None
-    random_crop: bool = False  # a new random crop position per episode (train on small crops)
-    flips: bool = True  # Hagenaars: h/v/polarity flips, once per sequence
-    num_envs: int = 4  # B, sequences rolled out in parallel
-    vector: str = "sync"  # "sync" or "async"
-    unroll: int = 10  # L, windows per truncated-BPTT update (paper)
-    steps: int = 1000  # optimizer steps
-    lr: float = 1e-4  # paper
+    """time bins of the voxel-grid input"""
+    data: Any = option("synthetic-train", nargs="+", convert=_one_or_list)
+    """synthetic split name, recording files or directories"""
+    window: Literal["frames", "time", "count"] = "frames"
+    """how a window is cut: ground-truth frames, a time span or an event count"""
+    window_size: int | list[int] | None = option(None, nargs="+", type=int, convert=_one_or_list)
+    """frames: grid steps (1); time: us (10000); count: events (15000); several values: one drawn per episode"""
+    crop: tuple[int, ...] | None = None
+    """H W (centred) or TOP LEFT H W"""
+    random_crop: bool = False
+    """place the --crop H W window at a random position in each episode (validation uses whole frames)"""
+    flips: bool = True
+    """Hagenaars' random h/v/polarity flips, once per sequence (--no-flips: off)"""
+    num_envs: int = 4
+    """B, sequences rolled out in parallel"""
+    vector: Literal["sync", "async"] = "sync"
+    """gymnasium vector env: in this process or in worker processes"""
+    unroll: int = 10
+    """L, windows per truncated-BPTT update (paper: 10)"""
+    steps: int = 1000
+    """total optimizer steps"""
+    lr: float = 1e-4
+    """Adam step size (paper)"""
     warmup_steps: int = 0
-    decay: str = "none"  # "none" or "cosine"
-    grad_clip: float = 100.0  # Hagenaars
-    loss: str = "hmc"  # "hmc", "at", "teacher" (regress per-window contrast-maximisation flows), or
-    # "supervised" (endpoint error against ground truth: a reference bound, not the method)
-    loss_mode: str = "window"  # "window" (per-window, default) or "accumulated"
-    # The loss readings the paper leaves open (docs/method.md): which decoder scales enter the loss
-    # (all, averaged; or the finest only), how coarse scales reach full resolution, where the two
-    # reference times sit (window bounds, or first/last event), and L_AT over the pixels holding
-    # events or as eq. 14's bare sum.
+    """steps of linear warm-up of the step size"""
+    decay: Literal["none", "cosine"] = "none"
+    """step-size decay over --steps"""
+    grad_clip: float = 100.0
+    """gradient norm clip (Hagenaars)"""
+    loss: Literal["hmc", "at", "teacher", "supervised"] = "hmc"
+    """hmc (paper), at (baseline), teacher (regress per-window contrast-maximisation flows of L_HMC: unsupervised),
+    supervised (endpoint error vs ground truth: a reference bound, not the method)"""
+    loss_mode: Literal["window", "accumulated"] = "window"
+    """window: the mean of the L per-window losses; accumulated: one loss over the events of all L windows
+    (Hagenaars' sequential learning, window k's events at k + tau, references 0 and L)"""
+    # The loss readings the paper leaves open (docs/method.md).
     loss_scales: Literal["all", "finest"] = "all"
+    """all: every decoder scale's flow in the loss, averaged; finest: the full-resolution flow only"""
     upsampling: Literal["bilinear", "nearest"] = "bilinear"
+    """how coarse scales' flows reach full resolution in the loss"""
     reference_times: Literal["window", "events"] = "window"
+    """window: references at the window bounds; events: at the first and last event"""
     at_normalisation: Literal["event_pixels", "sum"] = "event_pixels"
+    """L_AT over the pixels holding events, or sum: eq. 14's bare sum"""
     lambda_1: float = 1.0
+    """weight of the event-count term in L_HMC (eq. 17)"""
     lambda_2: float = 1e-3
+    """weight of the smoothness term (eq. 17)"""
     alpha: float = 0.6
-    border_penalty: float = 1.0  # border rule: weight x zero-flow loss x share of events pushed out (0 = paper)
-    border_ramp: float = BORDER_RAMP  # the rule's ramp, pixels beyond the border (0: the plain share)
-    flow_scaling: float | None = None  # default max(H, W)
-    teacher_grids: tuple = (4, 8)  # loss "teacher": coarse-to-fine cells along the longer side
-    teacher_steps: int = 40  # Adam steps per level
-    teacher_lr: float = 0.05  # pixels
-    teacher_lambda_2: float = 1e-2  # the teacher's smoothness weight
-    teacher_pixels: str = "events"  # where the network is regressed onto the teacher: "events" or "all"
-    teacher_max_events: int | None = None  # the teacher solves on at most this many events per window (evenly subsampled)
-    teacher_cache: str | None = None  # precomputed targets (agents/teacher.py) instead of solving every update
-    head_init: float | None = None  # re-draw the flow heads' weights from U(-a, a), biases 0: start near zero flow
+    """Charbonnier exponent of the smoothness term (eq. 16)"""
+    border_penalty: float = 1.0
+    """border rule weight: x zero-flow loss x share of events pushed out of the image (0: the paper's loss)"""
+    border_ramp: float = BORDER_RAMP
+    """border rule ramp in pixels: an event landing d px beyond the image pays min(1, d / ramp) of its share
+    (0: the whole share however near)"""
+    flow_scaling: float | None = None
+    """pixels per network unit (default max(H, W))"""
+    teacher_grids: tuple[int, ...] = (4, 8)
+    """teacher: coarse-to-fine grid cells along the longer side"""
+    teacher_steps: int = 40
+    """teacher: Adam steps per level"""
+    teacher_lr: float = 0.05
+    """teacher: Adam step size (pixels)"""
+    teacher_lambda_2: float = 1e-2
+    """teacher: smoothness weight"""
+    teacher_pixels: Literal["events", "all"] = "events"
+    """teacher: regress on pixels holding events, or on every pixel"""
+    teacher_max_events: int | None = None
+    """teacher: solve on at most this many events per window, evenly subsampled (default: all)"""
+    teacher_cache: str | None = None
+    """teacher: precomputed targets (scripts/teacher_targets.py) instead of solving every update"""
+    head_init: float | None = option(None, metavar="A")
+    """re-draw the flow heads' weights from U(-A, A), biases 0 (start near zero flow)"""
     seed: int = 0
+    """seeds the initial weights, the episodes and the flips"""
     device: str = "cpu"
+    """torch device"""
+
+    def __post_init__(self) -> None:
+        check_choices(self)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
     def check(self) -> None:
         """ValueError naming the field and the allowed values for a choice that is not one."""
-        for name, allowed in CHOICES.items():
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"TrainConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        check_choices(self)
 
 
-#: The allowed values of the config's choices (checked by ``TrainConfig.check``).
-CHOICES: dict[str, tuple] = {
-    "input": ("count_image", "voxel_grid", "count_time_image"),
-    "loss": ("hmc", "at", "teacher", "supervised"),
-    "loss_mode": ("window", "accumulated"),
-    "loss_scales": ("all", "finest"),
-    "upsampling": UPSAMPLINGS,
-    "reference_times": REFERENCE_TIMES,
-    "at_normalisation": AT_NORMALISATIONS,
-}
+#: The allowed values of the config's choices (its Literal fields).
+CHOICES: dict[str, tuple] = choices_of(TrainConfig)
+
+_RECIPE = {"model": "ev-mgrflownet", "width": "cpu", "input": "voxel_grid", "crop": (64, 64), "random_crop": True,
+           "flow_scaling": 32.0, "num_envs": 8, "unroll": 4}
 
 #: Named recipes: TrainConfig values a preset sets (options given beside it still win).
-#: "paper": Zhuang et al. 2024, sec. IV-A: EV-MGRFlowNet at the paper's width on count images,
-#: all four scales' flows in the loss, Adam at 1e-4, L = 10 windows per update, and L_HMC over
-#: those windows as Hagenaars' sequential learning (one loss over the events of all L windows,
-#: references 0 and L). The border rule stays on (docs/method.md says why; --border-penalty 0
-#: gives the paper's bare loss).
 PRESETS: dict[str, dict[str, Any]] = {
+    # Zhuang et al. 2024, sec. IV-A: EV-MGRFlowNet at the paper's width on count images, all four
+    # scales' flows in the loss, Adam at 1e-4, L = 10 windows per update, and L_HMC over those
+    # windows as Hagenaars' sequential learning (one loss over the events of all L windows,
+    # references 0 and L). The border rule stays on (docs/method.md says why; --border-penalty 0
+    # gives the paper's bare loss).
     "paper": {
         "model": "ev-mgrflownet", "width": "paper", "input": "count_image", "lr": 1e-4, "unroll": 10,
         "loss": "hmc", "loss_mode": "accumulated", "loss_scales": "all", "lambda_1": 1.0, "lambda_2": 1e-3,
         "alpha": 0.6, "grad_clip": 100.0, "decay": "none", "warmup_steps": 0,
     },
+    # The project's recipe (docs/results.md), stage 1: distil the per-window contrast-maximisation
+    # teacher of L_HMC from targets solved once (scripts/teacher_targets.py); the shipped
+    # ev-mgrflownet-cpu-synthetic was trained this way (its provenance gives the command).
+    "teacher-cached": {**_RECIPE, "loss": "teacher", "teacher_cache": "runs/teacher-targets/train.h5",
+                       "teacher_pixels": "all", "window_size": [1, 2, 3, 4], "lr": 1e-3, "head_init": 0.1},
+    # stage 1 solving the teacher inside every update (no wait for the targets: the main job's demo)
+    "teacher": {**_RECIPE, "loss": "teacher", "window_size": [1, 2, 3, 4], "lr": 1e-3, "head_init": 0.1,
+                "teacher_steps": 20, "teacher_pixels": "all", "teacher_max_events": 8000},
+    # stage 2: the paper's per-window L_HMC (the env's reward, ramped border rule) from stage 1
+    # (ev-mgrflownet-cpu-synthetic-hmc's provenance)
+    "hmc-stage": {**_RECIPE, "loss": "hmc", "window_size": 4, "lr": 3e-4},
 }
 
 
@@ -150,6 +227,11 @@ def preset_config(name: str, **overrides) -> TrainConfig:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; presets: {sorted(PRESETS)}")
     return TrainConfig(**{**PRESETS[name], **overrides})
+
+
+def preset_options(name: str) -> list[str]:
+    """The scripts/train.py options that spell out preset ``name``."""
+    return to_argv(TrainConfig, PRESETS[name])
 
 
 def _width_kwargs(width) -> dict:

@@ -26,12 +26,11 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import torch  # noqa: E402
-import train as train_script  # noqa: E402
 
 from agents.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped  # noqa: E402
+from agents.commands import train as train_script  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,75 +1,12 @@
-"""Simulate a named synthetic split (envs.synthetic) into files, one per sequence.
+#!/usr/bin/env python
+"""Generate the synthetic splits to files or the disk cache (agents/commands/generate.py; console command evflow-generate)."""
 
-    python scripts/generate_synthetic.py --split synthetic-train --out data/synthetic-train
-    python scripts/generate_synthetic.py --split synthetic-test --out data/synthetic-test --num 2
-    python scripts/generate_synthetic.py --split synthetic-stress --out data/stress --format hagenaars
-    python scripts/generate_synthetic.py --split synthetic-dr-train:2000 --cache --workers 2
-
-Formats (--format): evflow-h5 (default: events, 30 Hz frames, exact flow between consecutive
-frames; see envs/h5format.py), hagenaars (the event_flow / HQF h5 layout, same content, but
-its readers take exactly zero flow as invalid: still backgrounds lose their ground truth),
-ecd-text (a folder per sequence: events.txt, images.txt, frames; no flow). Every output records
-the split, the sequence spec, the full scene config and the simulator version.
-
---cache fills the disk cache that training reads (envs.synthetic.load_sequence, under
-$EVFLOW_CACHE) instead of a folder: run it before training, or beside it in the background,
-so that training does not wait on the simulator. Existing files are skipped unless --overwrite.
-"""
-
-from __future__ import annotations
-
-import argparse
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from envs.simulator.export import OUTPUT_FORMATS  # noqa: E402
-from envs.synthetic import DR_TRAIN, SPLITS, generate_split, list_sequences  # noqa: E402
-
-
-def split_name(text: str) -> str:
-    """argparse type: a known split, or synthetic-dr-train:N."""
-    try:
-        list_sequences(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
-    return text
-
-
-def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        description="Simulate a named synthetic split into files (events, frames, exact flow).",
-        epilog="Splits: " + "; ".join(f"{name} ({len(specs)} sequences)" for name, specs in SPLITS.items())
-        + f"; {DR_TRAIN}:N (its first N sequences, any N)",
-    )
-    parser.add_argument("--split", required=True, type=split_name, help="which split to generate")
-    where = parser.add_mutually_exclusive_group(required=True)
-    where.add_argument("--out", type=Path, help="output folder (created); outputs are named after the sequences")
-    where.add_argument("--cache", action="store_true", help="fill the disk cache that training reads ($EVFLOW_CACHE)")
-    parser.add_argument("--format", default="evflow-h5", choices=OUTPUT_FORMATS, help="output format (default evflow-h5)")
-    parser.add_argument("--num", type=int, default=None, help="only the first N sequences of the split")
-    parser.add_argument("--workers", type=int, default=1, help="simulate in this many processes (default 1)")
-    parser.add_argument("--overwrite", action="store_true", help="re-simulate files that already exist")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return parser.parse_args(argv)
-
-
-def main(argv=None) -> list[Path]:
-    args = parse_args(argv)
-    if args.cache and args.format != "evflow-h5":
-        raise SystemExit("--cache holds evflow-h5 files only; use --out for other formats")
-    start = time.perf_counter()
-    written = generate_split(
-        args.split, None if args.cache else args.out, fmt=args.format, num=args.num, workers=args.workers,
-        overwrite=args.overwrite, progress=not args.no_progress,
-    )
-    total = len(list_sequences(args.split)[: args.num])
-    where = "the disk cache" if args.cache else args.out
-    print(f"{args.split}: wrote {len(written)} of {total} sequences to {where} in {time.perf_counter() - start:.1f} s")
-    return written
-
+from agents.commands.generate import main  # noqa: E402
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

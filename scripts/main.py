@@ -32,30 +32,22 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import evaluate as evaluate_script  # noqa: E402
-import train as train_script  # noqa: E402
-
+from agents.commands import evaluate as evaluate_command  # noqa: E402
+from agents.commands import train as train_command  # noqa: E402
+from agents.learner import preset_options  # noqa: E402
 from agents.pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info  # noqa: E402
 
-#: The project's recipe (docs/results.md says how it was found and how far it gets).
-#: Stage 1: distil the per-window contrast-maximisation teacher (from scratch). The full run
-#: solves the teacher once (TARGETS) and trains on the stored targets (CACHED_RECIPE); the demo
-#: of stage 1 (--demo-stage teacher) solves it inside every update (RECIPE: no 20-minute wait).
+#: The project's recipe (docs/results.md says how it was found and how far it gets), as train.py
+#: presets (agents.learner.PRESETS). Stage 1: distil the per-window contrast-maximisation teacher
+#: (from scratch). The full run solves the teacher once (TARGETS) and trains on the stored targets
+#: (CACHED_RECIPE, preset teacher-cached); the demo of stage 1 (--demo-stage teacher) solves it
+#: inside every update (RECIPE, preset teacher: no 20-minute wait).
 TARGETS = ["--data", "synthetic-train", "--out", "runs/teacher-targets/train.h5"]
-CACHED_RECIPE = ["--model", "ev-mgrflownet", "--width", "cpu", "--input", "voxel_grid", "--loss", "teacher",
-                 "--teacher-cache", "runs/teacher-targets/train.h5", "--teacher-pixels", "all",
-                 "--crop", "64", "64", "--random-crop", "--window-size", "1", "2", "3", "4", "--flow-scaling", "32",
-                 "--lr", "1e-3", "--head-init", "0.1", "--num-envs", "8", "--unroll", "4"]
-RECIPE = ["--model", "ev-mgrflownet", "--width", "cpu", "--input", "voxel_grid", "--loss", "teacher",
-          "--crop", "64", "64", "--random-crop", "--window-size", "1", "2", "3", "4", "--flow-scaling", "32",
-          "--lr", "1e-3", "--head-init", "0.1", "--num-envs", "8", "--unroll", "4", "--teacher-steps", "20",
-          "--teacher-pixels", "all", "--teacher-max-events", "8000"]
+CACHED_RECIPE = preset_options("teacher-cached")
+RECIPE = preset_options("teacher")
 #: Stage 2: the paper's per-window L_HMC (the env's reward, ramped border rule), from stage 1.
-HMC_STAGE = ["--model", "ev-mgrflownet", "--width", "cpu", "--input", "voxel_grid", "--loss", "hmc",
-             "--crop", "64", "64", "--random-crop", "--window-size", "4", "--flow-scaling", "32", "--lr", "3e-4",
-             "--num-envs", "8", "--unroll", "4"]
+HMC_STAGE = preset_options("hmc-stage")
 TEACHER_MODEL = DEFAULT_PRETRAINED  # stage 1 (the cached-teacher run T3), shipped as the default
 #: What step 1 evaluates, and on how many windows per sequence (all rows on the same windows).
 EVAL_SPLITS = ["synthetic-test", "synthetic-stress"]
@@ -137,7 +129,7 @@ def main(argv=None) -> int:
         else:
             print(f"\n[main] 1/3 no pretrained model ships in agents/weights/: zero flow on {data}", flush=True)
             rows_here = ["--zero", *rows]
-        evaluate_script.main([*rows_here, "--data", data, *windows, "--out", str(out / "eval" / name),
+        evaluate_command.main([*rows_here, "--data", data, *windows, "--out", str(out / "eval" / name),
                               "--no-progress", *device])
 
     if args.demo_minutes > 0:
@@ -153,18 +145,18 @@ def main(argv=None) -> int:
             print(f"\n[main] 2/3 training demo: {args.demo_minutes:g} min of the recipe's stage 1 (teacher) from scratch",
                   flush=True)
             recipe = RECIPE
-        train_script.main([*recipe, "--minutes", str(args.demo_minutes), "--steps", "1000000",
+        train_command.main([*recipe, "--minutes", str(args.demo_minutes), "--steps", "1000000",
                            "--out", str(out / "demo"), "--val-data", "", "--no-progress", *device, *extra])
         demo_summary(out / "demo" / "metrics.jsonl")
-        evaluate_script.main(["--checkpoint", str(out / "demo" / "checkpoint.pt"), "--name", "demo model", "--zero",
+        evaluate_command.main(["--checkpoint", str(out / "demo" / "checkpoint.pt"), "--name", "demo model", "--zero",
                               "--data", args.eval_data[0], "--dt", "1", "4", "--max-windows", "15", "--pictures", "0",
                               "--out", str(out / "demo-eval"), "--no-progress", *device])
 
     print("\n[main] 3/3 the full training of the recipe (resumable; --device cuda on a GPU):")
     print("  targets:  python scripts/teacher_targets.py " + " ".join(TARGETS) + "    # once, ~25 min on 2 cores")
-    print("  stage 1:  python scripts/train.py " + " ".join(CACHED_RECIPE) + " --steps 20000 --out runs/recipe")
+    print("  stage 1:  python scripts/train.py --preset teacher-cached --steps 20000 --out runs/recipe")
     print("            python scripts/train.py --resume --out runs/recipe --steps 40000    # continue later")
-    print("  stage 2:  python scripts/train.py " + " ".join(HMC_STAGE) + " --init runs/recipe/checkpoint.pt "
+    print("  stage 2:  python scripts/train.py --preset hmc-stage --init runs/recipe/checkpoint.pt "
           "--steps 20000 --out runs/recipe-hmc")
     print("  (then optionally --window-size 1 2 3 4 --lr 1e-4 from stage 2's checkpoint for short windows;"
           " docs/results.md)")

@@ -1,89 +1,12 @@
 #!/usr/bin/env python
-"""Optical flow for a recording: every window's flow to an h5 file, a preview animation of
-events and colour-coded flow side by side, and a summary against zero flow.
+"""Predict flow for a recording with a trained or shipped model (agents/commands/predict.py; console command evflow-predict)."""
 
-Examples:
-  python scripts/predict.py recording.raw                                # shipped model, 33 ms windows
-  python scripts/predict.py recording.dat --window time --window-size 20000 --start 5 --end 15
-  python scripts/predict.py rec.h5 --model runs/mgr/checkpoint.pt --per-event --device cuda
-  python scripts/predict.py rec.h5 --model mypkg.models:build          # an (untrained) plug-in
-
---model: a shipped model name (agents/weights/, default the project's default model), a
-checkpoint file, or a registry name / package.module:factory. Recordings in any supported
-format (envs/readers: Prophesee RAW / DAT, AEDAT4, MVSEC, DSEC, project h5...). Windows as in
-the env: ground-truth aligned frames where the recording has a ground-truth grid, else time
-windows; the recurrent state is carried from window to window. See agents/predict.py for the
-output layout.
-"""
-
-from __future__ import annotations
-
-import argparse
-import json
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents.predict import load_policy, predict, summary_dict, summary_table  # noqa: E402
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("recording", help="recording file (or folder / synthetic split, with --sequence)")
-    p.add_argument("--model", default=None, help="shipped name, checkpoint file, or registry name / package.module:factory")
-    p.add_argument("--width", default="cpu", help="width of an untrained registry model")
-    p.add_argument("--out", default=None, help="flow h5 to write (default: runs/predict/<recording>.flow.h5)")
-    p.add_argument("--video", default=None, help="preview path, .gif or .mp4 (default: beside --out, .gif)")
-    p.add_argument("--no-video", action="store_true")
-    p.add_argument("--overwrite", action="store_true", help="replace --out if it exists (never the recording itself)")
-    p.add_argument("--video-frames", type=int, default=150, help="windows shown, spread over the run")
-    p.add_argument("--fps", type=float, default=10.0)
-    p.add_argument("--window", default="frames", choices=["frames", "time", "count"],
-                   help="frames: ground-truth aligned where the recording has a grid, else time windows of --no-gt-window")
-    p.add_argument("--no-gt-window", type=int, default=33_333, help="us; frames mode on a recording without ground truth")
-    p.add_argument("--window-size", type=int, default=None, help="frames: grid steps (1); time: us (10000); count: events (15000)")
-    p.add_argument("--start", type=float, default=None, help="seconds from the recording's start")
-    p.add_argument("--end", type=float, default=None, help="seconds from the recording's start")
-    p.add_argument("--crop", type=int, nargs="+", default=None, help="H W (centred) or TOP LEFT H W")
-    p.add_argument("--sequence", default="0", help="which recording of a folder / split (index or name)")
-    p.add_argument("--format", default=None, help="force a reader (see envs.readers.FORMATS)")
-    p.add_argument("--per-event", action="store_true", help="also store the flow at every event")
-    p.add_argument("--json", default=None, help="also write the summary as JSON here")
-    p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1...")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice; 1 on a busy machine)")
-    p.add_argument("--no-progress", action="store_true")
-    return p
-
-
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
-    width = int(args.width) if str(args.width).isdigit() else args.width
-    policy, provenance = load_policy(args.model, device=args.device, width=width)
-    stem = Path(args.recording).name.split(".")[0] or "recording"
-    out = Path(args.out) if args.out else Path("runs") / "predict" / f"{stem}.flow.h5"
-    video = None if args.no_video else (Path(args.video) if args.video else out.with_name(out.name.split(".")[0] + ".gif"))
-    sequence = int(args.sequence) if args.sequence.isdigit() else args.sequence
-    result = predict(
-        policy, args.recording, out, window=args.window, window_size=args.window_size, start_s=args.start, end_s=args.end,
-        crop=args.crop, sequence=sequence, data_format=args.format, per_event=args.per_event, video=video,
-        video_fps=args.fps, video_frames=args.video_frames, provenance=provenance, no_gt_window_us=args.no_gt_window,
-        progress=not args.no_progress, overwrite=args.overwrite,
-    )
-    name = provenance.get("name") or provenance.get("path") or "model"
-    print(summary_table(result, name=str(name)))
-    print(f"\n{result.windows} windows, {result.events} events in {result.seconds:.1f} s "
-          f"({result.windows_per_second:.1f} windows/s)")
-    print(f"wrote {result.path}" + (f" and {result.video}" if result.video else ""))
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"model": provenance, **summary_dict(result)}, indent=2, default=str) + "\n")
-    return 0
-
+from agents.commands.predict import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -294,11 +294,7 @@ def test_submission_pngs_in_the_benchmark_layout_decode_back_to_the_flows(tmp_pa
 
 # --------------------------------------------------------------------------- scripts/evaluate.py
 def _evaluate_script():
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-    import evaluate as evaluate_script
+    from agents.commands import evaluate as evaluate_script
 
     return evaluate_script
 

@@ -1,18 +1,14 @@
 """Every supported recording format goes straight into the env and the evaluation script."""
 
 import json
-import sys
-from pathlib import Path
 
 import gymnasium
 import numpy as np
 import pytest
 
 import envs  # noqa: F401  (registers EventFlow-v0)
+from agents.commands import evaluate as evaluate_script  # noqa: E402
 from tests.test_readers import _stream, write_dsec, write_ecd, write_hagenaars, write_mvsec
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-import evaluate as evaluate_script  # noqa: E402
 
 
 def _files(tmp_path, rng):

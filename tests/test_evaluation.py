@@ -2,8 +2,6 @@
 windowing of recordings without ground truth, the contrast-maximisation row and refinement."""
 
 import json
-import sys
-from pathlib import Path
 
 import gymnasium
 import numpy as np
@@ -12,6 +10,7 @@ import torch
 
 import envs  # noqa: F401  (registers EventFlow-v0)
 from agents.cmax import CMaxSettings, ContrastMaximisationPolicy, RefinedPolicy
+from agents.commands import evaluate as evaluate_script  # noqa: E402
 from agents.evaluation import evaluate, results_table
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
@@ -19,9 +18,6 @@ from envs.env import EventFlowEnv
 from losses import EventBatch, hmc_loss
 from tests.recordings import translating_dots, write_translating_recording
 from tests.test_readers import _stream, write_hagenaars
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-import evaluate as evaluate_script  # noqa: E402
 
 
 def _policy(seed=0):

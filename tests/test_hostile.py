@@ -30,9 +30,9 @@ from tests.recordings import write_translating_recording
 from tests.test_readers import write_dsec, write_hagenaars, write_mvsec
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-import convert as convert_script  # noqa: E402
-import train as train_script  # noqa: E402
+sys.path.insert(0, str(ROOT / "scripts"))  # export_model is tested as a script
+from agents.commands import convert as convert_script  # noqa: E402
+from agents.commands import train as train_script  # noqa: E402
 
 
 def _stream(n=2_000, sensor_size=(20, 30), span_us=200_000, seed=0):

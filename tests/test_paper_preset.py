@@ -2,7 +2,6 @@
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import pytest
@@ -11,8 +10,7 @@ import agents.learner as learner_module
 from agents.learner import PRESETS, Learner, TrainConfig, preset_config
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-import train as train_script  # noqa: E402
+from agents.commands import train as train_script  # noqa: E402
 
 
 def test_preset_sets_the_paper_recipe_and_options_beside_it_win():

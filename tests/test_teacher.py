@@ -3,7 +3,6 @@ env's own ground truth does (crop, flips), they are the solver's output, an inte
 resumes, bad files are named, and a teacher run trains on them."""
 
 import json
-import sys
 from pathlib import Path
 
 import h5py
@@ -25,8 +24,7 @@ from losses import EventBatch, contrast_maximisation_flow
 from tests.recordings import write_translating_recording
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-import train as train_script  # noqa: E402
+from agents.commands import train as train_script  # noqa: E402
 
 TINY = TeacherSettings(grids=(2, 4), steps=3)
 

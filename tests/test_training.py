@@ -15,14 +15,14 @@ import torch
 
 from agents import RecurrentPolicy, make_model
 from agents.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from agents.commands import evaluate as evaluate_script
+from agents.commands import train as train_script
 from envs.env import EventFlowEnv
 from losses import EventBatch, hmc_loss
 from tests.recordings import write_translating_recording
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "scripts"))
-import evaluate as evaluate_script  # noqa: E402
-import train as train_script  # noqa: E402
+sys.path.insert(0, str(ROOT / "scripts"))  # export_model, ablations and main are tested as scripts
 
 
 @pytest.fixture(scope="module")
@@ -359,7 +359,7 @@ def test_main_job_runs_end_to_end_on_mini_data(tmp_path, capsys, stage):
     table = (out / "eval" / "synthetic-mini" / "table.md").read_text()
     assert "| zero flow |" in table and ("| contrast maximisation (no network) |" in table) == (stage == "teacher")
     assert (out / "demo" / "checkpoint.pt").exists() and "| demo model |" in (out / "demo-eval" / "table.md").read_text()
-    assert "L_HMC ratio" in printed and "scripts/train.py --model ev-mgrflownet" in printed
+    assert "L_HMC ratio" in printed and "scripts/train.py --preset teacher-cached" in printed
 
 
 def test_ev_flownet_trains_on_its_four_channel_input():

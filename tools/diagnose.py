@@ -1,11 +1,11 @@
 #!/usr/bin/env python
 """Loss-landscape diagnostics on synthetic windows (no network), used in docs/results.md.
 
-  python scripts/diagnose.py scale   --window-size 1      # L_HMC of c x ground truth, c = 0 .. 2
-  python scripts/diagnose.py teacher --window-size 1      # per-window contrast maximisation vs truth
-  python scripts/diagnose.py overfit --window-size 3      # can a network fit the loss on one fixed batch?
-  python scripts/diagnose.py border  --window-size 1      # what the border rule costs the true flow
-  python scripts/diagnose.py targets --cache runs/tt/train.h5   # precomputed teacher targets vs truth
+  python tools/diagnose.py scale   --window-size 1      # L_HMC of c x ground truth, c = 0 .. 2
+  python tools/diagnose.py teacher --window-size 1      # per-window contrast maximisation vs truth
+  python tools/diagnose.py overfit --window-size 3      # can a network fit the loss on one fixed batch?
+  python tools/diagnose.py border  --window-size 1      # what the border rule costs the true flow
+  python tools/diagnose.py targets --cache runs/tt/train.h5   # precomputed teacher targets vs truth
 
 border: for windows of the training split, the true flow's loss divided by zero flow's without
 and with the border rule (weight 1 x zero flow's loss x share of splat weight dropped, summed

@@ -2,8 +2,8 @@
 """One recipe probe: train for a time budget, evaluate on held-out synthetic sequences, print
 one summary line (and append it to OUT/probes.jsonl). Used to build docs/results.md.
 
-  python scripts/probe.py NAME --minutes 8 -- --flow-scaling 16 --lr 1e-3
-  python scripts/probe.py sup  --minutes 8 -- --loss supervised
+  python tools/probe.py NAME --minutes 8 -- --flow-scaling 16 --lr 1e-3
+  python tools/probe.py sup  --minutes 8 -- --loss supervised
 
 Summary: training loss vs zero flow's over the last 20 steps (same windows), and on the
 evaluation data (dt = 1, first --eval-windows windows of each sequence): AEE, outlier %,
@@ -18,11 +18,11 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import evaluate as evaluate_script  # noqa: E402
 import numpy as np  # noqa: E402
-import train as train_script  # noqa: E402
+
+from agents.commands import evaluate as evaluate_script  # noqa: E402
+from agents.commands import train as train_script  # noqa: E402
 
 
 def main(argv=None) -> int:

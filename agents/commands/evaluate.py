@@ -1,0 +1,240 @@
+"""Evaluate flow policies on recordings: AEE / outlier % (where there is ground truth),
+L_HMC against zero flow's, FWL and RSAT, per sequence; Markdown table + JSON + PNG pictures.
+
+Examples:
+  python scripts/evaluate.py --pretrained --zero                                   # the shipped model
+  python scripts/evaluate.py --checkpoint runs/mgr/checkpoint.pt --zero            # synthetic-test
+  python scripts/evaluate.py --checkpoint ckpt.pt --data rec1.h5 rec2.h5 --dt 4
+  python scripts/evaluate.py --model mypkg.models:build --data synthetic-test     # untrained plug-in
+  python scripts/evaluate.py --checkpoint ckpt.pt --mvsec /data/mvsec --dt 1      # MVSEC protocol
+  python scripts/evaluate.py --checkpoint ckpt.pt --mvsec /data/mvsec --mvsec-grid gt --dt 1   # 20 Hz mode
+  python scripts/evaluate.py --checkpoint ckpt.pt --protocol dsec --data seq/events/left/events.h5 \
+      --dsec-flow train_optical_flow/seq/flow/forward                             # DSEC dense scores
+  python scripts/evaluate.py --checkpoint ckpt.pt --protocol dsec --data test_events/interlaken_00_b \
+      --dsec-test-timestamps test_forward_optical_flow_timestamps --dsec-submission runs/dsec_submission
+  python scripts/evaluate.py --pretrained --zero --cmax --data synthetic-stress    # with the model-free row
+  python scripts/evaluate.py --pretrained --refine 30 --data rec.h5                # + test-time refinement
+
+Each recording is evaluated whole at its own sensor size (the networks pad to a multiple of 16
+and crop their flow back) unless --crop is given. Each sequence is rolled from its first window
+with the recurrent state carried across windows and reset between sequences. Windows (--window
+frames, the default) follow the ground-truth grid where a recording has one, else its APS frame
+times, else fixed 30 Hz intervals, --dt of them per window (default 1 and 4 when a recording has
+ground truth, else 1); each table's title names the windowing. With --window time/count, give
+--dt-ratio (ground-truth interval / input window) if they differ.
+
+--mvsec scores MVSEC as published (docs/protocols.md): the valid ranges index the 20 Hz
+ground-truth times, windows of --dt image frames (or 20 Hz steps with --mvsec-grid gt) inside them,
+Zhu's ground truth (--mvsec-gt chain to chain the maps), the car's hood out of outdoor_day1, dt = 4
+at stride 4 and at stride 1 (overlapping) unless --stride says which; each AEE shows its window
+count. --protocol dsec scores DSEC densely (EPE, 1PE, 2PE, 3PE, angular error on every valid
+ground-truth pixel) and, with --dsec-submission, writes the benchmark's PNGs.
+
+--cmax adds per-window contrast maximisation of the same loss (no network, no ground truth;
+agents/cmax.py): the reference a learned model must beat. --refine K adds, for each model, a
+row with its flow refined by K steps of that solver on the window's own events.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+import agents.pretrained as pretrained_module
+from agents.checkpoint import load_model
+from agents.evaluation import evaluate, results_json, results_table, windowing_of
+from agents.policy import RecurrentPolicy
+from agents.registry import make_model
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--checkpoint", nargs="*", default=[], help="checkpoint(s) written by scripts/train.py")
+    p.add_argument("--pretrained", nargs="*", default=None, metavar="NAME",
+                   help="shipped pretrained model(s) by name (see agents/weights/; no name: the default one)")
+    p.add_argument("--name", nargs="*", default=None, help="row names for the checkpoints (default: file stem / parent dir)")
+    p.add_argument("--model", default=None, help="evaluate an untrained model (registry name or package.module:factory)")
+    p.add_argument("--width", default="cpu")
+    p.add_argument("--zero", action="store_true", help="add the zero-flow baseline row")
+    p.add_argument("--cmax", action="store_true",
+                   help="add per-window contrast maximisation (no network, no ground truth; agents/cmax.py)")
+    p.add_argument("--refine", type=int, default=None, metavar="K",
+                   help="also evaluate each model with its flow refined by K contrast-maximisation steps")
+    p.add_argument("--data", nargs="+", default=["synthetic-test"], help="synthetic split, recording files or directories")
+    p.add_argument("--format", default=None, help="force a reader (evflow-h5, mvsec, dsec, hagenaars, ecd-text, aedat4)")
+    p.add_argument("--mvsec", default=None, metavar="DIR", help="run the MVSEC protocol on the four sequences in DIR")
+    p.add_argument("--stride", type=int, nargs="+", default=None,
+                   help="MVSEC: grid steps between window starts (default: dt, and also 1 for dt = 4)")
+    p.add_argument("--mvsec-grid", default="images", choices=["images", "gt"],
+                   help="MVSEC windows on the image frames (EV-FlowNet dt) or the 20 Hz ground-truth steps")
+    p.add_argument("--mvsec-gt", default="zhu", choices=["zhu", "chain"],
+                   help="MVSEC ground truth: Zhu's (containing 20 Hz map scaled) or the maps chained")
+    p.add_argument("--outdoor-cut", default="time", choices=["time", "frames"],
+                   help="outdoor_day1 span: 222.4-240.4 s or ground-truth indices 4356-4706")
+    p.add_argument("--no-hood", action="store_true", help="MVSEC: score the car's hood rows too")
+    p.add_argument("--hot-pixels", type=float, default=None, metavar="SIGMA",
+                   help="MVSEC: leave pixels SIGMA std above the mean event count out of the event mask")
+    p.add_argument("--protocol", default="default", choices=["default", "dsec"],
+                   help="dsec: dense DSEC scores (EPE, 1PE, 2PE, 3PE, AE) on valid ground truth, no event mask")
+    p.add_argument("--dsec-flow", default=None, metavar="DIR", help="DSEC: the flow PNG folder of the --data recording")
+    p.add_argument("--dsec-test-timestamps", default=None, metavar="PATH",
+                   help="DSEC: folder of <sequence>.csv test timestamps (or one CSV): the windows to predict")
+    p.add_argument("--dsec-submission", default=None, metavar="DIR",
+                   help="DSEC: write <sequence>/<file_index:06d>.png flows in the benchmark's layout here")
+    p.add_argument("--window", default="frames", choices=["frames", "time", "count"])
+    p.add_argument("--dt", type=int, nargs="+", default=None,
+                   help="grid steps per window (frames mode); default: 1 and 4 with ground truth, else 1")
+    p.add_argument("--window-size", type=int, default=None, help="time: us; count: events")
+    p.add_argument("--dt-ratio", type=float, default=1.0, help="scale predictions by (ground-truth interval / input window)")
+    p.add_argument("--crop", type=int, nargs="+", default=None, help="H W (centred) or TOP LEFT H W")
+    p.add_argument("--max-windows", type=int, default=None, help="per sequence")
+    p.add_argument("--out", default="runs/eval", help="directory for table.md, results.json and pictures/")
+    p.add_argument("--json", default=None, help="also write the JSON results here (default OUT/results.json)")
+    p.add_argument("--pictures", type=int, default=2, help="windows per sequence drawn as a labelled PNG panel (0: none)")
+    p.add_argument("--animate", type=int, default=0, metavar="N",
+                   help="per sequence, a GIF of count image + predicted flow over its first N windows (0: none)")
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def mvsec_runs(folder: Path, protocol) -> list:
+    """The MVSEC protocol (REFERENCE section 7, agents.benchmarks.MVSECProtocol): indoor_flying1-3
+    and outdoor_day1, central 256x256 crop, the protocol's windows and scoring."""
+    from envs.readers.mvsec import MVSEC_SEQUENCES
+
+    runs = []
+    for sequence in MVSEC_SEQUENCES:
+        path = folder / f"{sequence}_data.hdf5"
+        if not path.exists():
+            print(f"[mvsec] {path} not found; skipping {sequence}", file=sys.stderr)
+            continue
+        runs.append((str(path), "mvsec", protocol.data_options, protocol.windows, protocol.scorer))
+    if not runs:
+        raise SystemExit(f"--mvsec {folder}: none of {', '.join(s + '_data.hdf5' for s in MVSEC_SEQUENCES)} found")
+    return runs
+
+
+def dsec_sinks(args, protocol, policies: dict) -> dict:
+    """Policy name -> DSEC submission writer: DIR itself for one policy, DIR/<name> for several."""
+    from agents.benchmarks import DSECSubmissionWriter
+
+    root = Path(args.dsec_submission)
+    if len(policies) == 1:
+        return {name: DSECSubmissionWriter(root, protocol) for name in policies}
+    return {name: DSECSubmissionWriter(root / name.replace(" ", "_"), protocol) for name in policies}
+
+
+def build_policies(args) -> dict:
+    """Row name -> policy (None: zero flow), in table order."""
+    from agents.cmax import ContrastMaximisationPolicy, RefinedPolicy
+
+    policies: dict = {}
+    names = args.name or []
+    for i, path in enumerate(args.checkpoint):
+        model, payload = load_model(path, map_location=args.device, expect_model=args.model)
+        name = names[i] if i < len(names) else Path(path).parent.name or Path(path).stem
+        cfg = payload.get("config") or {}
+        policies[name] = RecurrentPolicy(model, device=args.device, input_key=cfg.get("input", "count_image"),
+                                         voxel_bins=cfg.get("voxel_bins", 5))
+    pretrained = [] if args.pretrained is None else (args.pretrained or [pretrained_module.DEFAULT_PRETRAINED])
+    for name in pretrained:
+        policies[f"{name} (pretrained)"] = RecurrentPolicy.from_pretrained(name, device=args.device)
+    if args.model and not args.checkpoint:
+        width = int(args.width) if str(args.width).isdigit() else args.width
+        kwargs = {"width": width} if isinstance(width, str) else {"base_width": width}
+        policies[args.model] = RecurrentPolicy(make_model(args.model, **kwargs).eval(), device=args.device)
+    if args.refine:
+        for name, policy in list(policies.items()):
+            policies[f"{name} + refine {args.refine}"] = RefinedPolicy(policy, steps=args.refine)
+    if args.cmax:
+        policies["contrast maximisation (no network)"] = ContrastMaximisationPolicy(device=args.device)
+    if args.zero or not policies:
+        policies["zero flow"] = None
+    return policies
+
+
+def protocol_settings(args, data) -> list:
+    """(key, window size, protocol or None) per table: MVSEC dt and stride combinations, DSEC, or
+    the plain windows of --window."""
+    from agents.benchmarks import DSECProtocol, MVSECProtocol
+
+    if args.protocol == "dsec":
+        return [("dsec", args.dt[0] if args.dt else 1, DSECProtocol(test_timestamps=args.dsec_test_timestamps))]
+    if args.mvsec:
+        settings = []
+        for dt in args.dt or [1, 4]:
+            for stride in args.stride or ([4, 1] if dt == 4 else [dt]):
+                protocol = MVSECProtocol(dt=dt, stride=stride, grid=args.mvsec_grid, ground_truth=args.mvsec_gt,
+                                         outdoor_cut=args.outdoor_cut, hood=not args.no_hood,
+                                         hot_pixel_sigma=args.hot_pixels)
+                settings.append((f"dt{dt}" if stride == dt else f"dt{dt}_stride{stride}", dt, protocol))
+        return settings
+    if args.window == "frames":
+        return [(f"dt{dt}", dt, None) for dt in args.dt or ([1, 4] if has_ground_truth(data, args.format) else [1])]
+    return [(args.window, args.window_size, None)]
+
+
+def has_ground_truth(data, fmt) -> bool:
+    from envs.dataset import resolve_data
+
+    return any(source.reader().flow_timestamps() is not None for source in resolve_data(data, format=fmt))
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.refine is not None and args.refine < 0:
+        raise SystemExit(f"--refine must be >= 0 steps, got {args.refine}")
+    policies = build_policies(args)
+    data = args.data[0] if len(args.data) == 1 else args.data
+    if args.dsec_submission and not args.dsec_test_timestamps:
+        raise SystemExit("--dsec-submission needs --dsec-test-timestamps (the windows and file indices to write)")
+    settings = protocol_settings(args, data)
+    out = Path(args.out)
+    per_setting: dict[str, dict] = {}
+    tables = []
+    for key, size, protocol in settings:
+        if args.mvsec:
+            runs = mvsec_runs(Path(args.mvsec), protocol)
+        elif protocol is not None:  # DSEC
+            options = {"flow_dir": args.dsec_flow} if args.dsec_flow else {}
+            runs = [(data, args.format, options, protocol.windows, protocol.scorer)]
+        else:
+            runs = [(data, args.format, {}, None, None)]
+        named = {name: [] for name in policies}
+        sinks = dsec_sinks(args, protocol, policies) if args.dsec_submission else {}
+        for run_data, fmt, options, windows_fn, scorer_fn in runs:
+            for name, policy in policies.items():
+                pictures = out / "pictures" / key / name.replace(" ", "_") if args.pictures or args.animate else None
+                named[name] += evaluate(
+                    policy, run_data, window=args.window, window_size=size, crop=args.crop, dt_ratio=args.dt_ratio,
+                    data_options=options, windows_fn=windows_fn, max_windows=args.max_windows, pictures_dir=pictures,
+                    pictures_per_sequence=args.pictures, animation_windows=args.animate,
+                    progress=not args.no_progress, data_format=fmt, scorer_fn=scorer_fn, flow_sink=sinks.get(name),
+                )
+        per_setting[key] = named
+        title = protocol.describe() if protocol is not None else f"windows of {windowing_of(named)}"
+        tables.append(results_table(named, title=title))
+        if args.protocol == "dsec":
+            from agents.benchmarks import dsec_table
+
+            tables.append(dsec_table(named, title=f"{title}: the benchmark's scores"))
+        for name, sink in sinks.items():
+            print(f"[dsec] {name}: wrote {len(sink.written)} PNGs under {sink.out_dir}"
+                  + (f" ({sink.clipped} pixels clipped to the 16-bit range)" if sink.clipped else ""))
+    table = "\n\n".join(tables)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "table.md").write_text(table + "\n")
+    json_path = Path(args.json) if args.json else out / "results.json"
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(results_json(per_setting) + "\n")
+    print(table)
+    print(f"\nwrote {out / 'table.md'}, {json_path}" + (f" and pictures in {out / 'pictures'}" if args.pictures else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

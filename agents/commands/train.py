@@ -1,0 +1,339 @@
+"""Train a flow policy with truncated BPTT through EventFlow env rollouts.
+
+Examples:
+  python scripts/train.py --steps 500 --out runs/mgr                 # EV-MGRFlowNet, CPU width
+  python scripts/train.py --preset paper --out runs/paper            # the paper's recipe (docs/method.md)
+  python scripts/train.py --preset paper --border-penalty 0 --width cpu --out runs/paper-bare
+  python scripts/train.py --model convgru-ev-flownet --loss at --out runs/baseline
+  python scripts/train.py --model mypkg.models:build --out runs/mine  # any protocol module
+  python scripts/train.py --resume runs/mgr/checkpoint.pt --steps 1000
+  python scripts/train.py --resume --out runs/mgr --lr 5e-5 --allow-changes lr
+  torchrun --nproc_per_node=2 scripts/train.py --steps 100 --out runs/ddp
+
+Writes OUT/metrics.jsonl (one line per optimizer step, plus validation lines),
+OUT/checkpoint.pt (every --ckpt-every steps, on Ctrl-C / SIGINT, on SIGTERM and at the end;
+atomic) and OUT/config.json.
+
+--resume continues the stored run: its configuration is used, and an option given on this command
+line that differs from it is refused, naming each field, unless --allow-changes lists it (run
+options --steps, --minutes, --out, --device, --ckpt-every and --val-* may always change, --steps
+too unless the step size decays with --decay cosine; the network's shape never: fine-tune with
+--init). metrics.jsonl is cut back to the checkpoint's step, so every step is logged once.
+
+--preset NAME sets the defaults of a named recipe (agents.learner.PRESETS); options given beside
+it override them. "paper": EV-MGRFlowNet at width 32 on count images, all scales in the loss,
+Adam 1e-4, L = 10, L_HMC as sequential learning over the L windows, the border rule on.
+
+Distributed (torchrun): each rank uses the GPU of its LOCAL_RANK with NCCL, or the CPU with gloo.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from tqdm import tqdm
+
+from agents import pretrained as shipped
+from agents.checkpoint import load_checkpoint, save_checkpoint
+from agents.evaluation import evaluate
+from agents.learner import PRESETS, Learner, TrainConfig
+from agents.options import add_options, option, options_from_args
+from agents.policy import RecurrentPolicy
+from envs.atomic import remove_stale_temporaries, temporary_path
+
+
+@dataclass
+class RunOptions:
+    """How long and where a run goes, not what it learns (free to change on --resume)."""
+
+    preset: str | None = option(None, choices=sorted(PRESETS))
+    """a named recipe's values (agents.learner.PRESETS: paper, teacher-cached, teacher, hmc-stage) under the
+    options given beside it; paper: see docs/method.md"""
+    out: str = "runs/train"
+    """output directory"""
+    resume: str | None = option(None, nargs="?", const="auto", metavar="CHECKPOINT")
+    """continue from CHECKPOINT (default with no value: OUT/checkpoint.pt); its config is used, an option that
+    differs from it is refused unless --allow-changes names it"""
+    allow_changes: str = option("", metavar="FIELDS")
+    """with --resume: comma-separated config fields this command may change, e.g. lr,steps"""
+    init: str | None = option(None, metavar="CHECKPOINT")
+    """start from the network weights of CHECKPOINT, a training checkpoint or the name of a shipped model
+    (fine-tuning: a fresh optimizer and this run's options; the model, width, input and flow scaling must match)"""
+    minutes: float | None = None
+    """also stop (and save) after this many minutes"""
+    ckpt_every: int = 100
+    """save the checkpoint every N steps"""
+    val_every: int = 0
+    """validate every N steps (0: only at the end)"""
+    val_data: str = "synthetic-mini"
+    """held-out data for validation ('' to skip)"""
+    val_windows: int = 20
+    """windows per validation sequence"""
+    no_progress: bool = False
+    """no progress bar"""
+
+
+#: options that say how long and where a run goes, not what it learns: free to change on --resume
+RUN_OPTIONS = frozenset(f.name for f in dataclasses.fields(RunOptions)) | {"device"}
+GROUPS = {"model": "model", "data": "data", "num_envs": "optimisation", "loss": "loss", "seed": "run"}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """scripts/train.py's command line: a TrainConfig field per option, then the RunOptions."""
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_options(p, TrainConfig, groups=GROUPS, defaults={"device": "cuda" if torch.cuda.is_available() else "cpu"})
+    add_options(p.add_argument_group("run options"), RunOptions)
+    return p
+
+
+def config_from_args(args) -> TrainConfig:
+    return options_from_args(TrainConfig, args)
+
+
+def validate(learner: Learner, data: str, windows: int) -> dict:
+    """Mean L_HMC and AEE of the current weights vs zero flow on held-out sequences."""
+    policy = RecurrentPolicy(learner.policy.model, device=learner.device, input_key=learner.cfg.input,
+                             voxel_bins=learner.cfg.voxel_bins)  # own state
+    val_crop = None if learner.cfg.random_crop else learner.cfg.crop  # random crops: whole frames
+    named = {
+        "model": evaluate(policy, data, crop=val_crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling),
+        "zero": evaluate(None, data, crop=val_crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling),
+    }
+    out = {}
+    for name, rows in named.items():
+        for key in ("hmc", "aee"):
+            total = sum(r.counts[key] for r in rows)
+            out[f"val_{key}_{name}"] = sum(r.sums[key] for r in rows) / total if total else float("nan")
+    return out
+
+
+def init_weights(learner, path: Path) -> None:
+    """Load the network weights of a training checkpoint, or of a shipped model given by name,
+    into a new run (``--init``)."""
+    if not path.exists():
+        if str(path) not in shipped.list_pretrained():
+            raise FileNotFoundError(f"--init {path}: no such checkpoint, nor a shipped model "
+                                    f"(shipped: {', '.join(shipped.list_pretrained()) or 'none'})")
+        path = shipped.WEIGHTS_DIR / f"{path}.pt"
+    payload = load_checkpoint(path)
+    if payload.get("model_config") != learner.model_config or payload.get("model_name") != learner.cfg.model:
+        raise ValueError(
+            f"--init {path}: checkpoint holds {payload.get('model_name')} {payload.get('model_config')}, "
+            f"this run builds {learner.cfg.model} {learner.model_config}"
+        )
+    learner.policy.model.load_state_dict(payload["model"])
+
+
+#: fields that shape the network: a resume cannot change them (fine-tune with --init)
+ARCHITECTURE = frozenset({"model", "width", "input", "voxel_bins", "model_kwargs", "flow_scaling", "head_init"})
+#: fields that change the episodes: an allowed change starts fresh ones instead of the stored ones
+EPISODE_FIELDS = frozenset({"data", "window", "window_size", "crop", "random_crop", "flips", "num_envs", "vector", "seed"})
+
+
+def given_options(argv: list[str] | None) -> set[str]:
+    """The dests of the options written on the command line (not left at their defaults)."""
+    parser = build_parser()
+    parser.set_defaults(**{action.dest: None for action in parser._actions})  # no option parses to None
+    given = {dest for dest, value in vars(parser.parse_args(argv)).items() if value is not None}
+    preset = vars(parser.parse_args(argv)).get("preset")
+    if preset is not None:  # a preset asks for its values as if they were written out
+        given |= set(PRESETS[preset])
+    return given
+
+
+def _comparable(value):
+    return json.loads(json.dumps(value, default=str))  # tuples and lists alike
+
+
+def resume_config(stored: dict, args, given: set[str], source: Path) -> tuple[TrainConfig, set[str]]:
+    """The configuration a resume continues with, and the fields it changed.
+
+    stored: the checkpoint's config. Each option given on the command line (``given``) must agree
+    with it, except run options, ``steps`` (unless the step size decays over the steps) and the
+    fields listed in ``--allow-changes``; otherwise ValueError names every differing field."""
+    # checkpoints from before the border rule's ramp existed trained with the plain rule, and
+    # those from before loss_scales with the finest flow only in the accumulated loss
+    before = {"border_ramp": 0.0, "loss_scales": "finest" if stored.get("loss_mode") == "accumulated" else "all"}
+    old = TrainConfig(**{**before, **stored})
+    asked = config_from_args(args)
+    allowed = {name.strip() for name in args.allow_changes.split(",") if name.strip()}
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
+    unknown = sorted(allowed - fields)
+    if unknown:
+        raise ValueError(f"--allow-changes: unknown config field(s) {', '.join(unknown)}; fields: {', '.join(sorted(fields))}")
+    fixed = sorted(allowed & ARCHITECTURE)
+    if fixed:
+        raise ValueError(f"--allow-changes {', '.join(fixed)}: a resume cannot change the network's shape; start a new run "
+                         f"from these weights with --init {source}")
+    changed = {}
+    for dest in sorted(given - RUN_OPTIONS):
+        name = dest
+        if name in fields and _comparable(getattr(asked, name)) != _comparable(getattr(old, name)):
+            changed[name] = (getattr(old, name), getattr(asked, name))
+    free = {"steps"} if old.decay == "none" else set()
+    refused = [name for name in changed if name not in allowed | free]
+    if refused:
+        lines = "; ".join(f"{name}: stored {changed[name][0]!r}, asked {changed[name][1]!r}" for name in refused)
+        raise ValueError(
+            f"--resume {source}: this command changes the run's configuration ({lines}); pass "
+            f"--allow-changes {','.join(refused)} to continue with the new values, or drop the option(s)"
+        )
+    cfg = dataclasses.replace(old, **{name: new for name, (_, new) in changed.items()}, device=args.device)
+    return cfg, set(changed)
+
+
+def open_training_checkpoint(resume: str, out: Path) -> tuple[Path, dict]:
+    """(path, payload) of the checkpoint ``--resume`` names; a shipped model's name or a
+    weights-only file raises ValueError pointing at --init."""
+    path = out / "checkpoint.pt" if resume == "auto" else Path(resume)
+    if not path.exists() and resume in shipped.list_pretrained():
+        raise ValueError(f"--resume {resume}: is a shipped model (weights only), not a training run to continue; "
+                         f"fine-tune from it with --init {resume}")
+    payload = load_checkpoint(path)
+    missing = [key for key in ("optimizer", "scheduler", "step", "config", "rng") if key not in payload]
+    if missing:
+        raise ValueError(f"--resume {path}: a weights-only model file (no {', '.join(missing)}), e.g. one written by "
+                         f"export_model.py, not a training checkpoint; fine-tune from its weights with --init {path}")
+    return path, payload
+
+
+def truncate_metrics(path: Path, step: int) -> None:
+    """Keep the lines of metrics.jsonl up to ``step`` (a resumed run logs the later ones again)
+    and drop a line cut by a kill; rewritten atomically."""
+    if not path.exists():
+        return
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(row, dict) and row.get("step", 0) <= step:
+            kept.append(line)
+    remove_stale_temporaries(path)
+    tmp = temporary_path(path)
+    tmp.write_text("".join(line + "\n" for line in kept))
+    os.replace(tmp, path)
+
+
+def setup_distributed(args) -> int:
+    """Under torchrun: bind this rank to the GPU of its LOCAL_RANK (NCCL) or to the CPU (gloo),
+    and join the process group; returns the rank (0 without torchrun)."""
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return 0
+    if torch.device(args.device).type == "cuda":
+        local_rank = int(os.environ.get("LOCAL_RANK", 0))
+        torch.cuda.set_device(local_rank)
+        args.device = f"cuda:{local_rank}"
+        dist.init_process_group("nccl", device_id=torch.device(args.device))
+    else:
+        dist.init_process_group("gloo")
+    return dist.get_rank()
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, with the defaults of ``--preset`` (if given) under the options given."""
+    parser = build_parser()
+    known, _ = parser.parse_known_args(argv)
+    if known.preset is not None:
+        parser.set_defaults(**PRESETS[known.preset])
+    return parser.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    rank = setup_distributed(args)
+    out = Path(args.out)
+    payload, changed = None, set()
+    if args.resume:
+        source, payload = open_training_checkpoint(args.resume, out)
+        cfg, changed = resume_config(payload["config"], args, given_options(argv), source)
+    else:
+        cfg = config_from_args(args)
+    learner = Learner(cfg)
+    if payload is not None:
+        learner.load_state_dict(payload, restore_episodes=not changed & EPISODE_FIELDS)
+    elif args.init:
+        init_weights(learner, Path(args.init))
+    if rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(out / "checkpoint.pt")  # left by a run killed while saving
+        (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2, default=str))
+        if payload is not None:
+            truncate_metrics(out / "metrics.jsonl", learner.step)
+    log = open(out / "metrics.jsonl", "a") if rank == 0 else None
+
+    def save() -> None:
+        if rank == 0:
+            save_checkpoint(out / "checkpoint.pt", learner.state_dict())
+
+    # SIGINT (Ctrl-C) and SIGTERM (schedulers, timeout) both finish the step, save and stop
+    interrupted = {"signal": None}
+    handlers = {sig: signal.signal(sig, lambda signum, _: interrupted.__setitem__("signal", signum))
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    start = time.time()
+    bar = tqdm(total=cfg.steps, initial=learner.step, unit="step", disable=args.no_progress or rank != 0)
+    try:
+        while learner.step < cfg.steps:
+            stats = learner.update()
+            elapsed = time.time() - start
+            stats["windows_per_s"] = stats["windows"] * (learner.step - (payload or {}).get("step", 0)) / max(elapsed, 1e-9)
+            stats["elapsed_s"] = round(elapsed, 1)  # since this process started (resumes restart it)
+            if log:
+                log.write(json.dumps(stats) + "\n")
+                log.flush()
+            shown = {"loss": f"{stats['loss']:.4f}", "zero": f"{stats['zero_flow_loss']:.4f}"}
+            if "model_hmc" in stats:
+                shown["hmc"] = f"{stats['model_hmc']:.4f}"
+            bar.set_postfix(**shown, win_s=f"{stats['windows_per_s']:.1f}")
+            bar.update(1)
+            if args.val_every and learner.step % args.val_every == 0 and args.val_data and rank == 0:
+                val = {"step": learner.step, **validate(learner, args.val_data, args.val_windows)}
+                log.write(json.dumps(val) + "\n")
+                bar.write(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in val.items()))
+            if learner.step % args.ckpt_every == 0:
+                save()
+            stop = interrupted["signal"] is not None or (args.minutes is not None and elapsed > 60 * args.minutes)
+            if dist.is_initialized():  # every rank stops on the same step (the flag on the rank's own device)
+                flag = torch.tensor([float(stop)], device=learner.device)
+                dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+                stop = bool(flag.item())
+            if stop:
+                break
+    finally:
+        bar.close()
+        save()
+        for sig, previous in handlers.items():
+            signal.signal(sig, previous)
+        if rank == 0:
+            if interrupted["signal"] is not None:
+                name = signal.Signals(interrupted["signal"]).name
+                print(f"{name}: stopped at step {learner.step}; saved {out / 'checkpoint.pt'}", file=sys.stderr)
+            if args.val_data and interrupted["signal"] is None:
+                val = {"step": learner.step, **validate(learner, args.val_data, args.val_windows)}
+                log.write(json.dumps(val) + "\n")
+                print(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in val.items()))
+            log.close()
+        learner.close()
+        if dist.is_initialized():
+            if sys.exc_info()[0] is None:  # tear down together: a rank whose peer already left can abort in gloo
+                if learner.device.type == "cuda":
+                    dist.barrier(device_ids=[learner.device.index])
+                else:
+                    dist.barrier()
+            dist.destroy_process_group()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

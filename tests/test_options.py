@@ -1,0 +1,72 @@
+"""agents/options.py: the command lines written from the configuration dataclasses, the choice
+checks, the presets, and every console command's --help."""
+
+from __future__ import annotations
+
+import importlib
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from agents.commands import train as train_command
+from agents.learner import CHOICES, PRESETS, TrainConfig, preset_config, preset_options
+from agents.options import field_docs
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def console_commands() -> dict[str, str]:
+    """[project.scripts] of pyproject.toml: command -> module:function."""
+    text = (ROOT / "pyproject.toml").read_text()
+    section = text.split("[project.scripts]", 1)[1].split("\n[", 1)[0]
+    return dict(re.findall(r'^(\S+) = "([^"]+)"', section, flags=re.M))
+
+
+@pytest.mark.parametrize("name", sorted(CHOICES))
+def test_a_bad_value_of_every_choice_field_raises_naming_the_field_and_the_allowed_values(name):
+    with pytest.raises(ValueError) as err:
+        TrainConfig(**{name: "nonsense"})
+    message = str(err.value)
+    assert f"TrainConfig.{name}" in message and "'nonsense'" in message
+    assert all(repr(value) in message for value in CHOICES[name])
+
+
+def test_every_choice_field_is_a_literal_and_every_field_has_its_help():
+    assert {"loss", "loss_mode", "vector", "decay", "input", "window", "teacher_pixels"} <= set(CHOICES)
+    docs = field_docs(TrainConfig)
+    assert all(docs.get(name) for name in TrainConfig.__dataclass_fields__), set(TrainConfig.__dataclass_fields__) - set(docs)
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_a_preset_spelled_out_as_options_is_the_preset(name):
+    spelled = train_command.config_from_args(train_command.parse_args(preset_options(name)))
+    assert spelled == train_command.config_from_args(train_command.parse_args(["--preset", name]))
+    assert spelled == preset_config(name, device=spelled.device)
+
+
+def test_the_command_line_keeps_its_spellings():
+    args = train_command.parse_args(["--no-flips", "--model-kwarg", "use_st_convgru=false", "--data", "a", "b",
+                                     "--window-size", "2", "--crop", "8", "8", "--width", "16", "--teacher-grids", "2"])
+    cfg = train_command.config_from_args(args)
+    assert cfg.flips is False and cfg.model_kwargs == {"use_st_convgru": False} and cfg.data == ["a", "b"]
+    assert cfg.window_size == 2 and cfg.crop == (8, 8) and cfg.width == 16 and cfg.teacher_grids == (2,)
+    with pytest.raises(SystemExit):
+        train_command.parse_args(["--loss", "hmx"])
+
+
+@pytest.mark.parametrize("command", sorted(console_commands()))
+def test_every_console_command_prints_its_help(command, capsys):
+    module, function = console_commands()[command].split(":")
+    with pytest.raises(SystemExit) as stop:
+        getattr(importlib.import_module(module), function)(["--help"])
+    assert stop.value.code == 0 and "usage:" in capsys.readouterr().out
+
+
+def test_the_scripts_still_run_as_files():
+    for script in ("train", "evaluate", "predict", "convert", "generate_synthetic"):
+        out = subprocess.run([sys.executable, str(ROOT / "scripts" / f"{script}.py"), "--help"], capture_output=True,
+                             text=True, check=True).stdout
+        assert out.startswith("usage:"), script
