@@ -2,12 +2,14 @@
 
 One update, read top to bottom (:meth:`Learner.update`):
 
-1. for L windows (``unroll``, paper: 10): the policy sees the B envs' count images and
-   predicts multi-scale flows (differentiable, state carried); the unsupervised loss of those
-   flows is computed on each env's window events; the finest flow (detached) is the action
-   that advances the envs; where an episode ended, that element's recurrent state is reset;
-2. backpropagate the mean of the L losses, clip the gradient norm, step the optimizer;
-3. detach the recurrent state (the next update continues the same sequences).
+1. collect the rollout: for L windows (``unroll``, paper: 10) the policy sees the B envs'
+   observations and predicts multi-scale flows (differentiable, state carried); the finest flow
+   (detached) is the action that advances the envs; where an episode ended, that element's
+   recurrent state is reset;
+2. hand the rollout to the objective (agents/objectives.py: per-window L_HMC / L_AT,
+   accumulated L_HMC, the contrast-maximisation teacher, or supervised), which returns the loss;
+3. backpropagate it, clip the gradient norm, step the optimizer;
+4. detach the recurrent state (the next update continues the same sequences).
 
 The envs run with ``compute_reward=False``: the learner recomputes the same loss with
 gradients (including the env's border rule: ``border_penalty`` x the window's zero-flow loss x
@@ -39,16 +41,11 @@ from envs.env import EventFlowEnv
 from losses import (
     BORDER_RAMP,
     EventBatch,
-    accumulated_hmc_loss,
-    at_loss,
     check_border_ramp,
-    contrast_maximisation_flow,
-    event_pixel_mask,
-    hmc_loss,
-    to_full_resolution,
 )
 
 from .checkpoint import rng_state, set_rng_state
+from .objectives import RolloutWindow, make_objective, window_loss, windows_from_info
 from .options import check_choices, choices_of, option, to_argv
 from .policy import RecurrentPolicy
 from .registry import make_model
@@ -274,23 +271,6 @@ def init_flow_heads(model: torch.nn.Module, scale: float) -> None:
             refiner.x_convs.bias.zero_()
 
 
-def _windows_from_info(info: dict, num_envs: int) -> list[dict]:
-    """Per-env window dicts (events + bounds) out of a vector env's stacked info."""
-    return [
-        {**info["events"][i], "t_start": int(info["t_start"][i]), "t_end": int(info["t_end"][i])}
-        for i in range(num_envs)
-    ]
-
-
-def _subsample_window(window: dict, max_events: int) -> dict:
-    """The window with at most ``max_events`` events, taken evenly along the (time-ordered) stream."""
-    n = len(window["t"])
-    if n <= max_events:
-        return window
-    keep = np.linspace(0, n - 1, max_events).round().astype(np.int64)
-    return {key: (value[keep] if key in ("x", "y", "t", "p") else value) for key, value in window.items()}
-
-
 class Learner:
     """Owns the policy, optimizer and training envs of one process."""
 
@@ -324,6 +304,9 @@ class Learner:
         self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=cfg.lr)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self._lr_factor)
         self.step = 0
+        self.window_loss = window_loss(cfg, self.flow_scaling)
+        self.objective = make_objective(cfg, self.flow_scaling, device=self.device, height=self.height,
+                                        width=self.width, teacher=self.teacher)
         self.obs, self.info = self.envs.reset(seed=cfg.seed + 1000 * self.rank)
         self.policy.reset()
 
@@ -336,119 +319,26 @@ class Learner:
             factor *= 0.5 * (1 + math.cos(math.pi * min(step, cfg.steps) / max(cfg.steps, 1)))
         return factor
 
-    def _supervised(self, flows) -> torch.Tensor:
-        """Mean endpoint error against the envs' ground truth over valid pixels, all scales
-        (not the method: a reference for what the network can learn in a given budget)."""
-        if "flow_gt" not in self.info:
-            raise ValueError("loss 'supervised' needs data with ground-truth flow (e.g. a synthetic split)")
-        gt = torch.as_tensor(np.asarray(self.info["flow_gt"]), device=self.device)
-        valid = torch.as_tensor(np.asarray(self.info["flow_gt_valid"]), device=self.device).unsqueeze(1)
-        errors = [((f - gt).norm(dim=1, keepdim=True) * valid).sum() / valid.sum().clamp_min(1) for f in to_full_resolution(flows)]
-        return torch.stack(errors).mean()
-
-    def _teacher_loss(self, all_flows: list, windows: list[dict], cached: list | None = None) -> torch.Tensor:
-        """Mean endpoint error, on pixels holding events (or all pixels), between every scale of the network's
-        flows and the per-window contrast-maximisation flow of L_HMC (all L x B windows of the
-        unroll solved together, or ``cached``: their precomputed targets; the teacher sees only the events)."""
-        cfg = self.cfg
-        needs_events = cached is None or cfg.teacher_pixels != "all"  # to solve, or to weight by event pixels
-        batch = EventBatch.from_windows(windows, device=self.device) if needs_events else None
-        if cached is not None:
-            target = torch.cat(cached).to(self.device)
-        else:
-            solved = batch
-            if cfg.teacher_max_events:
-                solved = EventBatch.from_windows([_subsample_window(w, cfg.teacher_max_events) for w in windows],
-                                                 device=self.device)
-            target = contrast_maximisation_flow(
-                solved, self.height, self.width, grids=cfg.teacher_grids, steps=cfg.teacher_steps, lr=cfg.teacher_lr,
-                flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1, lambda_2=cfg.teacher_lambda_2, alpha=cfg.alpha,
-                border_penalty=cfg.border_penalty, border_ramp=cfg.border_ramp,
-            )
-        if cfg.teacher_pixels == "all":  # the coarse-grid flow, interpolated between cells with events
-            weight = torch.ones_like(target[:, :1])
-        else:
-            weight = event_pixel_mask(batch.x, batch.y, batch.mask, self.height, self.width).unsqueeze(1).to(target.dtype)
-        n = cfg.num_envs
-        errors, zero_errors = [], []
-        for k, flows in enumerate(all_flows):
-            t, w = target[k * n : (k + 1) * n], weight[k * n : (k + 1) * n]
-            zero_errors.append((t.norm(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1))
-            for f in to_full_resolution(flows):
-                errors.append(((f - t).norm(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1))
-        return torch.stack(errors).mean(), torch.stack(zero_errors).mean().detach()
-
-    def _loss_flows(self, flows: list) -> list:
-        """The scales that enter the loss: all four (averaged) or the finest only."""
-        return flows if self.cfg.loss_scales == "all" else flows[-1:]
-
-    def _options(self) -> dict:
-        """The loss readings the paper leaves open (docs/method.md)."""
-        cfg = self.cfg
-        return {"upsampling": cfg.upsampling, "reference_times": cfg.reference_times,
-                "at_normalisation": cfg.at_normalisation}
-
-    def _loss(self, flows, batch: EventBatch, border_penalty=0.0):
-        cfg = self.cfg
-        if cfg.loss == "hmc" or cfg.loss == "supervised":
-            return hmc_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
-                            lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty,
-                            border_ramp=cfg.border_ramp, **self._options())
-        return at_loss(flows, batch, flow_scaling=self.flow_scaling, lambda_2=cfg.lambda_2,
-                       border_penalty=border_penalty, border_ramp=cfg.border_ramp, **self._options())
-
-    def _accumulated(self, flows, batches, border_penalty=0.0):
-        """Accumulated-window loss; with the border rule on, also the slope back into the frame
-        (outside distance, same per-window weight) so that a net whose events all left the
-        frame is not stuck where the dropped share is flat."""
-        cfg = self.cfg
-        return accumulated_hmc_loss(flows, batches, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
-                                    lambda_2=cfg.lambda_2, alpha=cfg.alpha, border_penalty=border_penalty,
-                                    outside_weight=border_penalty, border_ramp=cfg.border_ramp, **self._options())
-
     def update(self) -> dict[str, float]:
         """One truncated-BPTT update over ``unroll`` windows; returns logged scalars."""
         cfg = self.cfg
-        n = cfg.num_envs
-        losses, zero_losses, window_flows, batches, events_seen = [], [], [], [], 0
-        all_flows, windows, model_losses, cached = [], [], [], []
-        for _ in range(cfg.unroll):
+        rollout, logged_losses = [], []
+        for _ in range(cfg.unroll):  # 1. collect the rollout
             x = torch.as_tensor(self.obs[cfg.input], device=self.device)
             flows = self.policy(x)  # multi-scale, finest last, pixels per window
-            batch = EventBatch.from_windows(_windows_from_info(self.info, n), device=self.device)
-            events_seen += int(batch.mask.sum())
+            batch = EventBatch.from_windows(windows_from_info(self.info, cfg.num_envs), device=self.device)
             with torch.no_grad():  # the reference the border rule scales with, and a logged baseline
-                zero = self._loss(torch.zeros_like(flows[-1]), batch)
-            zero_losses.append(zero.loss)
-            if cfg.loss_mode == "window" or cfg.loss == "teacher":
-                with torch.no_grad():  # logged: the finest flow's loss with the border rule (the env's reward)
-                    model_losses.append(self._loss(flows[-1].detach(), batch, cfg.border_penalty * zero.per_sample).loss)
-            if cfg.loss == "teacher":
-                all_flows.append(flows)
-                windows += _windows_from_info(self.info, n)
-                if self.teacher is not None:
-                    cached.append(self.teacher.targets_from_info(self.info, n))
-            elif cfg.loss == "supervised":
-                losses.append(self._supervised(flows))
-            elif cfg.loss_mode == "window":
-                losses.append(self._loss(self._loss_flows(flows), batch, cfg.border_penalty * zero.per_sample).loss)
-            else:  # sequential learning: window k's flows (the scales in the loss) and events
-                window_flows.append(self._loss_flows(flows))
-                batches.append(batch)
+                zero = self.window_loss(torch.zeros_like(flows[-1]), batch)
+                if cfg.loss_mode == "window" or cfg.loss == "teacher":  # the finest flow's loss: the env's reward
+                    finest = flows[-1].detach()
+                    logged_losses.append(self.window_loss(finest, batch, cfg.border_penalty * zero.per_sample).loss)
+            rollout.append(RolloutWindow(flows, batch, zero, self.info))
             self.obs, _, terminated, truncated, self.info = self.envs.step(flows[-1].detach().cpu().numpy())
             done = np.logical_or(terminated, truncated)
             if done.any():
                 self.policy.reset(mask=done)  # new sequences start from a fresh state
-        extra = {}
-        if cfg.loss == "teacher":
-            loss, extra["zero_flow_teacher"] = self._teacher_loss(all_flows, windows, cached if self.teacher else None)
-        elif cfg.loss == "supervised" or cfg.loss_mode == "window":
-            loss = torch.stack(losses).mean()
-        else:
-            with torch.no_grad():
-                zero = self._accumulated([torch.zeros_like(f[-1]) for f in window_flows], batches)
-            loss = self._accumulated(window_flows, batches, cfg.border_penalty * zero.per_sample).loss
-        self.optimizer.zero_grad(set_to_none=True)
+        loss, extra = self.objective(rollout)  # 2. the loss of the rollout
+        self.optimizer.zero_grad(set_to_none=True)  # 3. backward, average across ranks, clip, step
         loss.backward()
         if self.world > 1:
             for p in self.policy.parameters():
@@ -459,20 +349,19 @@ class Learner:
         grad_norm = torch.nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.grad_clip)
         self.optimizer.step()
         self.scheduler.step()
-        self.policy.detach()  # truncated BPTT: the next update continues, without the graph
+        self.policy.detach()  # 4. truncated BPTT: the next update continues, without the graph
         self.step += 1
-        if model_losses:
-            extra["model_hmc"] = torch.stack(model_losses).mean()
-        extra = {k: float(v) for k, v in extra.items()}
+        if logged_losses:
+            extra["model_hmc"] = torch.stack(logged_losses).mean()
         return {
-            **extra,
+            **{k: float(v) for k, v in extra.items()},
             "step": self.step,
             "loss": float(loss.detach()),
-            "zero_flow_loss": float(torch.stack(zero_losses).mean()),
+            "zero_flow_loss": float(torch.stack([w.zero.loss for w in rollout]).mean()),
             "grad_norm": float(grad_norm),
             "lr": self.optimizer.param_groups[0]["lr"],
-            "events": events_seen,
-            "windows": cfg.unroll * n,
+            "events": sum(int(w.batch.mask.sum()) for w in rollout),
+            "windows": cfg.unroll * cfg.num_envs,
         }
 
     # -- checkpoints -------------------------------------------------------------------------

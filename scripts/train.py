@@ -6,6 +6,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents.commands.train import *  # noqa: E402, F401, F403 - `import train` from scripts/ keeps working
 from agents.commands.train import main  # noqa: E402
 
 if __name__ == "__main__":

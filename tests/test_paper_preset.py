@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-import agents.learner as learner_module
+import agents.objectives as objectives_module
 from agents.learner import PRESETS, Learner, TrainConfig, preset_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,13 +40,13 @@ def test_paper_preset_update_is_one_loss_over_the_windows_of_all_scales(monkeypa
     """Sequential learning: one accumulated L_HMC per update over the L = 10 windows, each
     window contributing its four scales' flows, the border rule weighted by the zero-flow loss."""
     calls = []
-    original = learner_module.accumulated_hmc_loss
+    original = objectives_module.accumulated_hmc_loss
 
     def spy(flows, batches, **kwargs):
         calls.append(([len(f) if isinstance(f, list) else 1 for f in flows], len(batches), kwargs))
         return original(flows, batches, **kwargs)
 
-    monkeypatch.setattr(learner_module, "accumulated_hmc_loss", spy)
+    monkeypatch.setattr(objectives_module, "accumulated_hmc_loss", spy)
     learner = Learner(preset_config("paper", width=2, data="synthetic-mini", num_envs=1))
     try:
         stats = learner.update()

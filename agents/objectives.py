@@ -1,0 +1,192 @@
+"""What a training update minimises, given the rollout it collected (:meth:`Learner.update`).
+
+One class per objective, each with one job: turn the L windows of a rollout into a scalar loss
+(and a few logged scalars). ``OBJECTIVES`` picks one from ``TrainConfig.loss`` and
+``loss_mode``; the choices themselves are checked where the config is made.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from losses import (
+    EventBatch,
+    LossOutput,
+    accumulated_hmc_loss,
+    at_loss,
+    contrast_maximisation_flow,
+    event_pixel_mask,
+    hmc_loss,
+    to_full_resolution,
+)
+
+if TYPE_CHECKING:
+    from .learner import TrainConfig
+    from .teacher import TeacherTargets
+
+__all__ = ["RolloutWindow", "WindowLoss", "AccumulatedLoss", "TeacherLoss", "SupervisedLoss", "make_objective",
+           "window_loss"]
+
+
+@dataclass
+class RolloutWindow:
+    """One window of a rollout, for the B envs at once.
+
+    flows: the network's multi-scale flows, finest last, (B, 2, h, w) pixels over the window, with
+    their graph; batch: the window's events; zero: the window loss of zero flow (no graph: the
+    reference the border rule scales with); info: the vector env's info of the window."""
+
+    flows: list[torch.Tensor]
+    batch: EventBatch
+    zero: LossOutput
+    info: dict
+
+
+def window_loss(cfg: TrainConfig, flow_scaling: float):
+    """The unsupervised loss of one window under ``cfg`` (L_HMC, eq. 17, or L_AT, eq. 14, with the
+    readings docs/method.md lists): ``loss(flows, batch, border_penalty) -> LossOutput``. The
+    teacher and supervised objectives log L_HMC."""
+    options = {"flow_scaling": flow_scaling, "lambda_2": cfg.lambda_2, "border_ramp": cfg.border_ramp,
+               "upsampling": cfg.upsampling, "reference_times": cfg.reference_times,
+               "at_normalisation": cfg.at_normalisation}
+    if cfg.loss == "at":
+        return lambda flows, batch, border_penalty=0.0: at_loss(flows, batch, border_penalty=border_penalty, **options)
+    return lambda flows, batch, border_penalty=0.0: hmc_loss(flows, batch, lambda_1=cfg.lambda_1, alpha=cfg.alpha,
+                                                             border_penalty=border_penalty, **options)
+
+
+def _scales(cfg: TrainConfig, flows: list) -> list:
+    """The scales that enter the loss: all four (averaged) or the finest only."""
+    return flows if cfg.loss_scales == "all" else flows[-1:]
+
+
+class WindowLoss:
+    """The mean over the L windows of each window's L_HMC / L_AT, with the border rule."""
+
+    def __init__(self, cfg: TrainConfig, flow_scaling: float, **_) -> None:
+        self.cfg, self.loss = cfg, window_loss(cfg, flow_scaling)
+
+    def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:
+        penalty = self.cfg.border_penalty
+        losses = [self.loss(_scales(self.cfg, w.flows), w.batch, penalty * w.zero.per_sample).loss for w in rollout]
+        return torch.stack(losses).mean(), {}
+
+
+class AccumulatedLoss:
+    """Hagenaars' sequential learning: one L_HMC over the events of all L windows (window k's
+    events at k + tau, references 0 and L); with the border rule on, also the slope back into the
+    frame (outside distance, same per-window weight) so that a net whose events all left the frame
+    is not stuck where the dropped share is flat."""
+
+    def __init__(self, cfg: TrainConfig, flow_scaling: float, **_) -> None:
+        self.cfg = cfg
+        self.options = {"flow_scaling": flow_scaling, "lambda_1": cfg.lambda_1, "lambda_2": cfg.lambda_2,
+                        "alpha": cfg.alpha, "border_ramp": cfg.border_ramp, "upsampling": cfg.upsampling,
+                        "reference_times": cfg.reference_times, "at_normalisation": cfg.at_normalisation}
+
+    def _loss(self, flows, batches, border_penalty=0.0) -> LossOutput:
+        return accumulated_hmc_loss(flows, batches, border_penalty=border_penalty, outside_weight=border_penalty,
+                                    **self.options)
+
+    def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:
+        flows = [_scales(self.cfg, w.flows) for w in rollout]
+        batches = [w.batch for w in rollout]
+        with torch.no_grad():
+            zero = self._loss([torch.zeros_like(f[-1]) for f in flows], batches)
+        return self._loss(flows, batches, self.cfg.border_penalty * zero.per_sample).loss, {}
+
+
+class SupervisedLoss:
+    """Mean endpoint error against the envs' ground truth over valid pixels, all scales (not the
+    method: a reference for what the network can learn in a given budget)."""
+
+    def __init__(self, cfg: TrainConfig, flow_scaling: float, *, device: torch.device, **_) -> None:
+        self.device = device
+
+    def _window(self, window: RolloutWindow) -> torch.Tensor:
+        if "flow_gt" not in window.info:
+            raise ValueError("loss 'supervised' needs data with ground-truth flow (e.g. a synthetic split)")
+        gt = torch.as_tensor(np.asarray(window.info["flow_gt"]), device=self.device)
+        valid = torch.as_tensor(np.asarray(window.info["flow_gt_valid"]), device=self.device).unsqueeze(1)
+        errors = [((f - gt).norm(dim=1, keepdim=True) * valid).sum() / valid.sum().clamp_min(1)
+                  for f in to_full_resolution(window.flows)]
+        return torch.stack(errors).mean()
+
+    def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:
+        return torch.stack([self._window(w) for w in rollout]).mean(), {}
+
+
+def windows_from_info(info: dict, num_envs: int) -> list[dict]:
+    """Per-env window dicts (events + bounds) out of a vector env's stacked info."""
+    return [
+        {**info["events"][i], "t_start": int(info["t_start"][i]), "t_end": int(info["t_end"][i])}
+        for i in range(num_envs)
+    ]
+
+
+def _subsample_window(window: dict, max_events: int) -> dict:
+    """The window with at most ``max_events`` events, taken evenly along the (time-ordered) stream."""
+    n = len(window["t"])
+    if n <= max_events:
+        return window
+    keep = np.linspace(0, n - 1, max_events).round().astype(np.int64)
+    return {key: (value[keep] if key in ("x", "y", "t", "p") else value) for key, value in window.items()}
+
+
+class TeacherLoss:
+    """Mean endpoint error, on pixels holding events (or all pixels), between every scale of the
+    network's flows and the per-window contrast-maximisation flow of L_HMC: all L x B windows of
+    the rollout solved together, or read from precomputed targets (``teacher``); the teacher sees
+    only the events. Logs ``zero_flow_teacher``, zero flow's distance to the targets."""
+
+    def __init__(self, cfg: TrainConfig, flow_scaling: float, *, device: torch.device, height: int, width: int,
+                 teacher: TeacherTargets | None = None) -> None:
+        self.cfg, self.flow_scaling, self.device = cfg, flow_scaling, device
+        self.height, self.width, self.teacher = height, width, teacher
+
+    def _targets(self, windows: list[dict]) -> torch.Tensor:
+        cfg = self.cfg
+        if cfg.teacher_max_events:
+            windows = [_subsample_window(w, cfg.teacher_max_events) for w in windows]
+        return contrast_maximisation_flow(
+            EventBatch.from_windows(windows, device=self.device), self.height, self.width, grids=cfg.teacher_grids,
+            steps=cfg.teacher_steps, lr=cfg.teacher_lr, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
+            lambda_2=cfg.teacher_lambda_2, alpha=cfg.alpha, border_penalty=cfg.border_penalty,
+            border_ramp=cfg.border_ramp,
+        )
+
+    def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:
+        cfg, n = self.cfg, self.cfg.num_envs
+        windows = [window for w in rollout for window in windows_from_info(w.info, n)]
+        if self.teacher is not None:
+            target = torch.cat([self.teacher.targets_from_info(w.info, n) for w in rollout]).to(self.device)
+        else:
+            target = self._targets(windows)
+        if cfg.teacher_pixels == "all":  # the coarse-grid flow, interpolated between cells with events
+            weight = torch.ones_like(target[:, :1])
+        else:
+            batch = EventBatch.from_windows(windows, device=self.device)
+            weight = event_pixel_mask(batch.x, batch.y, batch.mask, self.height, self.width).unsqueeze(1)
+            weight = weight.to(target.dtype)
+        errors, zero_errors = [], []
+        for k, window in enumerate(rollout):
+            t, w = target[k * n : (k + 1) * n], weight[k * n : (k + 1) * n]
+            zero_errors.append((t.norm(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1))
+            for f in to_full_resolution(window.flows):
+                errors.append(((f - t).norm(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1))
+        return torch.stack(errors).mean(), {"zero_flow_teacher": torch.stack(zero_errors).mean().detach()}
+
+
+def make_objective(cfg: TrainConfig, flow_scaling: float, **context):
+    """The objective of ``cfg``: the loss's class (and, for L_HMC / L_AT, its loss_mode's)."""
+    if cfg.loss == "teacher":
+        return TeacherLoss(cfg, flow_scaling, **context)
+    if cfg.loss == "supervised":
+        return SupervisedLoss(cfg, flow_scaling, **context)
+    if cfg.loss_mode == "accumulated":
+        return AccumulatedLoss(cfg, flow_scaling, **context)
+    return WindowLoss(cfg, flow_scaling, **context)
