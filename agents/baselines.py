@@ -1,4 +1,4 @@
-"""Baselines with EV-MGRFlowNet's interface (REFERENCE section 4; docs/method.md, "Baselines").
+"""Baselines with EV-MGRFlowNet's interface (docs/method.md, "Network" and "Baselines").
 
 The published networks, as their authors describe them (our code, written from the papers and
 the facts of their public implementations):

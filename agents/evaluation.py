@@ -2,7 +2,7 @@
 
 Each sequence is rolled from its first window to its last with the recurrent state carried
 across windows and reset between sequences. Per window: AEE and outlier % against the ground
-truth where there is one (REFERENCE section 7: pixels with valid ground truth and at least one
+truth where there is one (docs/method.md, "Metrics": pixels with valid ground truth and at least one
 event; the prediction scaled by ``dt_ratio`` when the input window differs from the
 ground-truth interval), L_HMC of the prediction and of zero flow, FWL and RSAT. Per sequence:
 the means over its windows (windows without events or ground truth are left out of the means

@@ -1,4 +1,4 @@
-"""EV-MGRFlowNet (Zhuang et al. 2024): FERE-Net encoder + FGD-Net decoder (REFERENCE section 4).
+"""EV-MGRFlowNet (Zhuang et al. 2024): FERE-Net encoder + FGD-Net decoder (docs/method.md, "Network").
 
 FERE-Net: module 1 is an ST-ConvGRU (eqs. 5-6) whose second memory is the deepest encoder's
 previous hidden state brought up to 1/2 resolution; modules 2-4 are conv_down + ConvGRU (eq. 7);

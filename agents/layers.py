@@ -1,4 +1,4 @@
-"""Building blocks of the flow networks (REFERENCE section 4).
+"""Building blocks of the flow networks (docs/method.md, "Network").
 
 All convolutions are 3x3 with "same" padding unless stated. Every recurrent layer takes its
 previous hidden state as a tensor or ``None``; ``None`` and an all-zeros tensor mean the same

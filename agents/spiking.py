@@ -1,4 +1,4 @@
-"""Spiking neurons for XLIF-EV-FlowNet (REFERENCE section 4, Hagenaars et al. 2021).
+"""Spiking neurons for XLIF-EV-FlowNet (docs/method.md, "Network", Hagenaars et al. 2021).
 
 A ConvXLIF layer is a strided convolution feeding leaky integrate-and-fire neurons with a soft
 reset, whose firing threshold ``t0 + t1 * pt`` adapts to a presynaptic trace ``pt`` (a decaying

@@ -83,7 +83,7 @@ class EventFlowEnv(gym.Env):
     ``flow_scaling``, i.e. max(H, W): a displacement across the whole frame). Actions must be
     float32/float64 of shape (2, H, W) and finite; finite values outside the box are clipped.
 
-    **Reward**: ``-L_HMC(action, events of the window just observed)`` (REFERENCE section 5:
+    **Reward**: ``-L_HMC(action, events of the window just observed)`` (docs/method.md, "Losses":
     L_AT(0) + L_AT(1) + lambda_1 (L_EC(0) + L_EC(1)) + lambda_2 L_smooth), or ``-L_AT``
     (+ smoothing) with ``loss="at"``. A Python float; higher is better; 0 is unattainable for
     a window with events.

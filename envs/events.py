@@ -1,4 +1,4 @@
-"""The event container: one struct of arrays per stream or window (REFERENCE section 1).
+"""The event container: one struct of arrays per stream or window (docs/method.md, "Conventions").
 
 An event is ``(x, y, t, p)``: ``x`` the column, ``y`` the row, ``t`` the time in integer
 microseconds and ``p`` the polarity in {-1, +1}. :class:`Events` holds N of them as four

@@ -1,4 +1,4 @@
-"""Network inputs built from one window's events (REFERENCE section 3).
+"""Network inputs built from one window's events (docs/method.md, "Windows and network inputs").
 
 - :func:`count_image`: paper eq. 2, (2, H, W) float32; channel 0 counts ON events, channel 1
   OFF events, per pixel.

@@ -1,4 +1,4 @@
-"""Cutting a recording into consecutive, non-overlapping event windows (REFERENCE section 2).
+"""Cutting a recording into consecutive, non-overlapping event windows (docs/method.md, "Windows and network inputs").
 
 Three modes:
 

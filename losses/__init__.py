@@ -1,4 +1,4 @@
-"""Losses and metrics for unsupervised event-based optical flow (REFERENCE sections 5 and 7).
+"""Losses and metrics for unsupervised event-based optical flow (docs/method.md, "Losses" and "Metrics").
 
 Pure functions of tensors: no state, no I/O, nothing else of the project imported.
 Flow is (B, 2, H, W) in pixels of displacement over the window at full sensor resolution;

@@ -1,4 +1,4 @@
-"""Average-timestamp loss L_AT(s) (REFERENCE sec. 5, eqs. 13-14)."""
+"""Average-timestamp loss L_AT(s) (docs/method.md, "Losses", eqs. 13-14)."""
 
 from __future__ import annotations
 

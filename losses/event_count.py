@@ -1,4 +1,4 @@
-"""Event-count loss L_EC(s) (REFERENCE sec. 5, eqs. 15-16)."""
+"""Event-count loss L_EC(s) (docs/method.md, "Losses", eqs. 15-16)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A batch of event windows as padded torch tensors (REFERENCE sections 1 and 2).
+"""A batch of event windows as padded torch tensors (docs/method.md, "Conventions").
 
 Every field is a ``(B, N)`` tensor; windows shorter than the longest one are padded with
 ``mask == False`` entries (x = y = tau = 0, p = +1) that every loss ignores.

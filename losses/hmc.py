@@ -1,4 +1,4 @@
-"""Hybrid motion-compensation loss L_HMC (REFERENCE sec. 5, eq. 17) and the baseline L_AT.
+"""Hybrid motion-compensation loss L_HMC (docs/method.md, "Losses", eq. 17) and the baseline L_AT.
 
 A composite that is only a weighted sum:
 ``L_HMC = L_AT(0) + L_AT(1) + lambda_1 (L_EC(0) + L_EC(1)) + lambda_2 L_smooth``;
@@ -6,7 +6,7 @@ the baseline ``L_AT`` drops the L_EC term (same smoothing). Multi-scale input: e
 brought to full resolution, the loss is computed on each and averaged over scales. Over a batch:
 the mean over batch elements; a padded batch gives exactly the per-window results.
 
-Known hole (REFERENCE sec. 5): out-of-image corners are dropped, so a flow that pushes every
+Known hole (docs/method.md, "Losses"): out-of-image corners are dropped, so a flow that pushes every
 event off the sensor scores L_AT = L_EC = 0. ``components["kept"]`` reports the share of the
 events' splat weight that stayed inside the image (mean over the reference times), and
 ``border_penalty`` (default 0, i.e. the paper's loss) adds
@@ -70,7 +70,7 @@ def to_full_resolution(flow: FlowInput, upsampling: Upsampling = "bilinear") -> 
     """Validate and bring every scale to full resolution.
 
     flow: (B, 2, H, W) tensor, or a list of such tensors at several resolutions, all in pixels
-    per window at FULL sensor resolution (REFERENCE sec. 1). Full resolution = the largest H and
+    per window at FULL sensor resolution (docs/method.md, "Conventions"). Full resolution = the largest H and
     largest W in the list. Coarser scales are upsampled without rescaling the values, since they
     are already in full-resolution pixels: ``upsampling`` "bilinear" (default,
     ``F.interpolate(..., align_corners=False)``) or "nearest" (each coarse cell's vector over
@@ -239,7 +239,7 @@ def hmc_loss(
     upsampling: how coarse scales reach full resolution (``to_full_resolution``).
     reference_times: "window" (s = 0 and 1, the window's bounds) or "events" (the first and
     last valid event of each window, ``rebase_to_events``).
-    at_normalisation: "event_pixels" (L_AT over N_nz, REFERENCE sec. 5) or "sum" (eq. 14 as
+    at_normalisation: "event_pixels" (L_AT over N_nz, docs/method.md, "Losses") or "sum" (eq. 14 as
     printed); see ``event_image_terms``.
     Returns LossOutput (loss = mean over batch of per_sample). Events and flow may be on CPU or
     CUDA; computations run in flow's dtype.
@@ -283,7 +283,7 @@ def accumulated_hmc_loss(
     reference_times: ReferenceTimes = "window",
     at_normalisation: AtNormalisation = "event_pixels",
 ) -> LossOutput:
-    """Accumulated-window variant (REFERENCE sec. 5, Hagenaars "sequential learning").
+    """Accumulated-window variant (docs/method.md, "Losses", Hagenaars "sequential learning").
 
     flows: K items, the flow of window k: a tensor (B, 2, H, W), pixels per window at full
         resolution, or a list of scales (as ``hmc_loss`` takes; every window the same number of

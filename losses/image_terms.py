@@ -187,7 +187,7 @@ def event_image_terms(
 
     Arguments as ``iwe.warped_event_images``; alpha as ``event_count_loss``.
     at_normalisation: "event_pixels" (default) divides eq. 14's sum of squared average
-    timestamps by N_nz + 1e-9, the number of pixels with C_+ + C_- > 0 (REFERENCE sec. 5);
+    timestamps by N_nz + 1e-9, the number of pixels with C_+ + C_- > 0 (docs/method.md, "Losses");
     "sum" is eq. 14 as printed, the bare sum (N_nz is piecewise constant, so the gradient is the
     normalised one times N_nz).
     Returns (at, ec, kept), each (B, R) in u's dtype; at and ec are differentiable in u

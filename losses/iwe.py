@@ -1,4 +1,4 @@
-"""Images of warped events: per-polarity count and average-timestamp images (REFERENCE sec. 5).
+"""Images of warped events: per-polarity count and average-timestamp images (docs/method.md, "Losses").
 
 All images of a batch (every batch element, every reference time, both polarities, counts C_P
 and timestamp sums A_P) are built by one call of the splatting routine (one scatter_add).

@@ -1,4 +1,4 @@
-"""Flow metrics (REFERENCE sec. 7): AEE and outlier %, FWL, RSAT.
+"""Flow metrics (docs/method.md, "Metrics"): AEE and outlier %, FWL, RSAT.
 
 Numpy in, float out (``flow_error``, ``fwl``, ``rsat``), computed in float64 by the torch
 versions (``*_torch``, batched, usable on CUDA during training, no gradients needed).

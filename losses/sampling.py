@@ -1,4 +1,4 @@
-"""Per-event flow: bilinear sampling of a flow field at event coordinates (REFERENCE sec. 5)."""
+"""Per-event flow: bilinear sampling of a flow field at event coordinates (docs/method.md, "Losses")."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Charbonnier smoothness prior on the flow, where there are events (REFERENCE sec. 5).
+"""Charbonnier smoothness prior on the flow, where there are events (docs/method.md, "Losses").
 
 Per-component form: for each of 4 neighbour directions (right, down, down-right, up-right) and
 each flow component, ``rho(d) = sqrt(d^2 + eps^2)`` of the neighbour difference d of the flow in

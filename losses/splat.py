@@ -1,11 +1,11 @@
-"""Bilinear splatting: the one routine behind every image of warped events (REFERENCE sec. 5).
+"""Bilinear splatting: the one routine behind every image of warped events (docs/method.md, "Losses").
 
 Kernel ``k(dx, dy) = max(0, 1 - |dx|) * max(0, 1 - |dy|)``: a point at (x, y) spreads onto the
 (up to) 4 pixels around it; corners outside the image get weight 0 (they are dropped, the point
 still counts on its other corners). The same routine serves the count and average-timestamp
 images (every batch element, both reference times, both polarities, counts and timestamp sums
 in one ``scatter_add``, see ``iwe.py``) and the forward warp of a flow field (``warp.py``,
-REFERENCE eq. 9).
+eq. 9).
 
 Layout. Points come in *rows* (the leading dims, e.g. batch x reference time); each row owns a
 stack of ``images_per_row`` *padded* images of shape (H + 2, W + 2), pixel (row r, col q)

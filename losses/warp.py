@@ -1,4 +1,4 @@
-"""Warps: events to a reference time (REFERENCE eq. 12) and a flow field forward (eq. 9)."""
+"""Warps: events to a reference time (eq. 12) and a flow field forward (eq. 9)."""
 
 from __future__ import annotations
 
@@ -93,7 +93,7 @@ class _ForwardWarpCompiled(torch.autograd.Function):
 
 
 def forward_warp_flow(flow: torch.Tensor, min_weight: float = HOLE_WEIGHT) -> torch.Tensor:
-    """Prior flow alignment of FGD-Net (REFERENCE eq. 9): ``ubar(x + u(x)) = u(x)``.
+    """Prior flow alignment of FGD-Net (eq. 9): ``ubar(x + u(x)) = u(x)``.
 
     flow: (B, 2, H, W) float, pixels per window at the flow's own resolution.
     min_weight: a target pixel whose splatted weight A0 is not above this is a hole

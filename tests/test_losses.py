@@ -43,7 +43,7 @@ def backend(request, monkeypatch):
     return request.param
 
 # --------------------------------------------------------------------------------------------
-# Slow reference: one event at a time, float64, kernel written as in REFERENCE section 5.
+# Slow reference: one event at a time, float64, kernel written as in docs/method.md, "Losses".
 # --------------------------------------------------------------------------------------------
 
 
@@ -820,7 +820,7 @@ def test_float32_close_to_float64(backend):
     l64 = hmc_loss(torch.from_numpy(flow), EventBatch.from_windows(wins, dtype=torch.float64))
     l32 = hmc_loss(torch.from_numpy(flow).float(), EventBatch.from_windows(wins))
     assert l32.loss.dtype == torch.float32
-    # REFERENCE numerics note: L_AT may jump by ~1e-4 relative between precisions
+    # docs/method.md, "Conventions", numerics: L_AT may jump by ~1e-4 relative between precisions
     np.testing.assert_allclose(l32.per_sample.double().numpy(), l64.per_sample.numpy(), rtol=1e-3)
 
 
@@ -892,7 +892,7 @@ def test_compiled_kernels_equal_torch_path(scale, monkeypatch):
     for a, b in zip(results["compiled", torch.float64], results["torch", torch.float64]):
         np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-9, atol=1e-12)
     (l32, k32, g32), (l64, k64, g64) = results["compiled", torch.float32], results["compiled", torch.float64]
-    np.testing.assert_allclose(l32.numpy(), l64.numpy(), rtol=1e-3)  # float32: REFERENCE numerics note
+    np.testing.assert_allclose(l32.numpy(), l64.numpy(), rtol=1e-3)  # float32: docs/method.md, "Conventions", numerics
     np.testing.assert_allclose(k32.numpy(), k64.numpy(), rtol=1e-5)
     assert float((g32 - g64).norm() / g64.norm()) < 1e-2  # a few events sit on a kernel kink
 

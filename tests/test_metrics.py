@@ -1,4 +1,4 @@
-"""Tests for losses/metrics.py: AEE / outlier %, FWL, RSAT (REFERENCE section 7)."""
+"""Tests for losses/metrics.py: AEE / outlier %, FWL, RSAT (docs/method.md, "Metrics")."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Readers for real recordings: each test writes a small file exactly as the public layout
-describes (REFERENCE section 8) and reads it back through the reader and ``open_recording``."""
+describes (docs/formats.md) and reads it back through the reader and ``open_recording``."""
 
 from __future__ import annotations
 

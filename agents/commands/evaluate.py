@@ -102,7 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def mvsec_runs(folder: Path, protocol) -> list:
-    """The MVSEC protocol (REFERENCE section 7, agents.benchmarks.MVSECProtocol): indoor_flying1-3
+    """The MVSEC protocol (docs/method.md, "Metrics", agents.benchmarks.MVSECProtocol): indoor_flying1-3
     and outdoor_day1, central 256x256 crop, the protocol's windows and scoring."""
     from envs.readers.mvsec import MVSEC_SEQUENCES
 

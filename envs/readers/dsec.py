@@ -1,5 +1,5 @@
 """DSEC (Gehrig et al. 2021): ``events.h5``, optional ``rectify_map.h5`` and the optical-flow
-ground truth (16-bit PNGs + timestamps file). REFERENCE section 8.
+ground truth (16-bit PNGs + timestamps file). docs/formats.md.
 
 Layout read:
 

@@ -2,7 +2,7 @@
 
 Datasets such as MVSEC store one displacement map per ground-truth interval:
 ``D_i`` (2, H, W) pixels, the motion of each pixel between ``T_i`` and ``T_{i+1}``. A window
-``[t0, t1)`` that is not one of those intervals gets its flow as follows (REFERENCE section 8):
+``[t0, t1)`` that is not one of those intervals gets its flow as follows (docs/formats.md):
 
 1. **Inside one interval** (``T_i <= t0 < t1 <= T_{i+1}``): linear scaling,
    ``flow = D_i * (t1 - t0) / (T_{i+1} - T_i)`` (constant velocity within the interval).

@@ -1,6 +1,6 @@
 """The Hagenaars / Monash h5 layout (event_flow, HQF, converted UZH-FPV / ECD / MVSEC).
 
-Layout read (REFERENCE section 8):
+Layout read (docs/formats.md):
 
     events/xs, events/ys   (N,) int16 (any integer type accepted)   column, row
     events/ts              (N,) float64 seconds (an integer ts is taken as µs)
@@ -53,7 +53,7 @@ START_ATTRIBUTES = ("timestamp_from", "timestamp_start")
 class HagenaarsReader(EventReader):
     """A Hagenaars / Monash h5 file (module docstring for the layout and conventions).
 
-    flow_timestamp: "end" (REFERENCE convention) or "start": what a flow map's ``timestamp`` means.
+    flow_timestamp: "end" (docs/method.md convention) or "start": what a flow map's ``timestamp`` means.
     validate: check every window's events (bounds, time order).
     """
 

@@ -1,5 +1,5 @@
 """MVSEC (Zhu et al. 2018): reader for ``<seq>_data.hdf5`` + ``<seq>_gt_flow_dist.npz`` and the
-evaluation protocol (REFERENCE sections 7 and 8).
+evaluation protocol (docs/method.md, "Metrics"; docs/formats.md).
 
 Layout read (DAVIS 346, 260 x 346):
 
@@ -79,7 +79,7 @@ __all__ = [
 MVSEC_SENSOR_SIZE = (260, 346)
 #: the four sequences of the flow benchmark (Zhu et al. 2018; Hagenaars et al. 2021)
 MVSEC_SEQUENCES = ("indoor_flying1", "indoor_flying2", "indoor_flying3", "outdoor_day1")
-#: ground truth is evaluated only inside these grid-index ranges [first, last] (REFERENCE sec. 7)
+#: ground truth is evaluated only inside these grid-index ranges [first, last] (docs/method.md, "Metrics")
 MVSEC_VALID_FRAMES = {
     "indoor_flying1": (60, 1340),
     "indoor_flying2": (140, 1500),
