@@ -41,6 +41,7 @@ from envs.env import EventFlowEnv
 from losses import (
     BORDER_RAMP,
     EventBatch,
+    LossWeights,
     check_border_ramp,
 )
 
@@ -181,6 +182,11 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+    @property
+    def weights(self) -> LossWeights:
+        """The loss weights of this run."""
+        return LossWeights(self.lambda_1, self.lambda_2, self.alpha, self.border_penalty, self.border_ramp)
 
     def check(self) -> None:
         """ValueError naming the field and the allowed values for a choice that is not one."""

@@ -18,6 +18,7 @@ from losses import (
     LossOutput,
     accumulated_hmc_loss,
     at_loss,
+    border_rule_weight,
     contrast_maximisation_flow,
     event_pixel_mask,
     hmc_loss,
@@ -50,13 +51,11 @@ def window_loss(cfg: TrainConfig, flow_scaling: float):
     """The unsupervised loss of one window under ``cfg`` (L_HMC, eq. 17, or L_AT, eq. 14, with the
     readings docs/method.md lists): ``loss(flows, batch, border_penalty) -> LossOutput``. The
     teacher and supervised objectives log L_HMC."""
-    options = {"flow_scaling": flow_scaling, "lambda_2": cfg.lambda_2, "border_ramp": cfg.border_ramp,
-               "upsampling": cfg.upsampling, "reference_times": cfg.reference_times,
-               "at_normalisation": cfg.at_normalisation}
-    if cfg.loss == "at":
-        return lambda flows, batch, border_penalty=0.0: at_loss(flows, batch, border_penalty=border_penalty, **options)
-    return lambda flows, batch, border_penalty=0.0: hmc_loss(flows, batch, lambda_1=cfg.lambda_1, alpha=cfg.alpha,
-                                                             border_penalty=border_penalty, **options)
+    kind = "at" if cfg.loss == "at" else "hmc"
+    fn = {"hmc": hmc_loss, "at": at_loss}[kind]
+    options = {"flow_scaling": flow_scaling, "upsampling": cfg.upsampling, "reference_times": cfg.reference_times,
+               "at_normalisation": cfg.at_normalisation, **cfg.weights.of(kind)}
+    return lambda flows, batch, border_penalty=0.0: fn(flows, batch, border_penalty=border_penalty, **options)
 
 
 def _scales(cfg: TrainConfig, flows: list) -> list:
@@ -84,9 +83,9 @@ class AccumulatedLoss:
 
     def __init__(self, cfg: TrainConfig, flow_scaling: float, **_) -> None:
         self.cfg = cfg
-        self.options = {"flow_scaling": flow_scaling, "lambda_1": cfg.lambda_1, "lambda_2": cfg.lambda_2,
-                        "alpha": cfg.alpha, "border_ramp": cfg.border_ramp, "upsampling": cfg.upsampling,
-                        "reference_times": cfg.reference_times, "at_normalisation": cfg.at_normalisation}
+        self.options = {"flow_scaling": flow_scaling, "upsampling": cfg.upsampling,
+                        "reference_times": cfg.reference_times, "at_normalisation": cfg.at_normalisation,
+                        **cfg.weights.of("hmc")}
 
     def _loss(self, flows, batches, border_penalty=0.0) -> LossOutput:
         return accumulated_hmc_loss(flows, batches, border_penalty=border_penalty, outside_weight=border_penalty,
@@ -95,9 +94,9 @@ class AccumulatedLoss:
     def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:
         flows = [_scales(self.cfg, w.flows) for w in rollout]
         batches = [w.batch for w in rollout]
-        with torch.no_grad():
-            zero = self._loss([torch.zeros_like(f[-1]) for f in flows], batches)
-        return self._loss(flows, batches, self.cfg.border_penalty * zero.per_sample).loss, {}
+        zero_flows = [torch.zeros_like(f[-1]) for f in flows]
+        penalty = border_rule_weight(self._loss, zero_flows, batches, self.cfg.border_penalty)
+        return self._loss(flows, batches, penalty).loss, {}
 
 
 class SupervisedLoss:

@@ -16,7 +16,7 @@ from envs.events import Events
 from envs.representations import count_image, count_time_image, voxel_grid
 from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import WINDOW_MODES, window_bounds, window_grid
-from losses import BORDER_RAMP, EventBatch, at_loss, check_border_ramp, hmc_loss
+from losses import BORDER_RAMP, EventBatch, LossWeights, at_loss, border_rule_weight, check_border_ramp, hmc_loss
 
 __all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "WindowEvents", "score_flow", "NoWindowsError"]
 
@@ -48,15 +48,10 @@ def score_flow(
     flow: (B, 2, H, W) pixels per window; events: the B windows. Returns the loss's
     LossOutput (``loss`` is the batch mean; for one window, -reward).
     """
-    fn = hmc_loss if loss == "hmc" else at_loss
-    kwargs = dict(flow_scaling=flow_scaling, lambda_2=lambda_2)
-    if loss == "hmc":
-        kwargs.update(lambda_1=lambda_1, alpha=alpha)
-    penalty = 0.0
-    if border_penalty:
-        zero = fn(torch.zeros_like(flow), events, **kwargs).per_sample
-        penalty = border_penalty * zero
-    return fn(flow, events, border_penalty=penalty, border_ramp=border_ramp, **kwargs)
+    fn = {"hmc": hmc_loss, "at": at_loss}[loss]
+    kwargs = LossWeights(lambda_1, lambda_2, alpha, border_penalty, border_ramp).of(loss)
+    penalty = border_rule_weight(fn, torch.zeros_like(flow), events, border_penalty, flow_scaling=flow_scaling, **kwargs)
+    return fn(flow, events, border_penalty=penalty, flow_scaling=flow_scaling, **kwargs)
 
 
 class EventFlowEnv(gym.Env):

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from .events import EventBatch
-from .hmc import BORDER_RAMP, hmc_loss
+from .hmc import BORDER_RAMP, border_rule_weight, hmc_loss
 
 __all__ = ["contrast_maximisation_flow"]
 
@@ -93,9 +93,8 @@ def contrast_maximisation_flow(
             level = dict(flow_scaling=scaling / scale, **weights)
             penalty = border_penalty
             if not isinstance(border_penalty, torch.Tensor):
-                with torch.no_grad():
-                    zero = hmc_loss(torch.zeros(B, 2, hs, ws, device=device), level_events, **level)
-                penalty = float(border_penalty) * zero.per_sample
+                penalty = border_rule_weight(hmc_loss, torch.zeros(B, 2, hs, ws, device=device), level_events,
+                                             float(border_penalty), **level)
             offset = None
             if base is not None:
                 offset = base.float() if scale == 1 else F.interpolate(base.float(), size=(hs, ws), mode="area")

@@ -32,7 +32,8 @@ from .warp import beyond_image, outside_distance, warp_events
 
 __all__ = ["LossOutput", "hmc_loss", "at_loss", "accumulated_hmc_loss", "to_full_resolution",
            "ramped_dropped_share", "check_border_ramp", "BORDER_RAMP", "Upsampling", "ReferenceTimes",
-           "UPSAMPLINGS", "REFERENCE_TIMES", "AtNormalisation", "AT_NORMALISATIONS"]
+           "UPSAMPLINGS", "REFERENCE_TIMES", "AtNormalisation", "AT_NORMALISATIONS", "LossWeights",
+           "border_rule_weight"]
 
 #: How a coarse scale's flow is brought to full resolution for the loss (the paper does not say).
 Upsampling = Literal["bilinear", "nearest"]
@@ -47,6 +48,40 @@ REFERENCE_TIMES = get_args(ReferenceTimes)
 BORDER_RAMP = 16.0
 
 FlowInput = torch.Tensor | Sequence[torch.Tensor]
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """The weights of L_HMC (eq. 17) and of the border rule (docs/method.md, "Losses")."""
+
+    lambda_1: float = 1.0
+    """weight of the event-count term L_EC"""
+    lambda_2: float = 1e-3
+    """weight of the smoothness term"""
+    alpha: float = 0.6
+    """Charbonnier exponent of the smoothness term"""
+    border_penalty: float = 1.0
+    """border rule: x the window's zero-flow loss x the share of its events pushed out of the image"""
+    border_ramp: float = BORDER_RAMP
+    """the border rule's ramp, pixels beyond the border (0: the plain share)"""
+
+    def of(self, loss: Literal["hmc", "at"]) -> dict:
+        """The keyword arguments of ``hmc_loss`` / ``at_loss`` (the border penalty is per window:
+        :func:`border_rule_weight`)."""
+        if loss not in ("hmc", "at"):
+            raise ValueError(f"loss must be one of ('hmc', 'at'), got {loss!r}")
+        weights = {"lambda_2": self.lambda_2, "border_ramp": self.border_ramp}
+        return {**weights, "lambda_1": self.lambda_1, "alpha": self.alpha} if loss == "hmc" else weights
+
+
+def border_rule_weight(loss_fn, zero_flow: torch.Tensor, events: EventBatch, border_penalty: float, **loss_kwargs):
+    """The border rule's weight of each window: ``border_penalty`` x the window's loss under zero
+    flow (``loss_fn(zero_flow, events, **loss_kwargs)``, no graph), (B,); 0.0 when the penalty is
+    0. The loss charges this weight x the (ramped) share of the window's events pushed out."""
+    if not border_penalty:
+        return 0.0
+    with torch.no_grad():
+        return border_penalty * loss_fn(zero_flow, events, **loss_kwargs).per_sample
 
 
 @dataclass(frozen=True)

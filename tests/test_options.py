@@ -70,3 +70,13 @@ def test_the_scripts_still_run_as_files():
         out = subprocess.run([sys.executable, str(ROOT / "scripts" / f"{script}.py"), "--help"], capture_output=True,
                              text=True, check=True).stdout
         assert out.startswith("usage:"), script
+
+
+def test_loss_weights_name_the_loss_they_serve():
+    from losses import LossWeights
+
+    weights = LossWeights(lambda_1=0.5)
+    assert weights.of("hmc")["lambda_1"] == 0.5 and "lambda_1" not in weights.of("at")
+    with pytest.raises(ValueError, match=r"loss must be one of \('hmc', 'at'\), got 'hmx'"):
+        weights.of("hmx")
+    assert TrainConfig(lambda_2=0.1).weights.lambda_2 == 0.1
