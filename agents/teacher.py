@@ -41,7 +41,8 @@ from envs.env import EventFlowEnv
 from envs.windows import window_bounds
 from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
 
-__all__ = ["TeacherSettings", "TeacherTargets", "compute_teacher_targets", "count_windows", "TeacherCacheError"]
+__all__ = ["TeacherSettings", "TeacherTargets", "compute_teacher_targets", "count_windows", "TeacherCacheError",
+           "score_targets"]
 
 FORMAT = "evflow-teacher-targets"
 
@@ -225,3 +226,40 @@ class TeacherTargets:
             self.target(info["sequence"][i], info["t_start"][i], info["t_end"][i], info["crop"][i], info["flips"][i])
             for i in range(num_envs)
         ])
+
+
+def score_targets(path: str | os.PathLike, data=None) -> dict[str, dict[str, float]]:
+    """How good stored targets are: per window length (frames), the mean over windows of the
+    targets' AEE against the ground truth and of zero flow's, on pixels with events and valid
+    ground truth (the evaluation's metric). ``data`` defaults to the file's own. Returns
+    ``{"1": {"aee": .., "aee_zero": .., "windows": ..}, ...}`` (keys: window lengths)."""
+    from envs.representations import event_mask
+    from losses import flow_error
+
+    targets = TeacherTargets(path)
+    data = targets.config["data"] if data is None else data
+    sizes = targets.config["window_sizes"]
+    sums: dict[str, list[float]] = {}
+    for index, source in enumerate(resolve_data(data)):
+        for k in sizes:
+            env = EventFlowEnv(data, window="frames", window_size=k, compute_reward=False, sequences=[index])
+            for window in _windows_of(env, 0):
+                gt = env.sources[0].reader().flow_between(window["t_start"], window["t_end"])
+                if gt is None or not len(window["t"]):
+                    continue
+                mask = event_mask(_Events(window), env.sensor_size)
+                target = targets.target(source.name, window["t_start"], window["t_end"]).numpy()
+                err = flow_error(target, gt[0], gt[1], mask)
+                zero = flow_error(np.zeros_like(target), gt[0], gt[1], mask)
+                if err["n_pixels"]:
+                    acc = sums.setdefault(str(k), [0.0, 0.0, 0])
+                    acc[0] += err["aee"]
+                    acc[1] += zero["aee"]
+                    acc[2] += 1
+            env.close()
+    return {k: {"aee": a / n, "aee_zero": z / n, "ratio": a / z, "windows": n} for k, (a, z, n) in sums.items()}
+
+
+class _Events:
+    def __init__(self, window: dict) -> None:
+        self.x, self.y, self.t, self.p = window["x"], window["y"], window["t"], window["p"]

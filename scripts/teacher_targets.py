@@ -32,7 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description="Precompute per-window contrast-maximisation flows (teacher targets) "
                                 "of a dataset, for training with --loss teacher --teacher-cache.")
     p.add_argument("--data", nargs="+", default=["synthetic-train"], help="synthetic split name, recording files or folders")
-    p.add_argument("--out", required=True, type=Path, help="output h5 file")
+    p.add_argument("--out", required=True, type=Path, help="output h5 file (with --score: the file to score)")
+    p.add_argument("--score", action="store_true",
+                   help="do not solve: score the targets in --out against the ground truth (AEE vs zero flow's)")
     p.add_argument("--window-size", type=int, nargs="+", default=[1, 2, 3, 4], help="window lengths in frames (default 1 2 3 4)")
     p.add_argument("--grids", type=int, nargs="+", default=list(d.grids),
                    help="coarse-to-fine grid cells along the longer side (default 4 8 16)")
@@ -56,6 +58,13 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.score:
+        from agents.teacher import score_targets
+
+        for k, row in score_targets(args.out).items():
+            print(f"{k}-frame windows: targets' AEE {row['aee']:.3f}, zero flow's {row['aee_zero']:.3f} "
+                  f"({row['ratio']:.2f}x) over {row['windows']} windows")
+        return 0
     if args.out.exists():
         print(f"{args.out} exists; delete it to recompute", file=sys.stderr)
         return 1
