@@ -54,6 +54,24 @@ class _Baseline(FlowNetBase):
                        "flow_scaling": self.flow_scaling}
 
 
+def _add_recurrent_encoder(net: _Baseline, gru: type) -> None:
+    """Four encoder levels ``F_l = gru_l(conv_down_l(F_{l-1}), F_l at k-1)`` (ConvGRU-EV-FlowNet
+    with Hagenaars' GRU, UNetConvGRU with eq. 4's)."""
+    inputs, outputs = _channels(net.in_channels, net.base_width)
+    net.downs = nn.ModuleList(ConvDown(i, o) for i, o in zip(inputs, outputs))
+    net.grus = nn.ModuleList(gru(o, o) for o in outputs)
+
+
+def _recurrent_encode(self, x: Tensor, state: State, new_state: State) -> list[Tensor]:
+    """The encoder of :func:`_add_recurrent_encoder`; state "encoder1".."encoder4"."""
+    skips = []
+    for level, (down, gru) in enumerate(zip(self.downs, self.grus)):
+        key = f"encoder{level + 1}"
+        x = new_state[key] = gru(down(x), state.get(key))
+        skips.append(x)
+    return skips
+
+
 # -- the published baselines ------------------------------------------------------------------
 
 
@@ -103,17 +121,9 @@ class ConvGRUEVFlowNet(_Baseline):
     def __init__(self, in_channels: int = 2, base_width: int | None = None, width: str = "paper",
                  flow_scaling: float = 128.0):
         super().__init__(in_channels, base_width, width, flow_scaling, decoder_kwargs={"head_kernel": 1})
-        inputs, outputs = _channels(self.in_channels, self.base_width)
-        self.downs = nn.ModuleList(ConvDown(i, o) for i, o in zip(inputs, outputs))
-        self.grus = nn.ModuleList(HagenaarsConvGRU(o, o) for o in outputs)
+        _add_recurrent_encoder(self, HagenaarsConvGRU)
 
-    def encode(self, x: Tensor, state: State, new_state: State) -> list[Tensor]:
-        skips = []
-        for level, (down, gru) in enumerate(zip(self.downs, self.grus)):
-            key = f"encoder{level + 1}"
-            x = new_state[key] = gru(down(x), state.get(key))
-            skips.append(x)
-        return skips
+    encode = _recurrent_encode
 
 
 def _xlif_step(layer: XLIFLayer, key: str, x: Tensor, state: State, new_state: State, residual=0.0) -> Tensor:
@@ -243,17 +253,9 @@ class UNetConvGRU(_Baseline):
     def __init__(self, in_channels: int = 2, base_width: int | None = None, width: str = "paper",
                  flow_scaling: float = 128.0):
         super().__init__(in_channels, base_width, width, flow_scaling)
-        inputs, outputs = _channels(self.in_channels, self.base_width)
-        self.downs = nn.ModuleList(ConvDown(i, o) for i, o in zip(inputs, outputs))
-        self.grus = nn.ModuleList(ConvGRU(o, o) for o in outputs)
+        _add_recurrent_encoder(self, ConvGRU)
 
-    def encode(self, x: Tensor, state: State, new_state: State) -> list[Tensor]:
-        skips = []
-        for level, (down, gru) in enumerate(zip(self.downs, self.grus)):
-            key = f"encoder{level + 1}"
-            x = new_state[key] = gru(down(x), state.get(key))
-            skips.append(x)
-        return skips
+    encode = _recurrent_encode
 
 
 class UNetXLIFEncoder(_Baseline):

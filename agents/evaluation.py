@@ -82,7 +82,7 @@ def _iwe_picture(flow: np.ndarray, window: dict, size) -> np.ndarray:
     b = EventBatch.from_windows([window])
     with torch.no_grad():
         u = sample_flow(torch.from_numpy(flow)[None], b.x, b.y)
-        count, _ = warped_event_images(b.x, b.y, b.tau, b.p, b.mask, u, size[0], size[1], references=(1.0,))
+        count, _ = warped_event_images(b, u, size[0], size[1], references=(1.0,))
     return count_image_to_rgb(count[0, 0].numpy())
 
 

@@ -154,7 +154,7 @@ def rebase_to_events(t: torch.Tensor, u: torch.Tensor, mask: torch.Tensor, span:
     return (t - first) / ratio, u * ratio.unsqueeze(-1).to(u.dtype)
 
 
-def ramped_dropped_share(x, y, t, u, mask, height, width, references, ramp) -> torch.Tensor:
+def ramped_dropped_share(events: EventBatch, u, height, width, references, ramp) -> torch.Tensor:
     """(B, R) the border charge per reference time with a distance ramp of ``ramp`` pixels.
 
     Each valid event's charge is the share of its bilinear splat weight that falls outside the
@@ -163,6 +163,7 @@ def ramped_dropped_share(x, y, t, u, mask, height, width, references, ramp) -> t
     motion leaves by at most |u| pixels) cost little; events pushed far out cost their whole
     dropped share, as with no ramp (``ramp -> 0`` gives the plain dropped share).
     """
+    x, y, t, _, mask = events
     m = mask.to(u.dtype)
     n = m.sum(dim=1).clamp_min(1)
     out = []
@@ -176,20 +177,20 @@ def ramped_dropped_share(x, y, t, u, mask, height, width, references, ramp) -> t
 
 
 def _terms(
-    x, y, t, p, mask, u, flow_for_smooth: Sequence[torch.Tensor], masks_for_smooth,
+    events: EventBatch, u, flow_for_smooth: Sequence[torch.Tensor], masks_for_smooth,
     height, width, references, span, alpha, flow_scaling, need_ec, border_ramp=0.0,
     at_normalisation: AtNormalisation = "event_pixels",
 ) -> dict:
-    """(B,) tensors at, ec, smooth, dropped for one set of (possibly accumulated) events."""
-    at, ec, kept = event_image_terms(x, y, t, p, mask, u, height, width, references, span, alpha,
-                                     at_normalisation)
+    """(B,) tensors at, ec, smooth, dropped for one set of (possibly accumulated) events; their
+    ``tau`` is the time in windows (k + tau for window k of K accumulated ones)."""
+    at, ec, kept = event_image_terms(events, u, height, width, references, span, alpha, at_normalisation)
     at = at.sum(dim=1)  # L_AT(s0) + L_AT(s1)
     ec = ec.sum(dim=1) if need_ec else ec.sum(dim=1).detach()
-    n_valid = mask.sum(dim=1).to(u.dtype)  # (B,)
+    n_valid = events.mask.sum(dim=1).to(u.dtype)  # (B,)
     kept = kept / n_valid.clamp_min(1).unsqueeze(1)  # (B, R) share of splat weight kept
     dropped = torch.where(n_valid.unsqueeze(1) > 0, 1 - kept, torch.zeros_like(kept))
     if border_ramp > 0:
-        charge = ramped_dropped_share(x, y, t, u, mask, height, width, references, border_ramp)
+        charge = ramped_dropped_share(events, u, height, width, references, border_ramp)
     else:
         charge = dropped
     smooth = sum(
@@ -233,8 +234,8 @@ def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_pe
         if reference_times == "events":
             t, u = rebase_to_events(t.to(u.dtype), u, events.mask, 1.0)
         terms.append(
-            _terms(events.x, events.y, t, events.p, events.mask, u, [f], [ev_mask],
-                   H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec, ramp, at_normalisation)
+            _terms(events._replace(tau=t), u, [f], [ev_mask], H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec, ramp,
+                   at_normalisation)
         )
     return _combine(terms, lambda_1, lambda_2, border_penalty, use_ec)
 
@@ -369,10 +370,11 @@ def accumulated_hmc_loss(
         t = torch.cat([ev.tau.to(dtype) + k for k, ev in enumerate(events_list)], dim=1)
         if reference_times == "events":
             t, u = rebase_to_events(t, u, mask, float(K))
-        terms.append(_terms(x, y, t, p, mask, u, window_flows, masks, H, W, (0.0, float(K)), float(K), alpha,
+        accumulated = EventBatch(x, y, t, p, mask)  # tau: time in windows, k + tau
+        terms.append(_terms(accumulated, u, window_flows, masks, H, W, (0.0, float(K)), float(K), alpha,
                             scaling, True, ramp, at_normalisation))
         if isinstance(outside_weight, torch.Tensor) or outside_weight:
-            distances.append(outside_distance(x, y, t, u, mask, H, W, (0.0, float(K))))
+            distances.append(outside_distance(accumulated, u, H, W, (0.0, float(K))))
     out = _combine(terms, lambda_1, lambda_2, border_penalty, True)
     if distances:
         distance = sum(distances) / len(distances)

@@ -23,8 +23,9 @@ from typing import Literal, Sequence, get_args
 import numpy as np
 import torch
 
-from .splat import crop_padding, padded_corners
-from .warp import warp_events
+from .events import EventBatch
+from .iwe import warped_corners
+from .splat import crop_padding
 
 __all__ = ["event_image_terms", "AtNormalisation", "AT_NORMALISATIONS"]
 
@@ -43,22 +44,15 @@ def _zero_ring_(padded: torch.Tensor) -> torch.Tensor:
 
 class _EventImageTerms(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, u, x, y, t, p, mask, height, width, references, span, alpha):
-        B, N = x.shape
+    def forward(ctx, u, events, height, width, references, span, alpha):
+        B, N = events.x.shape
         R = len(references)
         dtype = u.dtype
-        ref = torch.tensor(list(references), dtype=dtype, device=u.device).view(1, R, 1)
-        t = t.to(dtype).unsqueeze(1)
-        xw, yw = warp_events(x.to(dtype).unsqueeze(1), y.to(dtype).unsqueeze(1), t,
-                             u.unsqueeze(1), ref)  # eq. 12, (B, R, N)
-        dt = ref - t
-        off = (p <= 0).unsqueeze(1)  # image 0 = ON, 1 = OFF
-        # the same corners as splat.padded_corners, written straight into the scatter source
-        index, wx, wy, inside = padded_corners(xw, yw, height, width, off, mask.unsqueeze(1), 2)
+        # eq. 12's warp and the splat corners, written straight into the scatter source
+        index, wx, wy, inside, closeness, dt = warped_corners(events, u, height, width, references, span)
         src = torch.empty(B, R, 2, 4, N, dtype=dtype, device=u.device)  # [count, stamp] x corner
         k = src[:, :, 0]
         torch.mul(wy.unsqueeze(3), wx.unsqueeze(2), out=k.view(B, R, 2, 2, N))  # k = wy[a] wx[b]
-        closeness = 1 - dt.abs() / span  # w_i = 1 - |s - t_i| / span
         torch.mul(k, closeness.unsqueeze(2), out=src[:, :, 1])
         rows, hp, wp = B * R, height + 2, width + 2
         idx = index.view(rows, 1, 4 * N).expand(rows, 2, 4 * N)
@@ -106,7 +100,7 @@ class _EventImageTerms(torch.autograd.Function):
         gx = ((G[:, :, :, 1] - G[:, :, :, 0]) * wy).sum(dim=2)  # dL/dx' (wy holds the inside mask)
         gy = ((G[:, :, 1] - G[:, :, 0]) * wx).sum(dim=2) * inside  # dL/dy'
         grad_u = torch.stack([(gx * dt).sum(dim=1), (gy * dt).sum(dim=1)], dim=-1)  # eq. 12
-        return grad_u, None, None, None, None, None, None, None, None, None, None
+        return grad_u, None, None, None, None, None, None
 
 
 from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
@@ -121,7 +115,8 @@ class _EventImageTermsCompiled(torch.autograd.Function):
     """The same function as ``_EventImageTerms`` through the fused numba kernels (CPU only)."""
 
     @staticmethod
-    def forward(ctx, u, x, y, t, p, mask, height, width, references, span, alpha):
+    def forward(ctx, u, events, height, width, references, span, alpha):
+        x, y, t, p, mask = events
         B, N = x.shape
         R = len(references)
         dtype = u.dtype
@@ -166,15 +161,11 @@ class _EventImageTermsCompiled(torch.autograd.Function):
         _, bwd = _kernels.kernels(_kernels.use_threads())
         bwd(*ctx.arrays, int(height), int(width), images, factors.astype(images.dtype), grad_u)
         grad = torch.from_numpy(grad_u).sum(dim=1)
-        return grad, None, None, None, None, None, None, None, None, None, None
+        return grad, None, None, None, None, None, None
 
 
 def event_image_terms(
-    x: torch.Tensor,
-    y: torch.Tensor,
-    t: torch.Tensor,
-    p: torch.Tensor,
-    mask: torch.Tensor,
+    events: EventBatch,
     u: torch.Tensor,
     height: int,
     width: int,
@@ -199,7 +190,7 @@ def event_image_terms(
         fn = _EventImageTermsCompiled
     else:
         fn = _EventImageTerms
-    at, ec, kept, n_nz = fn.apply(u, x, y, t, p, mask, height, width, tuple(references), float(span), float(alpha))
+    at, ec, kept, n_nz = fn.apply(u, events, height, width, tuple(references), float(span), float(alpha))
     if at_normalisation == "sum":
         at = at * (n_nz + 1e-9)  # undo the division: eq. 14's bare sum
     return at, ec, kept

@@ -10,24 +10,15 @@ from typing import Sequence
 
 import torch
 
+from .events import EventBatch
 from .splat import crop_padding, padded_corners, splat_rows
 from .warp import warp_events
 
 __all__ = ["warped_corners", "warped_event_images", "average_timestamp_images"]
 
 
-def warped_corners(
-    x: torch.Tensor,
-    y: torch.Tensor,
-    t: torch.Tensor,
-    p: torch.Tensor,
-    mask: torch.Tensor,
-    u: torch.Tensor,
-    height: int,
-    width: int,
-    references: Sequence[float],
-    span: float,
-):
+def warped_corners(events: EventBatch, u: torch.Tensor, height: int, width: int, references: Sequence[float],
+                   span: float):
     """Warp every event to every reference time (eq. 12) and find its splat corners.
 
     Shapes as in ``warped_event_images``. Returns (index, wx, wy, inside, closeness, dt):
@@ -35,6 +26,7 @@ def warped_corners(
     (batch, reference), 2 images per row (polarity ON, OFF); closeness (B, R, N) =
     1 - |s_r - t_i| / span, the timestamp weight; dt (B, R, N) = s_r - t_i (= d x' / d u).
     """
+    x, y, t, p, mask = events
     R = len(references)
     dtype = u.dtype
     ref = torch.tensor(list(references), dtype=dtype, device=u.device).view(1, R, 1)
@@ -55,11 +47,7 @@ def splat_counts_and_stamps(index, wx, wy, closeness, height, width) -> torch.Te
 
 
 def warped_event_images(
-    x: torch.Tensor,
-    y: torch.Tensor,
-    t: torch.Tensor,
-    p: torch.Tensor,
-    mask: torch.Tensor,
+    events: EventBatch,
     u: torch.Tensor,
     height: int,
     width: int,
@@ -68,8 +56,8 @@ def warped_event_images(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Count images C_P and timestamp sums A_P for every reference time, both polarities.
 
-    x, y: (B, N) float pixels (unwarped). t: (B, N) float, time in windows (tau in [0, 1];
-    k + tau in the accumulated variant). p: (B, N) float, ``p > 0`` is ON. mask: (B, N) bool.
+    events: the B windows' events (unwarped); their ``tau`` is the time in windows (in [0, 1];
+    k + tau for window k of the accumulated variant).
     u: (B, N, 2) float, per-event flow in pixels per window.
     references: R reference times s, in windows. span: the time span the weights are
     normalised by (1 per window; K for K accumulated windows).
@@ -80,8 +68,7 @@ def warped_event_images(
     with x'_i warped to s_r by eq. 12. Differentiable (plain autograd) in u; the losses use
     the fused backward of ``image_terms.py``.
     """
-    index, wx, wy, _, closeness, _ = warped_corners(x, y, t, p, mask, u, height, width,
-                                                    references, span)
+    index, wx, wy, _, closeness, _ = warped_corners(events, u, height, width, references, span)
     images = crop_padding(splat_counts_and_stamps(index, wx, wy, closeness, height, width))
     return images[:, :, 0], images[:, :, 1]
 

@@ -6,6 +6,7 @@ import numpy as np
 import torch
 
 from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
+from .events import EventBatch
 from .splat import bilinear_splat
 
 __all__ = ["warp_events", "forward_warp_flow", "outside_distance", "beyond_image", "HOLE_WEIGHT"]
@@ -37,11 +38,8 @@ def beyond_image(xw: torch.Tensor, yw: torch.Tensor, height: int, width: int) ->
 
 
 def outside_distance(
-    x: torch.Tensor,
-    y: torch.Tensor,
-    t: torch.Tensor,
+    events: EventBatch,
     u: torch.Tensor,
-    mask: torch.Tensor,
     height: int,
     width: int,
     references: tuple[float, ...] = (0.0, 1.0),
@@ -49,10 +47,11 @@ def outside_distance(
     """How far warped events lie outside the image: (B,) mean over valid events and reference
     times of ``relu(-x') + relu(x' - (W-1)) + relu(-y') + relu(y' - (H-1))``, in pixels.
 
-    x, y, t: (B, N); u: (B, N, 2) pixels per window; mask: (B, N) bool. 0 when every warped
+    events: B windows (tau: time in windows); u: (B, N, 2) pixels per window. 0 when every warped
     event stays inside; unlike the share of splat weight dropped at the border, it keeps a
     gradient that points back into the image however far the events went.
     """
+    x, y, t, _, mask = events
     total = x.new_zeros(x.shape[0], dtype=u.dtype)
     m = mask.to(u.dtype)
     for s in references:

@@ -392,7 +392,7 @@ def test_warped_event_images_match_reference():
     ev = EventBatch.from_windows(wins, dtype=torch.float64)
     flow = rng.normal(0, 2, (2, 2, H, W))
     u = sample_flow(torch.from_numpy(flow), ev.x, ev.y)
-    count, stamp = warped_event_images(ev.x, ev.y, ev.tau, ev.p, ev.mask, u, H, W)
+    count, stamp = warped_event_images(ev, u, H, W)
     for b, w in enumerate(wins):
         for r, s in enumerate((0.0, 1.0)):
             C, A = ref_images(flow[b], w["x"], w["y"], taus(w), w["p"], s, H, W)
@@ -850,7 +850,7 @@ def test_outside_distance_analytic_and_points_back_into_the_frame():
     mask = torch.tensor([[True, True, True]])
     u = torch.tensor([[[-3.0, 0.0], [0.0, 0.0], [2.0, 10.0]]], requires_grad=True)
     # s = 0: nothing moves; s = 1: 3 px left of x = 0, 1 px right of x = 10, 10 px below y = 4
-    d = outside_distance(x, y, t, u, mask, 5, 11, (0.0, 1.0))
+    d = outside_distance(EventBatch(x, y, t, torch.ones_like(x), mask), u, 5, 11, (0.0, 1.0))
     assert float(d.detach()) == pytest.approx((3 + 1 + 10) / 3 / 2)
     d.sum().backward()
     assert u.grad[0, 0, 0] < 0 and u.grad[0, 2, 0] > 0 and u.grad[0, 2, 1] > 0  # descent moves them back

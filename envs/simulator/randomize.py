@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 
 from envs.simulator.motion import AffineMotion
-from envs.simulator.scene import ObjectSpec, SceneConfig, SensorConfig, _next_pow2
+from envs.simulator.scene import ObjectSpec, SceneConfig, SensorConfig, _next_pow2, random_shape
 from envs.simulator.textures import TextureConfig
 
 __all__ = ["FactorRanges", "TRAIN_FACTORS", "STRESS_FACTORS", "RANDOMIZED_VERSION", "draw_scene", "draw_size", "peak_flow_px"]
@@ -250,14 +250,7 @@ def _draw_object(rng: np.random.Generator, factors: FactorRanges, height: int, w
         radius = float(rng.uniform(2.0, 8.0))
     else:
         radius = float(rng.uniform(0.08, 0.35) * small_side)
-    if rng.random() < 0.3:
-        shape, vertices = "disc", ()
-    else:
-        n_vert = int(rng.integers(3, 8))
-        gaps = rng.uniform(0.5, 1.5, n_vert)
-        angles = np.cumsum(gaps / gaps.sum() * 2 * np.pi) + rng.uniform(0, 2 * np.pi)
-        shape = "polygon"
-        vertices = tuple((float(radius * np.cos(a)), float(radius * np.sin(a))) for a in angles)
+    shape, vertices = random_shape(rng, radius)
     texture = _draw_texture(rng, factors, max_scale=max(2.0, _next_pow2(2.6 * radius) / 4))
     target = _log_uniform(rng, factors.object_flow_px)
     extent = np.array([width, height], float)

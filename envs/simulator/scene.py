@@ -28,6 +28,16 @@ from envs.simulator.textures import PeriodicTexture, TextureConfig, make_texture
 __all__ = ["SensorConfig", "ObjectSpec", "SceneConfig", "Scene"]
 
 
+def random_shape(rng: np.random.Generator, radius: float) -> tuple[str, tuple]:
+    """A disc (3 in 10) or a convex polygon of 3-7 vertices inscribed in the circle of ``radius``
+    (sorted angles with a minimum gap); returns (shape, vertices in pixels about the centre)."""
+    if rng.random() < 0.3:
+        return "disc", ()
+    n_vert = int(rng.integers(3, 8))
+    gaps = rng.uniform(0.5, 1.5, n_vert)
+    angles = np.cumsum(gaps / gaps.sum() * 2 * np.pi) + rng.uniform(0, 2 * np.pi)
+    return "polygon", tuple((float(radius * np.cos(a)), float(radius * np.sin(a))) for a in angles)
+
 @dataclass(frozen=True)
 class SensorConfig:
     """The event camera (ESIM-style model, see :mod:`envs.simulator.emulator`).
@@ -157,15 +167,7 @@ class SceneConfig:
         small = min(height, width)
         for _ in range(n_obj):
             radius = float(rng.uniform(0.12, 0.28) * small)
-            if rng.random() < 0.3:
-                shape, vertices = "disc", ()
-            else:
-                n_vert = int(rng.integers(3, 8))
-                # sorted angles with a minimum gap: a convex polygon inscribed in the circle
-                gaps = rng.uniform(0.5, 1.5, n_vert)
-                angles = np.cumsum(gaps / gaps.sum() * 2 * np.pi) + rng.uniform(0, 2 * np.pi)
-                shape = "polygon"
-                vertices = tuple((float(radius * np.cos(a)), float(radius * np.sin(a))) for a in angles)
+            shape, vertices = random_shape(rng, radius)
             anchor = centre + rng.uniform(-0.15, 0.15, 2) * np.array([width, height])
             motion = _random_motion(
                 rng, speed * rng.uniform(0.3, 1.0), radius * 1.3, anchor, camera=False, rotation=rotation, zoom=zoom,
