@@ -708,13 +708,8 @@ def test_cpu_default_is_channels_last_with_compiled_gates(monkeypatch):
 def test_bench_agents_parts_rows():
     """``scripts/bench_agents.py --parts`` runs against the current layers and reports every
     piece at both inputs (one timed repetition each)."""
-    import importlib.util
-    import pathlib
+    from agents.commands import bench_agents as bench
 
-    path = pathlib.Path(__file__).resolve().parents[1] / "scripts" / "bench_agents.py"
-    spec = importlib.util.spec_from_file_location("bench_agents_under_test", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
     rows = []
     bench.time_parts(lambda section, name, value, unit: rows.append((name, value, unit)), reps=1)
     names = [name for name, _, _ in rows]

@@ -66,7 +66,7 @@ def test_every_console_command_prints_its_help(command, capsys):
 
 
 def test_the_scripts_still_run_as_files():
-    for script in ("train", "evaluate", "predict", "convert", "generate_synthetic"):
+    for script in ("train", "evaluate", "predict", "convert", "generate_synthetic", "benchmark"):
         out = subprocess.run([sys.executable, str(ROOT / "scripts" / f"{script}.py"), "--help"], capture_output=True,
                              text=True, check=True).stdout
         assert out.startswith("usage:"), script

@@ -364,13 +364,9 @@ def test_geometry_too_small_for_the_events_names_the_file(tmp_path, rng):
 
 @pytest.mark.parametrize("fmt", ["EVT2", "EVT3"])
 def test_benchmark_encoders_agree_with_the_reader(tmp_path, fmt):
-    """The vectorised encoders of scripts/bench_prophesee.py write what the reader reads back."""
-    import importlib.util
-    from pathlib import Path
+    """The vectorised encoders of agents/commands/bench_prophesee.py write what the reader reads back."""
+    from agents.commands import bench_prophesee as bench
 
-    spec = importlib.util.spec_from_file_location("bench_prophesee", Path(__file__).parents[1] / "scripts" / "bench_prophesee.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
     path = bench.write_raw(tmp_path / "b.raw", fmt, 30_000, 2e6, chunk=7_000)
     rng = np.random.default_rng(0)  # the same draws as write_raw(seed=0)
     parts = []
