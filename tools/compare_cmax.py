@@ -2,7 +2,7 @@
 """Compare settings of per-window contrast maximisation (agents/cmax.py) on a split: AEE,
 L_HMC and time per window, at dt = 1 and dt = 4, on the first windows of every sequence.
 
-    python scripts/compare_cmax.py --data synthetic-test --max-windows 4
+    python tools/compare_cmax.py --data synthetic-test --max-windows 4
 
 Settings compared: "coarse-sensor" (the default of ``--cmax``: flow grids 4-8-16 on a sensor
 grid 4x, 2x, then 1x coarser, 40/30/30 Adam steps, step size decayed 10x) against "plain" (the
