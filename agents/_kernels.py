@@ -11,6 +11,9 @@ The arithmetic runs in the inputs' dtype; for float32 the exponential is the vec
 polynomial of ``losses/_kernels.py`` (relative error < 1e-7), so results differ from torch's by a
 few float32 ulps. The torch expressions in ``agents/layers.py`` are the reference the tests compare
 against, and the path for CUDA and for other layouts.
+
+Each forward kernel and its backward open with the same indexing of the gate columns: numba
+compiles each kernel as one loop nest, so the shared preamble is written out in both.
 """
 
 from __future__ import annotations

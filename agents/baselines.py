@@ -54,6 +54,8 @@ class _Baseline(FlowNetBase):
                        "flow_scaling": self.flow_scaling}
 
 
+# The baselines' __init__ signatures repeat on purpose: make_model passes only the keyword
+# arguments a factory's signature names.
 def _add_recurrent_encoder(net: _Baseline, gru: type) -> None:
     """Four encoder levels ``F_l = gru_l(conv_down_l(F_{l-1}), F_l at k-1)`` (ConvGRU-EV-FlowNet
     with Hagenaars' GRU, UNetConvGRU with eq. 4's)."""

@@ -433,6 +433,8 @@ class HagenaarsConvGRU(nn.Module):
     Unlike eq. 4 (which gates the convolved state, ``r . (Whh*H)``), the reset gate scales the
     hidden state before its convolution. Weights orthogonal (each gate's kernel as one
     (hidden, (C_in + hidden) k^2) matrix), biases 0, as in the authors' description.
+    Its interface (arguments, docstring, first lines of ``__init__``) is :class:`ConvGRU`'s, so
+    that the networks take either; the gates differ.
 
     Args:
         x: (B, C_in, h, w) input.

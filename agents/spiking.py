@@ -98,7 +98,8 @@ class ArctanSurrogateSpike(torch.autograd.Function):
     """Heaviside spike ``(x > 0)`` whose backward is the arctan-derivative surrogate in the form
     Hagenaars et al. use: ``dz/dx = 1 / (1 + width . x^2)`` (width 10: peak 1 at the threshold,
     half height at |x| = 1 / sqrt(width)). Note the width multiplies x^2, not (width . x)^2 as
-    in :class:`ArctanSpike`."""
+    in :class:`ArctanSpike`: the two classes differ only in that line of ``backward``, kept
+    apart so that each surrogate reads as its paper writes it."""
 
     @staticmethod
     def forward(ctx, x: Tensor, width: float) -> Tensor:  # type: ignore[override]

@@ -13,6 +13,7 @@ from gymnasium import spaces
 
 from envs.dataset import resolve_data
 from envs.events import Events
+from envs.readers._common import resolve_crop
 from envs.representations import count_image, count_time_image, voxel_grid
 from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import WINDOW_MODES, window_bounds, window_grid
@@ -302,19 +303,9 @@ class EventFlowEnv(gym.Env):
     # ------------------------------------------------------------------------------------------
     @staticmethod
     def _parse_crop(crop, sensor_size) -> tuple[int, int, int, int]:
-        sh, sw = sensor_size
-        if crop is None:
-            return (0, 0, sh, sw)
-        crop = tuple(int(c) for c in crop)
-        if len(crop) == 2:
-            ch, cw = crop
-            crop = ((sh - ch) // 2, (sw - cw) // 2, ch, cw)
-        if len(crop) != 4:
-            raise ValueError(f"crop must be (height, width) or (top, left, height, width), got {crop}")
-        top, left, ch, cw = crop
-        if ch <= 0 or cw <= 0 or top < 0 or left < 0 or top + ch > sh or left + cw > sw:
-            raise ValueError(f"crop {crop} does not fit inside the sensor {sh}x{sw} (height x width)")
-        return crop
+        if isinstance(crop, str):  # the readers' "centerN" is not an env option
+            raise ValueError(f"crop must be (height, width) or (top, left, height, width), got {crop!r}")
+        return resolve_crop(crop, sensor_size) or (0, 0, *sensor_size)
 
     def _reader(self, index: int):
         reader = self.sources[index].reader()

@@ -18,8 +18,11 @@ the exp of L_EC is a polynomial in float32 (``_exp``), and row sums are added in
 Layout as in ``splat.py``: every image is padded by a 1-pixel ring (pixel (r, q) stored at
 (r + 1, q + 1)); corners that fall outside the real image land on the ring and are ignored.
 
-Used on CPU tensors when numba is importable (the callers decide); the torch paths are the
+Used on CPU tensors (numba is a dependency; the callers decide per tensor); the torch paths are the
 reference the tests compare against and the path for CUDA.
+
+A forward kernel and its backward repeat the same set-up lines (shapes, constants in the
+array's dtype): each is compiled as one self-contained loop nest.
 """
 
 from __future__ import annotations

@@ -286,6 +286,8 @@ def hmc_loss(
                        border_ramp, upsampling, reference_times, at_normalisation)
 
 
+# at_loss repeats hmc_loss's keyword-only options (less lambda_1 and alpha), so that each
+# signature says what its loss takes.
 def at_loss(
     flow: FlowInput,
     events: EventBatch,

@@ -164,6 +164,7 @@ class _EventImageTermsCompiled(torch.autograd.Function):
         return grad, None, None, None, None, None, None
 
 
+# The arguments of iwe.warped_event_images, plus the weights: the same warp, fused with the losses.
 def event_image_terms(
     events: EventBatch,
     u: torch.Tensor,

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.commands.bench_readers import peak_rss_mb, window_starts
+
 SENSOR = (720, 1280)
 DEFAULT_EVENTS = 20_000_000
 DEFAULT_RATE = 2_000_000
@@ -95,22 +97,10 @@ def write_raw(path: Path, fmt: str, num_events: int, rate: float, chunk: int = 1
     return path
 
 
-def _peak_rss_mb() -> float:
-    try:
-        for line in open("/proc/self/status"):
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
 def _child(path: str, index_dir: str, max_windows: int) -> dict:
     from envs.readers import open_recording
 
-    rss0 = _peak_rss_mb()
+    rss0 = peak_rss_mb()
     t0 = time.perf_counter()
     with open_recording(path, index_dir=index_dir) as reader:
         build_s = time.perf_counter() - t0
@@ -122,17 +112,14 @@ def _child(path: str, index_dir: str, max_windows: int) -> dict:
         for i in range(0, n, 1 << 20):
             reader.events_range(i, i + (1 << 20))
         sequential_s = time.perf_counter() - t0
-        starts = np.arange(reader.t_start, reader.t_end, WINDOW_US)
-        if len(starts) > max_windows:  # consecutive runs of 10 spread over the file
-            firsts = np.linspace(0, len(starts) - 10, max(1, max_windows // 10)).astype(np.int64)
-            starts = starts[(firsts[:, None] + np.arange(10)).ravel()]
+        starts = window_starts(reader.t_start, reader.t_end, max_windows)
         reader._decoded.clear()
         t0 = time.perf_counter()
         events = sum(len(reader.events_between(int(s), int(s) + WINDOW_US)) for s in starts)
         windows_s = time.perf_counter() - t0
     return {"num_events": n, "build_s": build_s, "cached_ms": cached_s * 1e3, "sequential_s": sequential_s,
             "windows": len(starts), "window_events": events, "windows_s": windows_s,
-            "rss_growth_mb": _peak_rss_mb() - rss0}
+            "rss_growth_mb": peak_rss_mb() - rss0}
 
 
 def bench_reading(report, num_events: int, rate: float, max_windows: int, workdir: str | None) -> dict:
@@ -182,7 +169,7 @@ def _print_row(section: str, row: str, value: float, unit: str) -> None:
     print(f"{section:<11} | {row:<60} | {value:12.3f} {unit}", flush=True)
 
 
-def main(argv=None) -> int:
+def main(argv=None) -> int:  # as bench_readers': "--child" measures one file in a fresh process
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "--child":
         print(json.dumps(_child(argv[1], argv[2], int(argv[3]))))

@@ -120,7 +120,17 @@ def write_synthetic(fmt: str, path: Path, num_events: int, sensor_size, rate: fl
     return path
 
 
-def _peak_rss_mb() -> float:
+def window_starts(t_start: int, t_end: int, max_windows: int) -> np.ndarray:
+    """Starts (us) of the 10 ms windows read: all of them, or at most ``max_windows`` in
+    consecutive runs of 10 spread over the whole file."""
+    starts = np.arange(t_start, t_end, WINDOW_US)
+    if len(starts) > max_windows:
+        firsts = np.linspace(0, len(starts) - 10, max(1, max_windows // 10)).astype(np.int64)
+        starts = starts[(firsts[:, None] + np.arange(10)).ravel()]
+    return starts
+
+
+def peak_rss_mb() -> float:
     """Peak resident memory of this process in MB: VmHWM (Linux; reset by exec, unlike
     ru_maxrss, which keeps the parent's peak from before the fork), else ru_maxrss."""
     try:
@@ -138,16 +148,12 @@ def _child(fmt: str, path: str, max_windows: int) -> dict:
     """Runs in a fresh process: open, read windows, report speed and peak RSS."""
     from envs.readers import open_recording
 
-    rss_before = _peak_rss_mb()
+    rss_before = peak_rss_mb()
     options = {"sensor_size": (260, 346)} if fmt == "ecd-text" else {}
     t_open = time.perf_counter()
     with open_recording(path, fmt, **options) as reader:
         open_s = time.perf_counter() - t_open
-        starts = np.arange(reader.t_start, reader.t_end, WINDOW_US)
-        if len(starts) > max_windows:  # spread over the whole file, consecutive runs of 10
-            runs = max(1, max_windows // 10)
-            firsts = np.linspace(0, len(starts) - 10, runs).astype(np.int64)
-            starts = starts[(firsts[:, None] + np.arange(10)).ravel()]
+        starts = window_starts(reader.t_start, reader.t_end, max_windows)
         events = 0
         t0 = time.perf_counter()
         for s in starts:
@@ -156,7 +162,7 @@ def _child(fmt: str, path: str, max_windows: int) -> dict:
         num_events = reader.num_events
     return {
         "windows": len(starts), "events_read": events, "seconds": elapsed, "open_s": open_s,
-        "num_events": num_events, "rss_peak_mb": _peak_rss_mb(),
+        "num_events": num_events, "rss_peak_mb": peak_rss_mb(),
         "rss_import_mb": rss_before,
     }
 

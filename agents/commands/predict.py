@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv=None) -> int:
+def main(argv=None) -> int:  # opens as the other commands do: parse, then set torch's threads
     args = build_parser().parse_args(argv)
     if args.threads:
         import torch

@@ -182,7 +182,8 @@ class SortedColumn:
 
 
 def resolve_crop(crop, sensor_size: tuple[int, int]) -> tuple[int, int, int, int] | None:
-    """crop: None, (top, left, height, width) or "centerN" (e.g. "center256": central N x N).
+    """crop: None, (top, left, height, width), (height, width) (centred) or "centerN" (e.g.
+    "center256": central N x N). The one crop rule of the readers and the env.
 
     Returns (top, left, height, width) inside the sensor, or None for no crop.
     """
@@ -196,8 +197,10 @@ def resolve_crop(crop, sensor_size: tuple[int, int]) -> tuple[int, int, int, int
         box = ((h - n) // 2, (w - n) // 2, n, n)
     else:
         box = tuple(int(v) for v in crop)
+        if len(box) == 2:
+            box = ((h - box[0]) // 2, (w - box[1]) // 2, *box)
         if len(box) != 4:
-            raise ValueError(f"crop must be (top, left, height, width), got {crop!r}")
+            raise ValueError(f"crop must be (top, left, height, width), (height, width) or 'centerN', got {crop!r}")
     top, left, ch, cw = box
     if ch <= 0 or cw <= 0 or top < 0 or left < 0 or top + ch > h or left + cw > w:
         raise ValueError(f"crop {box} (top, left, height, width) does not fit the {h}x{w} sensor")

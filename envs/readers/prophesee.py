@@ -563,7 +563,8 @@ class PropheseeDatReader(_ChunkedReader):
 
     sensor_size: (height, width), needed only when the header has no ``% Width``/``% Height``.
     chunk_words: records decoded at a time; index_dir, validate: as for RAW.
-    Attribute ``header``: the header's keys.
+    Attribute ``header``: the header's keys. ``__init__`` opens as the RAW reader's does (the
+    same options and checks), then reads its own header.
     """
 
     layout = "prophesee-dat"
