@@ -12,8 +12,9 @@ from pathlib import Path
 import pytest
 
 from agents.commands import train as train_command
+from agents.commands.evaluate import EvaluateOptions
 from agents.learner import CHOICES, PRESETS, TrainConfig, preset_config, preset_options
-from agents.options import field_docs
+from agents.options import choices_of, field_docs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -25,19 +26,21 @@ def console_commands() -> dict[str, str]:
     return dict(re.findall(r'^(\S+) = "([^"]+)"', section, flags=re.M))
 
 
-@pytest.mark.parametrize("name", sorted(CHOICES))
-def test_a_bad_value_of_every_choice_field_raises_naming_the_field_and_the_allowed_values(name):
+@pytest.mark.parametrize("cls, name", [(cls, name) for cls in (TrainConfig, EvaluateOptions)
+                                        for name in sorted(choices_of(cls))])
+def test_a_bad_value_of_every_choice_field_raises_naming_the_field_and_the_allowed_values(cls, name):
     with pytest.raises(ValueError) as err:
-        TrainConfig(**{name: "nonsense"})
+        cls(**{name: "nonsense"})
     message = str(err.value)
-    assert f"TrainConfig.{name}" in message and "'nonsense'" in message
-    assert all(repr(value) in message for value in CHOICES[name])
+    assert f"{cls.__name__}.{name}" in message and "'nonsense'" in message
+    assert all(repr(value) in message for value in choices_of(cls)[name])
 
 
 def test_every_choice_field_is_a_literal_and_every_field_has_its_help():
     assert {"loss", "loss_mode", "vector", "decay", "input", "window", "teacher_pixels"} <= set(CHOICES)
-    docs = field_docs(TrainConfig)
-    assert all(docs.get(name) for name in TrainConfig.__dataclass_fields__), set(TrainConfig.__dataclass_fields__) - set(docs)
+    for cls in (TrainConfig, EvaluateOptions):
+        docs = field_docs(cls)
+        assert all(docs.get(name) for name in cls.__dataclass_fields__), set(cls.__dataclass_fields__) - set(docs)
 
 
 @pytest.mark.parametrize("name", sorted(PRESETS))

@@ -39,65 +39,99 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import torch
 
 import agents.pretrained as pretrained_module
 from agents.checkpoint import load_model
 from agents.evaluation import evaluate, results_json, results_table, windowing_of
+from agents.options import add_options, check_choices, option, options_from_args
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
 
 
+@dataclass
+class EvaluateOptions:
+    """What scripts/evaluate.py evaluates, on what, and where it writes (one option per field;
+    the string under a field is its help)."""
+
+    checkpoint: list[str] = option(nargs="*", default_factory=list)
+    """checkpoint(s) written by scripts/train.py"""
+    pretrained: list[str] | None = option(None, nargs="*", metavar="NAME")
+    """shipped pretrained model(s) by name (see agents/weights/; no name: the default one)"""
+    name: list[str] | None = option(None, nargs="*")
+    """row names for the checkpoints (default: file stem / parent dir)"""
+    model: str | None = None
+    """evaluate an untrained model (registry name or package.module:factory)"""
+    width: str = "cpu"
+    """the untrained model's width: 'paper', 'cpu' or an integer base width"""
+    zero: bool = False
+    """add the zero-flow baseline row"""
+    cmax: bool = False
+    """add per-window contrast maximisation (no network, no ground truth; agents/cmax.py)"""
+    refine: int | None = option(None, metavar="K")
+    """also evaluate each model with its flow refined by K contrast-maximisation steps"""
+    data: list[str] = option(default_factory=lambda: ["synthetic-test"])
+    """synthetic split, recording files or directories"""
+    format: str | None = None
+    """force a reader (evflow-h5, mvsec, dsec, hagenaars, ecd-text, aedat4)"""
+    mvsec: str | None = option(None, metavar="DIR")
+    """run the MVSEC protocol on the four sequences in DIR"""
+    stride: list[int] | None = None
+    """MVSEC: grid steps between window starts (default: dt, and also 1 for dt = 4)"""
+    mvsec_grid: Literal["images", "gt"] = "images"
+    """MVSEC windows on the image frames (EV-FlowNet dt) or the 20 Hz ground-truth steps"""
+    mvsec_gt: Literal["zhu", "chain"] = "zhu"
+    """MVSEC ground truth: Zhu's (containing 20 Hz map scaled) or the maps chained"""
+    outdoor_cut: Literal["time", "frames"] = "time"
+    """outdoor_day1 span: 222.4-240.4 s or ground-truth indices 4356-4706"""
+    no_hood: bool = False
+    """MVSEC: score the car's hood rows too"""
+    hot_pixels: float | None = option(None, metavar="SIGMA")
+    """MVSEC: leave pixels SIGMA std above the mean event count out of the event mask"""
+    protocol: Literal["default", "dsec"] = "default"
+    """dsec: dense DSEC scores (EPE, 1PE, 2PE, 3PE, AE) on valid ground truth, no event mask"""
+    dsec_flow: str | None = option(None, metavar="DIR")
+    """DSEC: the flow PNG folder of the --data recording"""
+    dsec_test_timestamps: str | None = option(None, metavar="PATH")
+    """DSEC: folder of <sequence>.csv test timestamps (or one CSV): the windows to predict"""
+    dsec_submission: str | None = option(None, metavar="DIR")
+    """DSEC: write <sequence>/<file_index:06d>.png flows in the benchmark's layout here"""
+    window: Literal["frames", "time", "count"] = "frames"
+    """how a window is cut: ground-truth frames, a time span or an event count"""
+    dt: list[int] | None = None
+    """grid steps per window (frames mode); default: 1 and 4 with ground truth, else 1"""
+    window_size: int | None = None
+    """time: us; count: events"""
+    dt_ratio: float = 1.0
+    """scale predictions by (ground-truth interval / input window)"""
+    crop: list[int] | None = None
+    """H W (centred) or TOP LEFT H W"""
+    max_windows: int | None = None
+    """windows per sequence"""
+    out: str = "runs/eval"
+    """directory for table.md, results.json and pictures/"""
+    json: str | None = None
+    """also write the JSON results here (default OUT/results.json)"""
+    pictures: int = 2
+    """windows per sequence drawn as a labelled PNG panel (0: none)"""
+    animate: int = option(0, metavar="N")
+    """per sequence, a GIF of count image + predicted flow over its first N windows (0: none)"""
+    device: str = "cpu"
+    """torch device"""
+    no_progress: bool = False
+    """no progress bar"""
+
+    def __post_init__(self) -> None:
+        check_choices(self)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", nargs="*", default=[], help="checkpoint(s) written by scripts/train.py")
-    p.add_argument("--pretrained", nargs="*", default=None, metavar="NAME",
-                   help="shipped pretrained model(s) by name (see agents/weights/; no name: the default one)")
-    p.add_argument("--name", nargs="*", default=None, help="row names for the checkpoints (default: file stem / parent dir)")
-    p.add_argument("--model", default=None, help="evaluate an untrained model (registry name or package.module:factory)")
-    p.add_argument("--width", default="cpu")
-    p.add_argument("--zero", action="store_true", help="add the zero-flow baseline row")
-    p.add_argument("--cmax", action="store_true",
-                   help="add per-window contrast maximisation (no network, no ground truth; agents/cmax.py)")
-    p.add_argument("--refine", type=int, default=None, metavar="K",
-                   help="also evaluate each model with its flow refined by K contrast-maximisation steps")
-    p.add_argument("--data", nargs="+", default=["synthetic-test"], help="synthetic split, recording files or directories")
-    p.add_argument("--format", default=None, help="force a reader (evflow-h5, mvsec, dsec, hagenaars, ecd-text, aedat4)")
-    p.add_argument("--mvsec", default=None, metavar="DIR", help="run the MVSEC protocol on the four sequences in DIR")
-    p.add_argument("--stride", type=int, nargs="+", default=None,
-                   help="MVSEC: grid steps between window starts (default: dt, and also 1 for dt = 4)")
-    p.add_argument("--mvsec-grid", default="images", choices=["images", "gt"],
-                   help="MVSEC windows on the image frames (EV-FlowNet dt) or the 20 Hz ground-truth steps")
-    p.add_argument("--mvsec-gt", default="zhu", choices=["zhu", "chain"],
-                   help="MVSEC ground truth: Zhu's (containing 20 Hz map scaled) or the maps chained")
-    p.add_argument("--outdoor-cut", default="time", choices=["time", "frames"],
-                   help="outdoor_day1 span: 222.4-240.4 s or ground-truth indices 4356-4706")
-    p.add_argument("--no-hood", action="store_true", help="MVSEC: score the car's hood rows too")
-    p.add_argument("--hot-pixels", type=float, default=None, metavar="SIGMA",
-                   help="MVSEC: leave pixels SIGMA std above the mean event count out of the event mask")
-    p.add_argument("--protocol", default="default", choices=["default", "dsec"],
-                   help="dsec: dense DSEC scores (EPE, 1PE, 2PE, 3PE, AE) on valid ground truth, no event mask")
-    p.add_argument("--dsec-flow", default=None, metavar="DIR", help="DSEC: the flow PNG folder of the --data recording")
-    p.add_argument("--dsec-test-timestamps", default=None, metavar="PATH",
-                   help="DSEC: folder of <sequence>.csv test timestamps (or one CSV): the windows to predict")
-    p.add_argument("--dsec-submission", default=None, metavar="DIR",
-                   help="DSEC: write <sequence>/<file_index:06d>.png flows in the benchmark's layout here")
-    p.add_argument("--window", default="frames", choices=["frames", "time", "count"])
-    p.add_argument("--dt", type=int, nargs="+", default=None,
-                   help="grid steps per window (frames mode); default: 1 and 4 with ground truth, else 1")
-    p.add_argument("--window-size", type=int, default=None, help="time: us; count: events")
-    p.add_argument("--dt-ratio", type=float, default=1.0, help="scale predictions by (ground-truth interval / input window)")
-    p.add_argument("--crop", type=int, nargs="+", default=None, help="H W (centred) or TOP LEFT H W")
-    p.add_argument("--max-windows", type=int, default=None, help="per sequence")
-    p.add_argument("--out", default="runs/eval", help="directory for table.md, results.json and pictures/")
-    p.add_argument("--json", default=None, help="also write the JSON results here (default OUT/results.json)")
-    p.add_argument("--pictures", type=int, default=2, help="windows per sequence drawn as a labelled PNG panel (0: none)")
-    p.add_argument("--animate", type=int, default=0, metavar="N",
-                   help="per sequence, a GIF of count image + predicted flow over its first N windows (0: none)")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument("--no-progress", action="store_true")
+    add_options(p, EvaluateOptions, defaults={"device": "cuda" if torch.cuda.is_available() else "cpu"})
     return p
 
 
@@ -185,7 +219,7 @@ def has_ground_truth(data, fmt) -> bool:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    args = options_from_args(EvaluateOptions, build_parser().parse_args(argv))
     if args.refine is not None and args.refine < 0:
         raise SystemExit(f"--refine must be >= 0 steps, got {args.refine}")
     policies = build_policies(args)
