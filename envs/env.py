@@ -208,9 +208,12 @@ class EventFlowEnv(gym.Env):
         self.window = window
         if window_size is None:
             window_size = {"frames": 1, "time": 10_000, "count": 15_000}[window]
-        sizes = [int(v) for v in (window_size if isinstance(window_size, (list, tuple, np.ndarray)) else [window_size])]
-        if not sizes or min(sizes) <= 0:
-            raise ValueError(f"window_size must be a positive int or a non-empty list of them, got {window_size!r}")
+        given = list(window_size) if isinstance(window_size, (list, tuple, np.ndarray)) else [window_size]
+        if not given or not all(_is_whole(v) and int(v) > 0 for v in given):
+            raise ValueError(f"window_size must be a positive integer or a non-empty list of them "
+                             f"({'grid steps' if window == 'frames' else 'us' if window == 'time' else 'events'}), "
+                             f"got {window_size!r}")
+        sizes = [int(v) for v in given]
         self.window_sizes = tuple(sizes)  # one is drawn per episode when there are several
         self.window_size = sizes[0]
         unknown = [k for k in observations if k not in OBSERVATION_KEYS]
@@ -271,6 +274,11 @@ class EventFlowEnv(gym.Env):
             raise ValueError("random_crop=True needs crop=(height, width): the size of the randomly placed window")
         self.random_crop = bool(random_crop)
         self._origin: tuple[int, int] | None = None  # this episode's crop corner (random_crop)
+        for name, value in (("flow_scaling", flow_scaling), ("flow_limit", flow_limit)):
+            if value is not None and not (isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
+                                          and np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive finite number of pixels (or None for the default), "
+                                 f"got {value!r}")
         self.flow_scaling = float(flow_scaling if flow_scaling is not None else max(self.height, self.width))
         self.flow_limit = float(flow_limit if flow_limit is not None else self.flow_scaling)
 
@@ -335,6 +343,9 @@ class EventFlowEnv(gym.Env):
             if choice not in self.sequence_names:
                 raise ValueError(f"options['sequence']: unknown sequence {choice!r}; known: {self.sequence_names}")
             return self.sequence_names.index(choice)
+        if not _is_whole(choice):
+            raise ValueError(f"options['sequence'] must be a sequence name or an integer index in "
+                             f"[0, {len(self.sources)}), got {choice!r}")
         index = int(choice)
         if not 0 <= index < len(self.sources):
             raise ValueError(f"options['sequence']: index {index} outside [0, {len(self.sources)})")
@@ -351,7 +362,7 @@ class EventFlowEnv(gym.Env):
         reader = self._reader(index)
         if "windows" in options:  # an explicit list of windows, e.g. an evaluation protocol's
             self._windowing = "explicit"
-            spans = np.asarray(options["windows"], np.int64).reshape(-1, 2)
+            spans = _check_windows(options["windows"])
             idx = np.array([[reader.index_at(int(a)), reader.index_at(int(b))] for a, b in spans], np.int64).reshape(-1, 2)
             bounds = np.concatenate([spans, idx], axis=1)
         else:
@@ -545,6 +556,36 @@ class EventFlowEnv(gym.Env):
     def close(self) -> None:
         for source in self.sources:
             source.close()
+
+
+def _is_whole(value) -> bool:
+    """An integer (Python or numpy), or a float with an integer value; never a bool."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, (int, np.integer)):
+        return True
+    return isinstance(value, (float, np.floating)) and np.isfinite(value) and float(value).is_integer()
+
+
+def _check_windows(windows) -> np.ndarray:
+    """options["windows"] as (K, 2) int64 ``[t_start, t_end)`` rows: non-empty, each with
+    t_end > t_start, in time order without overlap."""
+    try:
+        spans = np.asarray(windows, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"options['windows'] must be (K, 2) [t_start, t_end) rows of integer us, got {windows!r}") from None
+    if spans.ndim != 2 or spans.shape[1] != 2 or len(spans) == 0 or not np.isfinite(spans).all():
+        raise ValueError(f"options['windows'] must be a non-empty (K, 2) array of [t_start, t_end) us, "
+                         f"got shape {spans.shape}")
+    bad = np.flatnonzero(spans[:, 1] <= spans[:, 0])
+    if len(bad):
+        raise ValueError(f"options['windows'] row {bad[0]} = {spans[bad[0]].astype(np.int64).tolist()}: "
+                         "t_end must be > t_start")
+    back = np.flatnonzero(spans[1:, 0] < spans[:-1, 1])
+    if len(back):
+        raise ValueError(f"options['windows'] row {back[0] + 1} starts before row {back[0]} ends: windows must be in "
+                         "time order without overlap")
+    return spans.astype(np.int64)
 
 
 def _sizes_differ(sizes: dict[str, tuple[int, int]]) -> str:

@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from agents.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, upgrade_checkpoint
+from envs.env import EventFlowEnv
 from envs.h5format import FormatError, H5Reader, write_h5
 from envs.readers import open_recording
 from envs.readers.convert import convert_recording
@@ -215,6 +216,23 @@ HOSTILE = [
     pytest.param(lambda tmp: lambda: train_script.main(["--resume", "ev-mgrflownet-cpu-synthetic", "--out", str(tmp / "x")]),
                  ValueError, r"ev-mgrflownet-cpu-synthetic: is a shipped model.*--init ev-mgrflownet-cpu-synthetic",
                  id="resume-shipped-model-name"),
+    # -- env options ------------------------------------------------------------------------------------
+    pytest.param(lambda tmp: lambda: EventFlowEnv("synthetic-mini", flow_scaling=0),
+                 ValueError, r"flow_scaling must be a positive finite number of pixels.*got 0", id="env-flow-scaling-0"),
+    pytest.param(lambda tmp: lambda: EventFlowEnv("synthetic-mini", flow_limit=0),
+                 ValueError, r"flow_limit must be a positive finite number of pixels.*got 0", id="env-flow-limit-0"),
+    pytest.param(lambda tmp: lambda: EventFlowEnv("synthetic-mini", window_size=2.7),
+                 ValueError, r"window_size must be a positive integer.*grid steps.*got 2.7", id="env-window-size-2.7"),
+    *[pytest.param(lambda tmp, v=v: lambda: EventFlowEnv("synthetic-mini").reset(options={"sequence": v}),
+                   ValueError, r"options\['sequence'\] must be a sequence name or an integer index in \[0, 3\), got",
+                   id=f"env-sequence-{v!r}") for v in (True, 1.7, None, [0])],
+    pytest.param(lambda tmp: lambda: EventFlowEnv("synthetic-mini").reset(
+        options={"sequence": 0, "windows": [[60_000, 30_000]]}),
+                 ValueError, r"options\['windows'\] row 0 = \[60000, 30000\]: t_end must be > t_start",
+                 id="env-reversed-window"),
+    pytest.param(lambda tmp: lambda: EventFlowEnv("synthetic-mini").reset(
+        options={"sequence": 0, "windows": [[30_000, 60_000], [0, 30_000]]}),
+                 ValueError, r"row 1 starts before row 0 ends", id="env-windows-out-of-order"),
     # -- loading runs code ------------------------------------------------------------------------------
     pytest.param(lambda tmp: lambda: load_checkpoint(_pickled_code(tmp)),
                  CheckpointError, r"evil.pt: holds pickled Python objects", id="checkpoint-runs-code"),
