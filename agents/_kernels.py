@@ -21,11 +21,10 @@ from __future__ import annotations
 import functools
 
 import numba
-import numpy as np
 
 from losses._kernels import _exp, use_threads
 
-__all__ = ["deep_memory_up_kernel", "fused_refiner_kernel", "gru_kernels", "output_gate_kernels", "refiner_kernels", "use_threads"]
+__all__ = ["gru_kernels", "output_gate_kernels", "refiner_kernels", "use_threads"]
 
 _OPTIONS = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy",
                 fastmath={"reassoc", "contract", "nsz"})
@@ -319,138 +318,6 @@ def _make_refiner(parallel: bool, n: int):
     return pack_forward, pack_backward, update_forward, update_backward
 
 
-def _make_fused_refiner(parallel: bool, n: int):
-    """The whole flow refiner of FGD-Net (eqs. 10-11) in one call, for inference (no backward):
-    ``u = ConvGRU_flow(tanh(a), ubar)`` with the merged 3x3 convolution of
-    :func:`_make_refiner` computed here as well, row by row, instead of by oneDNN between two
-    passes. At 2n = 4 input and 4n = 8 output channels oneDNN's convolution costs about as much
-    as the passes around it, and at batch 8 torch falls back to its slow convolution for the
-    small scales; here the padded input rows of one output row stay in cache and its 4n
-    pre-activation rows are consumed by eq. 4 straight away.
-
-    Arrays: a (B, h, w, n) the channels-last head output; hidden (B, n, h, w) the prior ubar;
-    weight (4n, 2n, 3, 3) and bias (4n) the merged convolution (zero padding 1); out (B, n, h, w).
-    Two parallel loops over the B * h rows: [tanh(a), ubar] into a zero-bordered planar buffer,
-    then the convolution (a 9-tap vector loop per input channel and output row) and eq. 4.
-    """
-    loop = numba.prange if parallel else range
-    m = 2 * n
-    k = 4 * n
-
-    @numba.njit(parallel=parallel, **_OPTIONS)
-    def fused_forward(a, hidden, weight, bias, out):
-        batch, height, width = out.shape[0], out.shape[2], out.shape[3]
-        one = out.dtype.type(1.0)
-        zero = one - one
-        padded = np.empty((batch, m, height + 2, width + 2), dtype=out.dtype)
-        for task in loop(batch * height):
-            b = task // height
-            y = task - b * height
-            for c in range(m):
-                padded[b, c, y + 1, 0] = zero
-                padded[b, c, y + 1, width + 1] = zero
-                if y == 0:  # the zero row above the first
-                    for x in range(width + 2):
-                        padded[b, c, 0, x] = zero
-                if y == height - 1:  # and below the last
-                    for x in range(width + 2):
-                        padded[b, c, height + 1, x] = zero
-            for j in range(n):
-                row = padded[b, j, y + 1]
-                for x in range(width):  # the strided gather first, then a vector loop
-                    row[x + 1] = a[b, y, x, j]
-                for x in range(1, width + 1):
-                    row[x] = _tanh(row[x], one)
-                row = padded[b, n + j, y + 1]
-                h = hidden[b, j, y]
-                for x in range(width):
-                    row[x + 1] = h[x]
-        for task in loop(batch * height):
-            b = task // height
-            y = task - b * height
-            q = np.empty((k, width), dtype=out.dtype)
-            for o in range(k):
-                q_o = q[o]
-                for x in range(width):
-                    q_o[x] = bias[o]
-                for c in range(m):
-                    s0, s1, s2 = padded[b, c, y], padded[b, c, y + 1], padded[b, c, y + 2]
-                    w = weight[o, c]
-                    w00, w01, w02 = w[0, 0], w[0, 1], w[0, 2]
-                    w10, w11, w12 = w[1, 0], w[1, 1], w[1, 2]
-                    w20, w21, w22 = w[2, 0], w[2, 1], w[2, 2]
-                    for x in range(width):
-                        q_o[x] += (
-                            w00 * s0[x] + w01 * s0[x + 1] + w02 * s0[x + 2]
-                            + w10 * s1[x] + w11 * s1[x + 1] + w12 * s1[x + 2]
-                            + w20 * s2[x] + w21 * s2[x + 1] + w22 * s2[x + 2]
-                        )
-            for j in range(n):
-                q_r, q_z, q_x, q_h = q[j], q[n + j], q[2 * n + j], q[3 * n + j]
-                h = hidden[b, j, y]
-                o_row = out[b, j, y]
-                for x in range(width):
-                    o_row[x] = _gru_forward(q_r[x], q_z[x], q_x[x], zero, zero, q_h[x], h[x], one)
-
-    return fused_forward
-
-
-def _make_deep_memory_up(parallel: bool):
-    """``M = relu(conv3x3(upsample_bilinear(S4)))`` from the convolution's 9 taps already applied
-    at low resolution (see :class:`~agents.evmgrflownet.DeepMemoryUp`), for inference: the tap
-    shift and the bilinear upsampling (2 source rows and 2 source columns per output pixel) as two
-    gather passes instead of dense matrix products, and the relu, in one call.
-
-    Arrays: taps (B, h, w, 3, 3, O) (the channels-last output of the tap convolution); per output
-    row Y + i of the shifted grid (index Y + i for tap row i, i.e. position Y + i - 1, H + 2
-    entries) the source rows row0/row1 and weights rw0/rw1 (zero off the image: the convolution's
-    zero padding), likewise col0/col1/cw0/cw1 for the W + 2 columns; half (B, 3, h, W, O) scratch;
-    out (B, H, W, O), the channels-last M.
-    """
-    loop = numba.prange if parallel else range
-
-    @numba.njit(parallel=parallel, **_OPTIONS)
-    def forward(taps, row0, row1, rw0, rw1, col0, col1, cw0, cw1, half, out):
-        batch, low_h = taps.shape[0], taps.shape[1]
-        height, width, channels = out.shape[1], out.shape[2], out.shape[3]
-        zero = out.dtype.type(0.0)  # typed: a Python 0.0 would promote float32 loops to float64
-        for task in loop(batch * 3 * low_h):  # columns: half[b, i, y, X] = sum_j C_j[X] T[b, y, :, i, j]
-            b = task // (3 * low_h)
-            i = (task // low_h) % 3
-            y = task % low_h
-            for x in range(width):
-                dest = half[b, i, y, x]
-                for o in range(channels):
-                    dest[o] = zero
-                for j in range(3):
-                    k = x + j
-                    a0, a1 = cw0[k], cw1[k]
-                    s0 = taps[b, y, col0[k], i, j]
-                    s1 = taps[b, y, col1[k], i, j]
-                    for o in range(channels):
-                        dest[o] += a0 * s0[o] + a1 * s1[o]
-        for task in loop(batch * height):  # rows: M[b, Y] = relu(sum_i R_i[Y] half[b, i])
-            b = task // height
-            y = task - b * height
-            dest = out[b, y]
-            for x in range(width):
-                for o in range(channels):
-                    dest[x, o] = zero
-            for i in range(3):
-                k = y + i
-                a0, a1 = rw0[k], rw1[k]
-                s0 = half[b, i, row0[k]]
-                s1 = half[b, i, row1[k]]
-                for x in range(width):
-                    for o in range(channels):
-                        dest[x, o] += a0 * s0[x, o] + a1 * s1[x, o]
-            for x in range(width):
-                for o in range(channels):
-                    dest[x, o] = max(dest[x, o], zero)
-
-    return forward
-
-
 def _make_output_gate(parallel: bool):
     loop = numba.prange if parallel else range
 
@@ -491,20 +358,6 @@ def refiner_kernels(parallel: bool, hidden_size: int):
     """(pack_forward, pack_backward, update_forward, update_backward) of the merged-convolution
     flow refiner of ``hidden_size`` channels (see :func:`_make_refiner`)."""
     return _make_refiner(parallel, int(hidden_size))
-
-
-@functools.cache
-def fused_refiner_kernel(parallel: bool, hidden_size: int):
-    """The inference-only flow refiner of ``hidden_size`` channels (see
-    :func:`_make_fused_refiner`), for threads or one thread."""
-    return _make_fused_refiner(parallel, int(hidden_size))
-
-
-@functools.cache
-def deep_memory_up_kernel(parallel: bool):
-    """The inference-only tap shift + upsampling + relu of ``DeepMemoryUp`` (see
-    :func:`_make_deep_memory_up`), for threads or one thread."""
-    return _make_deep_memory_up(parallel)
 
 
 @functools.cache

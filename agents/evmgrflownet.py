@@ -15,16 +15,12 @@ State (all (B, ...) tensors, all zeros = fresh sequence):
 
 from __future__ import annotations
 
-import functools
-
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 from .flownet import FlowNetBase, State, resolve_base_width
-from .layers import ConvDown, ConvGRU, STConvGRU, conv3x3, is_channels_last, use_gate_kernels
+from .layers import ConvDown, ConvGRU, STConvGRU, conv3x3, is_channels_last
 
 
 def _shifted_upsampling_matrices(n_in: int, n_out: int, like: Tensor) -> Tensor:
@@ -36,26 +32,6 @@ def _shifted_upsampling_matrices(n_in: int, n_out: int, like: Tensor) -> Tensor:
     return torch.stack([padded[shift : shift + n_out] for shift in range(3)])
 
 
-@functools.lru_cache(maxsize=64)
-def _shifted_bilinear_taps(n_in: int, n_out: int):
-    """The sparse form of :func:`_shifted_upsampling_matrices` for the compiled pass: for the
-    n_out + 2 positions -1 .. n_out of the shifted grid, the two source indices and weights of
-    bilinear upsampling (align_corners=False, torch's source-index rule), weights 0 at -1 and
-    n_out (the convolution's zero padding). float64 weights; the caller casts."""
-    position = np.arange(-1, n_out + 1)
-    source = np.maximum((position + 0.5) * (n_in / n_out) - 0.5, 0.0)
-    first = np.minimum(np.floor(source).astype(np.int64), n_in - 1)
-    second = np.minimum(first + 1, n_in - 1)
-    w_second = source - first
-    w_first = 1.0 - w_second
-    outside = (position < 0) | (position >= n_out)
-    w_first[outside] = 0.0
-    w_second[outside] = 0.0
-    first[outside] = 0
-    second[outside] = 0
-    return first, second, w_first, w_second
-
-
 class DeepMemoryUp(nn.Module):
     """``M_{k-1} = conv_up(S4_{k-1}) = relu(conv3x3(upsample_bilinear(S4_{k-1}, size)))`` (eq. 5's
     second memory, brought from 1/16 up to module 1's 1/2 resolution).
@@ -65,11 +41,6 @@ class DeepMemoryUp(nn.Module):
     bilinear upsampling commute, so each of the 9 taps mixes channels at 1/16 resolution, and
     the upsampling + tap shift is applied as two small matrices per axis. The slow, obvious form
     is the oracle in ``tests/test_agents.py``.
-
-    Without gradients (rollouts, evaluation) on channels-last CPU tensors, the upsampling + tap
-    shift + relu after the tap convolution is one compiled pass that reads 2 source rows and 2
-    source columns per output pixel (``agents/_kernels.py``, ``_make_deep_memory_up``) instead of
-    the dense matrix products.
 
     The conv has no bias so that ``S4 = 0`` (fresh sequence) gives ``M = 0`` exactly: both
     memories of the ST-ConvGRU start at zero, and a zeroed state is a fresh sequence.
@@ -88,9 +59,6 @@ class DeepMemoryUp(nn.Module):
         out_channels = weight.shape[0]
         tap_weights = weight.permute(2, 3, 0, 1).reshape(9 * out_channels, channels, 1, 1)
         taps = F.conv2d(deepest_hidden, tap_weights)  # each tap's channel mixing, low resolution
-        wants_grad = torch.is_grad_enabled() and (deepest_hidden.requires_grad or weight.requires_grad)
-        if not wants_grad and use_gate_kernels(taps):  # CPU, channels-last: the compiled pass
-            return self._compiled(taps, size)
         taps = taps.view(batch, 3, 3, out_channels, height, width)
         rows = _shifted_upsampling_matrices(height, size[0], deepest_hidden)  # (3, H, h)
         cols = _shifted_upsampling_matrices(width, size[1], deepest_hidden)  # (3, W, w)
@@ -103,26 +71,6 @@ class DeepMemoryUp(nn.Module):
             return F.relu(memory).view(batch, size[0], size[1], out_channels).permute(0, 3, 1, 2)
         half = torch.einsum("bijoyx,jXx->bioyX", taps, cols)
         return F.relu(torch.einsum("bioyX,iYy->boYX", half, rows))
-
-    @staticmethod
-    def _compiled(taps: Tensor, size: tuple[int, int]) -> Tensor:
-        """The compiled upsampling + shift + relu of the channels-last tap tensor (B, 9 O, h, w)."""
-        batch, _, height, width = taps.shape
-        out_channels = taps.shape[1] // 9
-        dtype = np.float32 if taps.dtype == torch.float32 else np.float64
-        row0, row1, rw0, rw1 = _shifted_bilinear_taps(height, int(size[0]))
-        col0, col1, cw0, cw1 = _shifted_bilinear_taps(width, int(size[1]))
-        memory = torch.empty(
-            (batch, out_channels, *size), dtype=taps.dtype, memory_format=torch.channels_last
-        )
-        half = np.empty((batch, 3, height, size[1], out_channels), dtype=dtype)
-        _kernels.deep_memory_up_kernel(_kernels.use_threads())(
-            taps.permute(0, 2, 3, 1).numpy().reshape(batch, height, width, 3, 3, out_channels),
-            row0, row1, rw0.astype(dtype), rw1.astype(dtype),
-            col0, col1, cw0.astype(dtype), cw1.astype(dtype),
-            half, memory.permute(0, 2, 3, 1).numpy(),
-        )
-        return memory
 
 
 class EVMGRFlowNet(FlowNetBase):

@@ -248,19 +248,6 @@ def _merged_refiner_conv(gru: "ConvGRU") -> tuple[Tensor, Tensor]:
     return torch.cat([gates, candidate_x, candidate_h]), bias
 
 
-def _fused_refine(head: Tensor, prior: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
-    """The refiner in one compiled call, without autograd (see ``_make_fused_refiner`` in
-    ``agents/_kernels.py``): ``head`` channels-last, ``prior`` any layout, ``weight`` and
-    ``bias`` the merged 3x3 convolution; returns u, NCHW."""
-    head, prior = _with_rows(head), prior.contiguous()
-    out = torch.empty_like(prior)
-    _kernels.fused_refiner_kernel(_kernels.use_threads(), prior.shape[1])(
-        head.detach().permute(0, 2, 3, 1).numpy(), prior.detach().numpy(),
-        weight.detach().contiguous().numpy(), bias.detach().contiguous().numpy(), out.numpy(),
-    )
-    return out
-
-
 def refine_flow(gru: "ConvGRU", head: Tensor, prior: Tensor | None) -> Tensor:
     """FGD-Net's refinement of one scale's estimate (eqs. 10-11): ``u = gru(tanh(head), prior)``.
 
@@ -268,9 +255,7 @@ def refine_flow(gru: "ConvGRU", head: Tensor, prior: Tensor | None) -> Tensor:
     the aligned, downsampled prior flow ``ubar`` in network units, or None (fresh sequence).
     Returns u (B, n, h, w). On a channels-last CPU head (the networks on CPU) the work is
     :func:`_merged_refiner_conv`'s one convolution between two compiled passes, in NCHW, and u
-    is NCHW; when no gradient is wanted (rollouts, evaluation) it is one compiled call that does
-    the convolution too (:func:`_fused_refine`). Otherwise it is ``gru`` itself, in ``head``'s
-    layout."""
+    is NCHW. Otherwise it is ``gru`` itself, in ``head``'s layout."""
     n = gru.hidden_size
     if not use_gate_kernels(head) or gru.x_convs.in_channels != n:
         if prior is not None and is_channels_last(head):
@@ -279,11 +264,6 @@ def refine_flow(gru: "ConvGRU", head: Tensor, prior: Tensor | None) -> Tensor:
     if prior is None:  # the same arithmetic as for a zeroed prior, so that the two agree bitwise
         prior = head.new_zeros(head.shape)
     weight, bias = _merged_refiner_conv(gru)
-    wants_grad = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (head, prior, weight, bias)
-    )
-    if not wants_grad and gru.x_convs.kernel_size == (3, 3) and gru.x_convs.padding == (1, 1):
-        return _fused_refine(head, prior, weight, bias)
     packed = _PackRefinerInput.apply(head, prior)
     q = F.conv2d(packed, weight, bias, padding=gru.x_convs.padding)
     return _RefinerUpdate.apply(q, prior)

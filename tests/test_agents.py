@@ -290,7 +290,7 @@ def test_ablation_switches_remove_those_parameters():
 
 
 @pytest.mark.parametrize("low, size", [((16, 16), (128, 128)), ((3, 5), (24, 40)), ((5, 7), (13, 30))])
-def test_deep_memory_up_equals_upsample_then_conv(monkeypatch, low, size):
+def test_deep_memory_up_equals_upsample_then_conv(low, size):
     torch.manual_seed(0)
     layer = DeepMemoryUp(12, 5).double()
     deepest = torch.randn(2, 12, *low, dtype=torch.float64, requires_grad=True)
@@ -303,14 +303,10 @@ def test_deep_memory_up_equals_upsample_then_conv(monkeypatch, low, size):
     for a, b in zip(g_fast, g_slow):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
     assert layer(torch.zeros(1, 12, *low, dtype=torch.float64), size).abs().max() == 0
-    # without gradients on channels-last CPU tensors: the compiled gather passes
-    calls = []
-    compiled_pass = DeepMemoryUp._compiled
-    monkeypatch.setattr(DeepMemoryUp, "_compiled", staticmethod(lambda *args: calls.append(1) or compiled_pass(*args)))
-    with torch.no_grad():
-        compiled = layer(_cl(deepest), size)
-    assert calls == [1] and compiled.is_contiguous(memory_format=CHANNELS_LAST)
-    torch.testing.assert_close(compiled, slow, rtol=1e-10, atol=1e-10)
+    with torch.no_grad():  # channels-last in, channels-last out
+        channels_last = layer(_cl(deepest), size)
+    assert channels_last.is_contiguous(memory_format=CHANNELS_LAST)
+    torch.testing.assert_close(channels_last, slow, rtol=1e-10, atol=1e-10)
 
 
 def test_convgru_matches_equation_4():
@@ -467,9 +463,9 @@ def _at_threads(threads: int, fn):
 
 
 def _count_gate_kernel_calls(monkeypatch) -> dict:
-    calls = {"gru": 0, "gate": 0, "refiner": 0, "fused refiner": 0}
+    calls = {"gru": 0, "gate": 0, "refiner": 0}
     gru_apply, gate_apply = agent_layers._GRUUpdates.apply, agent_layers._OutputGate.apply
-    refiner_apply, fused_refine = agent_layers._RefinerUpdate.apply, agent_layers._fused_refine
+    refiner_apply = agent_layers._RefinerUpdate.apply
 
     def gru(*args):
         calls["gru"] += 1
@@ -485,12 +481,7 @@ def _count_gate_kernel_calls(monkeypatch) -> dict:
 
     monkeypatch.setattr(agent_layers._GRUUpdates, "apply", gru)
     monkeypatch.setattr(agent_layers._OutputGate, "apply", gate)
-    def fused(*args):
-        calls["fused refiner"] += 1
-        return fused_refine(*args)
-
     monkeypatch.setattr(agent_layers._RefinerUpdate, "apply", refiner)
-    monkeypatch.setattr(agent_layers, "_fused_refine", fused)
     return calls
 
 
@@ -546,9 +537,9 @@ def test_compiled_st_convgru_matches_equations_5_and_6(monkeypatch, channels, me
         return out, carried, grads
 
     out, carried, grads = _at_threads(threads, lambda: run(_cl))
-    assert calls == {"gru": 1, "gate": 1, "refiner": 0, "fused refiner": 0}
+    assert calls == {"gru": 1, "gate": 1, "refiner": 0}
     want_out, want_carried, want_grads = run(lambda t: t.contiguous())
-    assert calls == {"gru": 1, "gate": 1, "refiner": 0, "fused refiner": 0}  # NCHW: torch
+    assert calls == {"gru": 1, "gate": 1, "refiner": 0}  # NCHW: torch
     torch.testing.assert_close(out, want_out, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(carried, want_carried, rtol=1e-12, atol=1e-12)
     for got, want in zip(grads, want_grads):
@@ -587,31 +578,7 @@ def test_compiled_flow_refiner_matches_equations_10_and_11(monkeypatch, fresh, t
         torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
     # NCHW heads take the ConvGRU itself (the torch path)
     torch.testing.assert_close(agent_layers.refine_flow(gru, head, None if fresh else prior), expected)
-    assert calls["refiner"] == 1 and calls["fused refiner"] == 0
-
-
-@pytest.mark.parametrize("threads", [1, 2])
-@pytest.mark.parametrize("fresh", [False, True])
-@pytest.mark.parametrize("size", [(9, 13), (1, 5), (4, 1)])
-def test_fused_flow_refiner_matches_equations_10_and_11(monkeypatch, size, fresh, threads):
-    """Without gradients (rollouts, evaluation) the refinement, its convolution included, is
-    one compiled call; its values equal eq. 4 written out, also on images one pixel high or
-    wide, where every tap but the centre falls on the zero padding."""
-    calls = _count_gate_kernel_calls(monkeypatch)
-    torch.manual_seed(12)
-    gru = ConvGRU(2, 2).double()
-    head = torch.randn(3, 2, *size, dtype=torch.float64)
-    prior = torch.randn(3, 2, *size, dtype=torch.float64)
-    with torch.no_grad():
-        out = _at_threads(threads, lambda: agent_layers.refine_flow(gru, _cl(head), None if fresh else prior))
-        expected = _gru_reference(gru, torch.tanh(head), torch.zeros_like(prior) if fresh else prior)
-    assert calls == {"gru": 0, "gate": 0, "refiner": 0, "fused refiner": 1}
-    assert out.is_contiguous()
-    torch.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
-    # float32, the networks' dtype: a few ulps from the float64 equations
-    with torch.no_grad():
-        single = agent_layers.refine_flow(gru.float(), _cl(head.float()), None if fresh else prior.float())
-    torch.testing.assert_close(single, expected.float(), rtol=1e-5, atol=1e-6)
+    assert calls["refiner"] == 1
 
 
 def test_compiled_gates_pass_gradcheck():
@@ -672,8 +639,8 @@ def test_models_agree_across_memory_layouts(name):
 
 
 def test_inference_path_matches_training_path():
-    """EV-MGRFlowNet without gradients (the fused refiners) gives the flows and states of the
-    same model with gradients (merged convolution + autograd), over three windows."""
+    """EV-MGRFlowNet without gradients gives the flows and states of the same model with
+    gradients, over three windows."""
     model = build("ev-mgrflownet").double()
     results = []
     for grad in (True, False):
@@ -698,11 +665,10 @@ def test_cpu_default_is_channels_last_with_compiled_gates(monkeypatch):
         _, state = model(count_images(1, 32, 32), None)
         _, state = model(count_images(1, 32, 32, seed=1), state)
     assert state["encoder1"].is_contiguous(memory_format=CHANNELS_LAST)
-    # per window: the ST pair, encoders 2-4; one output gate; four refiners, which without
-    # gradients are one compiled call each
-    assert calls == {"gru": 2 * 4, "gate": 2, "refiner": 0, "fused refiner": 2 * 4}
-    flows, _ = model(count_images(1, 32, 32, seed=2), state)  # with gradients: merged convolution
-    assert calls == {"gru": 3 * 4, "gate": 3, "refiner": 4, "fused refiner": 2 * 4}
+    # per window: the ST pair, encoders 2-4; one output gate; four refiners (merged convolution)
+    assert calls == {"gru": 2 * 4, "gate": 2, "refiner": 2 * 4}
+    model(count_images(1, 32, 32, seed=2), state)  # with gradients: the same passes
+    assert calls == {"gru": 3 * 4, "gate": 3, "refiner": 3 * 4}
 
 
 def test_bench_agents_parts_rows():

@@ -13,7 +13,7 @@ ST-ConvGRU and the prior-flow path each add) and, with ``--nchw``, every model i
 layout with torch's gate arithmetic (``model.channels_last = False``) and the speed-up of the
 default layout over it. ``--parts`` instead times some of EV-MGRFlowNet's own pieces alone (the
 forward warp of the prior flow, the ST-ConvGRU's pair update, and the four FGD refiners and the
-deep memory each on its compiled inference pass and on the path training takes).
+deep memory, forward without and with gradients).
 
 ``run(report)`` is called by agents/commands/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_agents.py [--reps N] [--widths paper cpu]
@@ -192,9 +192,8 @@ def time_parts(report, reps: int = 20) -> None:
 
 
 def _time_inference_paths(report, input_label, batch, height, width, reps, generator) -> None:
-    """``--parts``: the two pieces that have a compiled inference pass, timed on it (no grad)
-    and on the path training takes (merged convolution between two passes; dense matrix
-    products), same inputs: the four FGD refiners of one window, and DeepMemoryUp."""
+    """``--parts``: the four FGD refiners of one window (merged convolution between two compiled
+    passes) and DeepMemoryUp (dense matrix products), forward without and with gradients."""
     from agents.evmgrflownet import DeepMemoryUp
     from agents.layers import ConvGRU, refine_flow
 
@@ -213,7 +212,7 @@ def _time_inference_paths(report, input_label, batch, height, width, reps, gener
         inference = _best_ms(refine_all, reps)
     with torch.enable_grad():  # the parameters want gradients: the training path
         training = _best_ms(refine_all, reps)
-    report(SECTION, f"4 FGD refiners {input_label}: compiled inference pass", inference, "ms")
+    report(SECTION, f"4 FGD refiners {input_label}: forward, no gradient", inference, "ms")
     report(SECTION, f"4 FGD refiners {input_label}: training path, forward", training, "ms")
 
     c = WIDTHS_CPU
@@ -224,7 +223,7 @@ def _time_inference_paths(report, input_label, batch, height, width, reps, gener
         inference = _best_ms(lambda: layer(deepest, size), reps)
     with torch.enable_grad():
         training = _best_ms(lambda: layer(deepest, size), reps)
-    report(SECTION, f"DeepMemoryUp {input_label}: compiled inference pass", inference, "ms")
+    report(SECTION, f"DeepMemoryUp {input_label}: forward, no gradient", inference, "ms")
     report(SECTION, f"DeepMemoryUp {input_label}: training path, forward", training, "ms")
 
 
