@@ -1,11 +1,9 @@
 #!/usr/bin/env python
 """Speed benchmarks, one section per part of the project (agents/commands/benchmark.py; console command evflow-benchmark)."""
-
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from agents.commands.benchmark import main  # noqa: E402
 
 if __name__ == "__main__":

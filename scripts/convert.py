@@ -1,11 +1,9 @@
 #!/usr/bin/env python
 """Convert a recording between event formats (agents/commands/convert.py; console command evflow-convert)."""
-
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from agents.commands.convert import main  # noqa: E402
 
 if __name__ == "__main__":

@@ -1,11 +1,9 @@
 #!/usr/bin/env python
 """Evaluate models and baselines on recordings and benchmark protocols (agents/commands/evaluate.py; console command evflow-evaluate)."""
-
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from agents.commands.evaluate import main  # noqa: E402
 
 if __name__ == "__main__":

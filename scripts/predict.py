@@ -1,11 +1,9 @@
 #!/usr/bin/env python
 """Predict flow for a recording with a trained or shipped model (agents/commands/predict.py; console command evflow-predict)."""
-
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from agents.commands.predict import main  # noqa: E402
 
 if __name__ == "__main__":

@@ -1,11 +1,9 @@
 #!/usr/bin/env python
 """Train a flow policy (agents/commands/train.py; console command evflow-train)."""
-
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from agents.commands.train import *  # noqa: E402, F401, F403 - `import train` from scripts/ keeps working
 from agents.commands.train import main  # noqa: E402
 
