@@ -88,16 +88,14 @@ class TrainConfig:
     string under a field is its help."""
 
     model: str = "ev-mgrflownet"
-    """registry name (ev-mgrflownet; the published baselines ev-flownet (with --input count_time_image),
-    convgru-ev-flownet, xlif-ev-flownet; unet-feedforward, unet-convgru, unet-xlif-encoder) or package.module:factory"""
+    """registry name (ev-mgrflownet, ev-flownet, convgru-ev-flownet, xlif-ev-flownet, unet-*) or pkg.module:factory"""
     width: str | int = option("cpu", type=_width)
     """'paper' (base width 32), 'cpu' (8) or an integer base width"""
     model_kwargs: dict = option(flag="--model-kwarg", action="append", metavar="KEY=VALUE", convert=_key_values,
                                 default_factory=dict)
     """extra model argument, e.g. use_st_convgru=false (repeatable)"""
     input: Literal["count_image", "voxel_grid", "count_time_image"] = "count_image"
-    """network input: the paper's 2-channel count image (eq. 2), a voxel grid (--voxel-bins), or EV-FlowNet's
-    4-channel counts and latest timestamps"""
+    """the paper's count image (eq. 2), a voxel grid (--voxel-bins), or EV-FlowNet's counts and timestamps"""
     voxel_bins: int = 5
     """time bins of the voxel-grid input"""
     data: Any = option("synthetic-train", nargs="+", convert=_one_or_list)
@@ -129,11 +127,9 @@ class TrainConfig:
     grad_clip: float = 100.0
     """gradient norm clip (Hagenaars)"""
     loss: Literal["hmc", "at", "teacher", "supervised"] = "hmc"
-    """hmc (paper), at (baseline), teacher (regress per-window contrast-maximisation flows of L_HMC: unsupervised),
-    supervised (endpoint error vs ground truth: a reference bound, not the method)"""
+    """hmc (paper), at (baseline), teacher (regress per-window contrast maximisation), supervised (a reference)"""
     loss_mode: Literal["window", "accumulated"] = "window"
-    """window: the mean of the L per-window losses; accumulated: one loss over the events of all L windows
-    (Hagenaars' sequential learning, window k's events at k + tau, references 0 and L)"""
+    """window: the mean of the L windows' losses; accumulated: one loss over all L (Hagenaars' sequential learning)"""
     # The loss readings the paper leaves open (docs/method.md).
     loss_scales: Literal["all", "finest"] = "all"
     """all: every decoder scale's flow in the loss, averaged; finest: the full-resolution flow only"""
@@ -152,8 +148,7 @@ class TrainConfig:
     border_penalty: float = 1.0
     """border rule weight: x zero-flow loss x share of events pushed out of the image (0: the paper's loss)"""
     border_ramp: float = BORDER_RAMP
-    """border rule ramp in pixels: an event landing d px beyond the image pays min(1, d / ramp) of its share
-    (0: the whole share however near)"""
+    """border rule ramp: an event d px beyond the image pays min(1, d / ramp) of its share (0: all of it)"""
     flow_scaling: float | None = None
     """pixels per network unit (default max(H, W))"""
     teacher_grids: tuple[int, ...] = (4, 8)

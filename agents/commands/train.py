@@ -57,18 +57,15 @@ class RunOptions:
     """How long and where a run goes, not what it learns (free to change on --resume)."""
 
     preset: str | None = option(None, choices=sorted(PRESETS))
-    """a named recipe's values (agents.learner.PRESETS: paper, teacher-cached, teacher, hmc-stage) under the
-    options given beside it; paper: see docs/method.md"""
+    """a named recipe's values (agents.learner.PRESETS) under the options given beside it"""
     out: str = "runs/train"
     """output directory"""
     resume: str | None = option(None, nargs="?", const="auto", metavar="CHECKPOINT")
-    """continue from CHECKPOINT (default with no value: OUT/checkpoint.pt); its config is used, an option that
-    differs from it is refused unless --allow-changes names it"""
+    """continue from CHECKPOINT (no value: OUT/checkpoint.pt) with its config; see --allow-changes"""
     allow_changes: str = option("", metavar="FIELDS")
     """with --resume: comma-separated config fields this command may change, e.g. lr,steps"""
     init: str | None = option(None, metavar="CHECKPOINT")
-    """start from the network weights of CHECKPOINT, a training checkpoint or the name of a shipped model
-    (fine-tuning: a fresh optimizer and this run's options; the model, width, input and flow scaling must match)"""
+    """fine-tune from the weights of CHECKPOINT or of a shipped model (a fresh optimizer; the same network)"""
     minutes: float | None = None
     """also stop (and save) after this many minutes"""
     ckpt_every: int = 100
