@@ -336,75 +336,8 @@ def smoothness_kernels(parallel: bool):
     return _make_smoothness(parallel)
 
 
-@numba.njit(inline="always", **_OPTIONS)
-def _bilinear_taps(x, y, lim, H, W):
-    """Corner columns/rows and fractions of a bilinear sample at (x, y), clamped to the image
-    ("border"), in the coordinates' dtype (lim = [0, W - 1, H - 1] in that dtype):
-    (x0, x1, y0, y1, fx, fy)."""
-    xi = min(max(x, lim[0]), lim[1])
-    yi = min(max(y, lim[0]), lim[2])
-    x0f = np.floor(xi)
-    y0f = np.floor(yi)
-    x0 = int(x0f)
-    y0 = int(y0f)
-    return x0, min(x0 + 1, W - 1), y0, min(y0 + 1, H - 1), xi - x0f, yi - y0f
-
-
-def _make_sampling(parallel: bool):
+def _make_event_mask(parallel: bool):
     loop = numba.prange if parallel else range
-
-    @numba.njit(parallel=parallel, **_OPTIONS)
-    def forward(flow, x, y, mask, lim, out):
-        """Bilinear sample of flow (B, 2, H, W) at (x, y) (B, N), coordinates clamped to the
-        image ("border"); lim = [0, W - 1, H - 1, 1] in the dtype of x; out: (B, N, 2); 0 where
-        mask (B, N) is False (padding)."""
-        B, _, H, W = flow.shape
-        N = x.shape[1]
-        for task in loop(2 * B):  # each batch element in two halves, so B = 1 uses two threads
-            b = task // 2
-            fu, fv = flow[b, 0], flow[b, 1]
-            for i in range((task % 2) * N // 2, (task % 2 + 1) * N // 2):
-                if not mask[b, i]:
-                    out[b, i, 0] = 0.0
-                    out[b, i, 1] = 0.0
-                    continue
-                x0, x1, y0, y1, fx, fy = _bilinear_taps(x[b, i], y[b, i], lim, H, W)
-                if fx == 0 and fy == 0:  # an integer pixel (raw sensor events): one tap
-                    out[b, i, 0] = fu[y0, x0]
-                    out[b, i, 1] = fv[y0, x0]
-                    continue
-                one = lim[3]
-                gx = one - fx
-                gy = one - fy
-                out[b, i, 0] = gy * (gx * fu[y0, x0] + fx * fu[y0, x1]) + fy * (gx * fu[y1, x0] + fx * fu[y1, x1])
-                out[b, i, 1] = gy * (gx * fv[y0, x0] + fx * fv[y0, x1]) + fy * (gx * fv[y1, x0] + fx * fv[y1, x1])
-
-    @numba.njit(parallel=parallel, **_OPTIONS)
-    def backward(grad_out, x, y, mask, lim, grad_flow):
-        """grad_flow (B, 2, H, W) out: the adjoint of ``forward``. One task per (batch element,
-        component), so B = 1 still uses two threads."""
-        B, _, H, W = grad_flow.shape
-        N = x.shape[1]
-        for task in loop(2 * B):
-            b = task // 2
-            ch = task % 2
-            g_img = grad_flow[b, ch]
-            g_img[:] = 0.0
-            for i in range(N):
-                if not mask[b, i]:
-                    continue
-                x0, x1, y0, y1, fx, fy = _bilinear_taps(x[b, i], y[b, i], lim, H, W)
-                g = grad_out[b, i, ch]
-                if fx == 0 and fy == 0:  # an integer pixel: one tap
-                    g_img[y0, x0] += g
-                    continue
-                one = lim[3]
-                gy = (one - fy) * g
-                g_img[y0, x0] += (one - fx) * gy
-                g_img[y0, x1] += fx * gy
-                gy = fy * g
-                g_img[y1, x0] += (one - fx) * gy
-                g_img[y1, x1] += fx * gy
 
     @numba.njit(parallel=parallel, **_OPTIONS)
     def event_mask(x, y, mask, out):
@@ -423,7 +356,7 @@ def _make_sampling(parallel: bool):
                 if xi >= 0 and xi < W and yi >= 0 and yi < H:
                     out[b, int(yi), int(xi)] = True
 
-    return forward, backward, event_mask
+    return event_mask
 
 
 @numba.njit(**_OPTIONS)
@@ -446,9 +379,9 @@ def first_bad_event(x, y, tau, mask):
 
 
 @functools.cache
-def sampling_kernels(parallel: bool):
-    """(sample forward, sample backward, event-pixel mask), for threads or for one thread."""
-    return _make_sampling(parallel)
+def event_mask_kernel(parallel: bool):
+    """The event-pixel mask of ``smoothness.event_pixel_mask``, for threads or for one thread."""
+    return _make_event_mask(parallel)
 
 
 @numba.njit(inline="always", **_OPTIONS)

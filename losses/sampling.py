@@ -2,35 +2,9 @@
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
-from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
-
 __all__ = ["sample_flow"]
-
-
-class _SampleCompiled(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, flow, x, y, mask):
-        np_dtype = np.float64 if flow.dtype == torch.float64 else np.float32
-        f = np.ascontiguousarray(flow.detach().numpy())
-        xs = np.ascontiguousarray(x.detach().numpy(), dtype=np_dtype)
-        ys = np.ascontiguousarray(y.detach().numpy(), dtype=np_dtype)
-        valid = np.ones(x.shape, np.bool_) if mask is None else np.ascontiguousarray(mask.numpy())
-        H, W = flow.shape[2:]
-        lim = np.array([0, W - 1, H - 1, 1], np_dtype)
-        out = np.empty((x.shape[0], x.shape[1], 2), np_dtype)
-        _kernels.sampling_kernels(_kernels.use_threads())[0](f, xs, ys, valid, lim, out)
-        ctx.coords, ctx.shape = (xs, ys, valid, lim), flow.shape
-        return torch.from_numpy(out)
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        grad = np.empty(tuple(ctx.shape), ctx.coords[0].dtype)
-        g = np.ascontiguousarray(grad_out.detach().numpy(), dtype=grad.dtype)
-        _kernels.sampling_kernels(_kernels.use_threads())[1](g, *ctx.coords, grad)
-        return torch.from_numpy(grad), None, None, None
 
 
 def sample_flow(flow: torch.Tensor, x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -42,14 +16,15 @@ def sample_flow(flow: torch.Tensor, x: torch.Tensor, y: torch.Tensor, mask: torc
     Exact at integer pixels (the event's own pixel gets weight exactly 1; when every
     coordinate is an integer a single gather per event is used). Coordinates outside the image
     are clamped to [0, W-1] x [0, H-1] first ("border" rule), so an event off the sensor takes
-    the flow of the nearest border pixel. Differentiable in flow. mask: optional (B, N) bool,
-    padding events (False) may be skipped (their value is then 0, or whatever the torch path
-    gives: callers must not use them).
+    the flow of the nearest border pixel. Differentiable in flow. mask: optional (B, N) bool;
+    padding events (False) may hold any coordinates, NaN included, and get pixel (0, 0)'s flow
+    (callers must not use it). No compiled kernel: one gained under 10 % of a training or env
+    step (docs/performance.md).
     """
-    if _kernels is not None and flow.device.type == "cpu" and flow.dtype in (torch.float32, torch.float64):
-        return _SampleCompiled.apply(flow, x, y, mask)
     B, _, H, W = flow.shape
     hw = H * W
+    if mask is not None:  # padding slots may hold anything, NaN included: sample pixel (0, 0) there
+        x, y = torch.where(mask, x, 0), torch.where(mask, y, 0)
     x = x.to(flow.dtype).clamp(0, W - 1)
     y = y.to(flow.dtype).clamp(0, H - 1)
     table = flow.reshape(-1)  # channel-major: index b * 2HW + c * HW + pixel

@@ -29,7 +29,7 @@ def event_pixel_mask(
     """
     if _kernels is not None and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64):
         out = np.zeros((x.shape[0], height, width), np.bool_)
-        _kernels.sampling_kernels(_kernels.use_threads())[2](
+        _kernels.event_mask_kernel(_kernels.use_threads())(
             np.ascontiguousarray(x.numpy()), np.ascontiguousarray(y.numpy(), dtype=x.numpy().dtype),
             np.ascontiguousarray(mask.numpy()), out)
         return torch.from_numpy(out)

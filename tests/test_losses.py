@@ -20,7 +20,6 @@ from losses import (
     hmc_loss,
     image_terms,
     sample_flow,
-    sampling,
     smoothness,
     warp,
     warped_event_images,
@@ -36,7 +35,6 @@ def backend(request, monkeypatch):
     if request.param == "torch":
         monkeypatch.setattr(image_terms, "_kernels", None)
         monkeypatch.setattr(smoothness, "_kernels", None)
-        monkeypatch.setattr(sampling, "_kernels", None)
         monkeypatch.setattr(warp, "_kernels", None)
     elif not image_terms.compiled_available():
         pytest.skip("numba not installed")
@@ -882,7 +880,6 @@ def test_compiled_kernels_equal_torch_path(scale, monkeypatch):
         if name == "torch":
             monkeypatch.setattr(image_terms, "_kernels", None)
             monkeypatch.setattr(smoothness, "_kernels", None)
-            monkeypatch.setattr(sampling, "_kernels", None)
         monkeypatch.setattr(warp, "_kernels", None)
         for dtype in (torch.float64, torch.float32):
             f = torch.from_numpy(flow).to(dtype).requires_grad_()
