@@ -309,24 +309,6 @@ def test_export_and_load_pretrained_by_name(recording, tmp_path, monkeypatch):
         RecurrentPolicy.from_pretrained("nope")
 
 
-def test_ablation_script_writes_tables_and_resumes(recording, tmp_path):
-    import ablations as ablation_script
-
-    report = tmp_path / "results.md"
-    report.write_text("# log\n\nkept text\n")
-    argv = ["--minutes", "0.01", "--seeds", "0", "1", "--only", "mgr-hmc", "evflownet-hmc", "--out", str(tmp_path / "ab"),
-            "--report", str(report), "--eval-data", str(recording), "--max-windows", "2",
-            "--", "--data", str(recording), "--width", "4", "--num-envs", "1", "--unroll", "2"]
-    ablation_script.main(argv)
-    text = report.read_text()
-    assert text.startswith("# log\n\nkept text") and text.count("<!-- ablations:start -->") == 1
-    assert "| EV-MGRFlowNet, L_HMC (2 seeds) |" in text and "| EV-FlowNet, L_HMC |" in text and "± " in text
-    stamp = (tmp_path / "ab" / "mgr-hmc-s0" / "eval" / "results.json").stat().st_mtime_ns
-    ablation_script.main(argv)  # done runs are not repeated; the block is replaced, not appended
-    assert (tmp_path / "ab" / "mgr-hmc-s0" / "eval" / "results.json").stat().st_mtime_ns == stamp
-    assert report.read_text().count("<!-- ablations:start -->") == 1
-
-
 def test_head_init_starts_every_builtin_model_near_zero_flow():
     from agents.learner import init_flow_heads
 
