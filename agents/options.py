@@ -34,16 +34,16 @@ def option(default: Any = dataclasses.MISSING, *, flag: str | None = None, nargs
 
 def field_docs(cls: type) -> dict[str, str]:
     """The string written under each field of dataclass ``cls`` (its first line), by field name."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        if not dataclasses.is_dataclass(klass):
-            continue
-        body = ast.parse(textwrap.dedent(inspect.getsource(klass))).body[0].body
-        for node, after in zip(body, body[1:]):
-            if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(after, ast.Expr)
-                    and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):
-                docs[node.target.id] = " ".join(after.value.value.split())
-    return docs
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    return {node.target.id: " ".join(after.value.value.split()) for node, after in zip(body, body[1:])
+            if isinstance(node, ast.AnnAssign) and isinstance(after, ast.Expr)
+            and isinstance(getattr(after.value, "value", None), str)}
+
+
+def _flag(f: dataclasses.Field, default) -> str:
+    """The option's spelling: metadata ``flag``, else --name (a switch on by default: --no-name)."""
+    prefix = "--no-" if default is True else "--"
+    return f.metadata.get("cli", {}).get("flag") or prefix + f.name.replace("_", "-")
 
 
 def _unwrap_optional(hint):
@@ -90,11 +90,10 @@ def add_options(parser: argparse.ArgumentParser, cls: type, *, groups: dict[str,
         default = (defaults or {}).get(f.name, f.default if f.default is not dataclasses.MISSING else
                                        f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
         hint = _unwrap_optional(hints[f.name])
-        flag = cli.pop("flag", None)
+        cli.pop("flag", None)
         cli.pop("convert", None)
         kwargs: dict[str, Any] = {"dest": f.name, "help": docs.get(f.name, "")}
         if hint is bool:
-            flag = flag or ("--no-" if default else "--") + f.name.replace("_", "-")
             kwargs.update(action="store_false" if default else "store_true", default=default)
         else:
             if typing.get_origin(hint) is Literal:
@@ -111,7 +110,7 @@ def add_options(parser: argparse.ArgumentParser, cls: type, *, groups: dict[str,
             kwargs["help"] = kwargs["help"].replace("%", "%%")
         if kwargs.get("default") is not None and "action" not in kwargs:
             kwargs["help"] += " (default: %(default)s)"
-        target.add_argument(flag or "--" + f.name.replace("_", "-"), **kwargs)
+        target.add_argument(_flag(f, default if hint is bool else None), **kwargs)
 
 
 def options_from_args(cls: type, args: argparse.Namespace, **overrides):
@@ -136,14 +135,11 @@ def to_argv(cls: type, values: dict[str, Any]) -> list[str]:
     argv: list[str] = []
     for name, value in values.items():
         f = fields[name]
-        cli = f.metadata.get("cli", {})
         if _unwrap_optional(hints[name]) is bool:
-            default = f.default
-            if value != default:
-                argv.append(cli.get("flag") or ("--no-" if default else "--") + name.replace("_", "-"))
+            argv += [_flag(f, f.default)] if value != f.default else []
             continue
-        flag = cli.get("flag") or "--" + name.replace("_", "-")
-        if cli.get("action") == "append":
+        flag = _flag(f, None)
+        if f.metadata.get("cli", {}).get("action") == "append":
             for key, item in dict(value).items():
                 argv += [flag, f"{key}={json.dumps(item) if not isinstance(item, str) else item}"]
         elif isinstance(value, (list, tuple)):
