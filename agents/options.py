@@ -33,7 +33,7 @@ def option(default: Any = dataclasses.MISSING, *, flag: str | None = None, nargs
 
 
 def field_docs(cls: type) -> dict[str, str]:
-    """The string written under each field of dataclass ``cls`` (its first line), by field name."""
+    """The string written under each field of dataclass ``cls`` (whitespace folded), by field name."""
     body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
     return {node.target.id: " ".join(after.value.value.split()) for node, after in zip(body, body[1:])
             if isinstance(node, ast.AnnAssign) and isinstance(after, ast.Expr)
