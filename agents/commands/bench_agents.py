@@ -12,8 +12,7 @@ no implementation removes, and, with ``--variants``, EV-MGRFlowNet's two ablatio
 ST-ConvGRU and the prior-flow path each add) and, with ``--nchw``, every model in the NCHW
 layout with torch's gate arithmetic (``model.channels_last = False``) and the speed-up of the
 default layout over it. ``--parts`` instead times some of EV-MGRFlowNet's own pieces alone (the
-forward warp of the prior flow, the ST-ConvGRU's pair update, and the four FGD refiners and the
-deep memory, forward without and with gradients).
+forward warp of the prior flow and the ST-ConvGRU's pair update).
 
 ``run(report)`` is called by agents/commands/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_agents.py [--reps N] [--widths paper cpu]
@@ -188,43 +187,6 @@ def time_parts(report, reps: int = 20) -> None:
             report(SECTION, f"ST-ConvGRU pair update (compiled, convolutions apart) {input_label} forward",
                    _best_ms(lambda: _GRUUpdates.apply(channels, (0, 3 * channels), projections, h_proj[0], hidden[0], h_proj[1], hidden[1]), reps),
                    "ms")
-        _time_inference_paths(report, input_label, batch, height, width, reps, generator)
-
-
-def _time_inference_paths(report, input_label, batch, height, width, reps, generator) -> None:
-    """``--parts``: the four FGD refiners of one window (merged convolution between two compiled
-    passes) and DeepMemoryUp (dense matrix products), forward without and with gradients."""
-    from agents.evmgrflownet import DeepMemoryUp
-    from agents.layers import ConvGRU, refine_flow
-
-    layout = torch.channels_last
-    torch.manual_seed(0)
-    refiners = [ConvGRU(2, 2) for _ in range(4)]
-    scales = [(batch, 2, height // s, width // s) for s in (8, 4, 2, 1)]
-    heads = [torch.randn(*shape, generator=generator).contiguous(memory_format=layout) for shape in scales]
-    priors = [0.1 * torch.randn(*shape, generator=generator) for shape in scales]
-
-    def refine_all():
-        for gru, head, prior in zip(refiners, heads, priors):
-            refine_flow(gru, head, prior)
-
-    with torch.no_grad():
-        inference = _best_ms(refine_all, reps)
-    with torch.enable_grad():  # the parameters want gradients: the training path
-        training = _best_ms(refine_all, reps)
-    report(SECTION, f"4 FGD refiners {input_label}: forward, no gradient", inference, "ms")
-    report(SECTION, f"4 FGD refiners {input_label}: training path, forward", training, "ms")
-
-    c = WIDTHS_CPU
-    layer = DeepMemoryUp(16 * c, 2 * c)
-    deepest = torch.randn(batch, 16 * c, height // 16, width // 16, generator=generator).contiguous(memory_format=layout)
-    size = (height // 2, width // 2)
-    with torch.no_grad():
-        inference = _best_ms(lambda: layer(deepest, size), reps)
-    with torch.enable_grad():
-        training = _best_ms(lambda: layer(deepest, size), reps)
-    report(SECTION, f"DeepMemoryUp {input_label}: forward, no gradient", inference, "ms")
-    report(SECTION, f"DeepMemoryUp {input_label}: training path, forward", training, "ms")
 
 
 def _print_row(section: str, row_name: str, value: float, unit: str) -> None:
@@ -241,8 +203,7 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     parser.add_argument("--parts", action="store_true",
-                        help="only EV-MGRFlowNet's own pieces, timed alone (forward warp, ST-ConvGRU pair "
-                             "update, FGD refiners and deep memory: inference pass and training path)")
+                        help="only EV-MGRFlowNet's own pieces, timed alone (forward warp, ST-ConvGRU pair update)")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
