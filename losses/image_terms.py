@@ -23,6 +23,7 @@ from typing import Literal, Sequence, get_args
 import numpy as np
 import torch
 
+from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 from .events import EventBatch
 from .iwe import warped_corners
 from .splat import crop_padding
@@ -102,13 +103,6 @@ class _EventImageTerms(torch.autograd.Function):
         grad_u = torch.stack([(gx * dt).sum(dim=1), (gy * dt).sum(dim=1)], dim=-1)  # eq. 12
         return grad_u, None, None, None, None, None, None
 
-
-from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
-
-
-def compiled_available() -> bool:
-    """True when the compiled (numba) CPU kernels can be used."""
-    return _kernels is not None
 
 
 class _EventImageTermsCompiled(torch.autograd.Function):

@@ -36,8 +36,6 @@ def backend(request, monkeypatch):
         monkeypatch.setattr(image_terms, "_kernels", None)
         monkeypatch.setattr(smoothness, "_kernels", None)
         monkeypatch.setattr(warp, "_kernels", None)
-    elif not image_terms.compiled_available():
-        pytest.skip("numba not installed")
     return request.param
 
 # --------------------------------------------------------------------------------------------
@@ -868,7 +866,6 @@ def test_accumulated_loss_outside_weight_adds_the_distance_term():
     assert extra == pytest.approx(2.0 * float(pulled.components["outside_px"][0]) / W, rel=1e-5) and extra > 0
 
 
-@pytest.mark.skipif(not image_terms.compiled_available(), reason="numba not installed")
 @pytest.mark.parametrize("scale", [0.5, 3.0, 40.0])  # sub-pixel, a few pixels, most events pushed out
 def test_compiled_kernels_equal_torch_path(scale, monkeypatch):
     rng = np.random.default_rng(int(scale * 10))
@@ -894,7 +891,6 @@ def test_compiled_kernels_equal_torch_path(scale, monkeypatch):
     assert float((g32 - g64).norm() / g64.norm()) < 1e-2  # a few events sit on a kernel kink
 
 
-@pytest.mark.skipif(not image_terms.compiled_available(), reason="numba not installed")
 def test_compiled_float32_exp_matches_exp():
     """The SIMD-friendly exp of the float32 kernels against float64 exp, over the range that
     -alpha C takes (C from 0 to far beyond any pixel count) and a little above 0."""
@@ -911,7 +907,6 @@ def test_compiled_float32_exp_matches_exp():
     assert exp32(1.5) == pytest.approx(np.exp(1.5), rel=1e-15)  # float64: the libm exp
 
 
-@pytest.mark.skipif(not image_terms.compiled_available(), reason="numba not installed")
 def test_parallel_kernels_equal_serial_kernels():
     """The suite runs torch (and so the kernels) on one thread; users run the parallel kernels.
     Both give the same losses and gradients (float64), for several batch sizes, also when a

@@ -20,9 +20,9 @@ options --steps, --minutes, --out, --device, --ckpt-every and --val-* may always
 too unless the step size decays with --decay cosine; the network's shape never: fine-tune with
 --init). metrics.jsonl is cut back to the checkpoint's step, so every step is logged once.
 
---preset NAME sets the defaults of a named recipe (agents.learner.PRESETS); options given beside
-it override them. "paper": EV-MGRFlowNet at width 32 on count images, all scales in the loss,
-Adam 1e-4, L = 10, L_HMC as sequential learning over the L windows, the border rule on.
+--preset NAME sets the values of a named recipe (agents.learner.PRESETS); options given beside
+it override them: paper (docs/method.md), and the project's recipe: teacher-cached (stage 1 on
+stored teacher targets), teacher (stage 1 solving them in every update), hmc-stage (stage 2).
 
 Distributed (torchrun): each rank uses the GPU of its LOCAL_RANK with NCCL, or the CPU with gloo.
 """
