@@ -183,10 +183,6 @@ class TrainConfig:
         """The loss weights of this run."""
         return LossWeights(self.lambda_1, self.lambda_2, self.alpha, self.border_penalty, self.border_ramp)
 
-    def check(self) -> None:
-        """ValueError naming the field and the allowed values for a choice that is not one."""
-        check_choices(self)
-
 
 #: The allowed values of the config's choices (its Literal fields).
 CHOICES: dict[str, tuple] = choices_of(TrainConfig)
@@ -276,7 +272,7 @@ class Learner:
     """Owns the policy, optimizer and training envs of one process."""
 
     def __init__(self, cfg: TrainConfig) -> None:
-        cfg.check()
+        check_choices(cfg)  # again: a field may have been set after the config was made
         check_border_ramp(cfg.border_ramp)  # before any env or output exists
         if cfg.teacher_cache and cfg.loss != "teacher":
             raise ValueError(f"teacher_cache is for loss 'teacher', not {cfg.loss!r}")

@@ -52,10 +52,14 @@ def window_loss(cfg: TrainConfig, flow_scaling: float):
     readings docs/method.md lists): ``loss(flows, batch, border_penalty) -> LossOutput``. The
     teacher and supervised objectives log L_HMC."""
     kind = "at" if cfg.loss == "at" else "hmc"
-    fn = {"hmc": hmc_loss, "at": at_loss}[kind]
-    options = {"flow_scaling": flow_scaling, "upsampling": cfg.upsampling, "reference_times": cfg.reference_times,
-               "at_normalisation": cfg.at_normalisation, **cfg.weights.of(kind)}
+    fn, options = {"hmc": hmc_loss, "at": at_loss}[kind], _loss_options(cfg, flow_scaling, kind)
     return lambda flows, batch, border_penalty=0.0: fn(flows, batch, border_penalty=border_penalty, **options)
+
+
+def _loss_options(cfg: TrainConfig, flow_scaling: float, kind: str) -> dict:
+    """Keyword arguments of hmc_loss / at_loss (and accumulated_hmc_loss) under ``cfg``."""
+    return {"flow_scaling": flow_scaling, "upsampling": cfg.upsampling, "reference_times": cfg.reference_times,
+            "at_normalisation": cfg.at_normalisation, **cfg.weights.of(kind)}
 
 
 def _scales(cfg: TrainConfig, flows: list) -> list:
@@ -83,9 +87,7 @@ class AccumulatedLoss:
 
     def __init__(self, cfg: TrainConfig, flow_scaling: float, **_) -> None:
         self.cfg = cfg
-        self.options = {"flow_scaling": flow_scaling, "upsampling": cfg.upsampling,
-                        "reference_times": cfg.reference_times, "at_normalisation": cfg.at_normalisation,
-                        **cfg.weights.of("hmc")}
+        self.options = _loss_options(cfg, flow_scaling, "hmc")
 
     def _loss(self, flows, batches, border_penalty=0.0) -> LossOutput:
         return accumulated_hmc_loss(flows, batches, border_penalty=border_penalty, outside_weight=border_penalty,
