@@ -359,25 +359,6 @@ def _make_event_mask(parallel: bool):
     return event_mask
 
 
-@numba.njit(**_OPTIONS)
-def first_bad_event(x, y, tau, mask):
-    """(kind, b, i) of the first valid event with tau outside [0, 1] or NaN (kind 1), else of
-    the first with a NaN/inf coordinate (kind 2); (0, -1, -1) when all are good. One pass."""
-    B, N = x.shape
-    bad_coord = (-1, -1)
-    for b in range(B):
-        for i in range(N):
-            if not mask[b, i]:
-                continue
-            if not (tau[b, i] >= 0 and tau[b, i] <= 1):
-                return 1, b, i
-            if bad_coord[0] < 0 and not (math.isfinite(x[b, i]) and math.isfinite(y[b, i])):
-                bad_coord = (b, i)
-    if bad_coord[0] >= 0:
-        return 2, bad_coord[0], bad_coord[1]
-    return 0, -1, -1
-
-
 @functools.cache
 def event_mask_kernel(parallel: bool):
     """The event-pixel mask of ``smoothness.event_pixel_mask``, for threads or for one thread."""
