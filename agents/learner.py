@@ -49,7 +49,7 @@ from .checkpoint import rng_state, set_rng_state
 from .objectives import RolloutWindow, make_objective, window_loss, windows_from_info
 from .options import check_choices, choices_of, option, to_argv
 from .policy import RecurrentPolicy
-from .registry import make_model
+from .registry import make_model, width_kwargs
 from .teacher import TeacherTargets
 
 __all__ = ["TrainConfig", "Learner", "make_vector_env", "PRESETS", "preset_config", "preset_options", "CHOICES"]
@@ -228,10 +228,6 @@ def preset_options(name: str) -> list[str]:
     return to_argv(TrainConfig, PRESETS[name])
 
 
-def _width_kwargs(width) -> dict:
-    return {"width": width} if isinstance(width, str) else {"base_width": int(width)}
-
-
 def make_vector_env(cfg: TrainConfig, *, rank: int = 0, world: int = 1, data=None, flips=None):
     """B EventFlow envs over this rank's shard of the recordings, autoresetting in the same
     step (the observation returned with ``truncated=True`` already opens the next sequence)."""
@@ -288,7 +284,7 @@ class Learner:
         self.height, self.width = space.shape[1:]
         self.flow_scaling = float(cfg.flow_scaling or max(self.height, self.width))
         in_channels = {"count_image": 2, "count_time_image": 4}.get(cfg.input, cfg.voxel_bins)
-        self.model_config = {**_width_kwargs(cfg.width), "flow_scaling": self.flow_scaling, "in_channels": in_channels,
+        self.model_config = {**width_kwargs(cfg.width), "flow_scaling": self.flow_scaling, "in_channels": in_channels,
                              **cfg.model_kwargs}
         model = make_model(cfg.model, **self.model_config)
         if cfg.head_init is not None:

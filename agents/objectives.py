@@ -1,7 +1,7 @@
 """What a training update minimises, given the rollout it collected (:meth:`Learner.update`).
 
 One class per objective, each with one job: turn the L windows of a rollout into a scalar loss
-(and a few logged scalars). ``OBJECTIVES`` picks one from ``TrainConfig.loss`` and
+(and a few logged scalars). ``make_objective`` picks one from ``TrainConfig.loss`` and
 ``loss_mode``; the choices themselves are checked where the config is made.
 """
 

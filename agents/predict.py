@@ -89,7 +89,7 @@ def load_policy(model: str | None = None, *, device: str = "cpu", width: str | i
     """
     from .checkpoint import load_model
     from .pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info
-    from .registry import make_model
+    from .registry import make_model, width_kwargs
 
     if model is None or model in list_pretrained():
         name = model or DEFAULT_PRETRAINED
@@ -103,7 +103,7 @@ def load_policy(model: str | None = None, *, device: str = "cpu", width: str | i
                       "model_config": payload.get("model_config"), "step": payload.get("step")}
         policy = RecurrentPolicy(net, device=device, input_key=cfg.get("input", "count_image"), voxel_bins=cfg.get("voxel_bins", 5))
         return policy, provenance
-    kwargs = {"width": width} if isinstance(width, str) else {"base_width": int(width)}
+    kwargs = width_kwargs(width)
     net = make_model(model, **kwargs).eval()
     return RecurrentPolicy(net, device=device), {"kind": "untrained", "name": model, **kwargs}
 

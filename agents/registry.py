@@ -55,6 +55,12 @@ MODELS: dict[str, ModelFactory] = {
 COMMON_KWARGS = frozenset({"in_channels", "base_width", "width", "flow_scaling"})
 
 
+def width_kwargs(width: str | int) -> dict:
+    """make_model's width keyword: ``width`` for 'paper' / 'cpu', ``base_width`` for an integer
+    (or its digits)."""
+    return {"base_width": int(width)} if str(width).isdigit() else {"width": width}
+
+
 def register_model(name: str, factory: ModelFactory, overwrite: bool = False) -> None:
     """Make ``factory`` available as ``make_model(name, ...)``."""
     if ":" in name:

@@ -50,7 +50,7 @@ from agents.checkpoint import load_model
 from agents.evaluation import evaluate, results_json, results_table, windowing_of
 from agents.options import add_options, check_choices, option, options_from_args
 from agents.policy import RecurrentPolicy
-from agents.registry import make_model
+from agents.registry import make_model, width_kwargs
 
 
 @dataclass
@@ -178,9 +178,8 @@ def build_policies(args) -> dict:
     for name in pretrained:
         policies[f"{name} (pretrained)"] = RecurrentPolicy.from_pretrained(name, device=args.device)
     if args.model and not args.checkpoint:
-        width = int(args.width) if str(args.width).isdigit() else args.width
-        kwargs = {"width": width} if isinstance(width, str) else {"base_width": width}
-        policies[args.model] = RecurrentPolicy(make_model(args.model, **kwargs).eval(), device=args.device)
+        policies[args.model] = RecurrentPolicy(make_model(args.model, **width_kwargs(args.width)).eval(),
+                                               device=args.device)
     if args.refine:
         for name, policy in list(policies.items()):
             policies[f"{name} + refine {args.refine}"] = RefinedPolicy(policy, steps=args.refine)

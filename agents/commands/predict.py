@@ -59,8 +59,7 @@ def main(argv=None) -> int:  # opens as the other commands do: parse, then set t
         import torch
 
         torch.set_num_threads(args.threads)
-    width = int(args.width) if str(args.width).isdigit() else args.width
-    policy, provenance = load_policy(args.model, device=args.device, width=width)
+    policy, provenance = load_policy(args.model, device=args.device, width=args.width)
     stem = Path(args.recording).name.split(".")[0] or "recording"
     out = Path(args.out) if args.out else Path("runs") / "predict" / f"{stem}.flow.h5"
     video = None if args.no_video else (Path(args.video) if args.video else out.with_name(out.name.split(".")[0] + ".gif"))
