@@ -62,6 +62,11 @@ def _loss_options(cfg: TrainConfig, flow_scaling: float, kind: str) -> dict:
             "at_normalisation": cfg.at_normalisation, **cfg.weights.of(kind)}
 
 
+def _endpoint_error(flow: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Mean endpoint error of (B, 2, H, W) ``flow`` against ``target``, weighted by (B, 1, H, W) ``weight``."""
+    return ((flow - target).norm(dim=1, keepdim=True) * weight).sum() / weight.sum().clamp_min(1)
+
+
 def _scales(cfg: TrainConfig, flows: list) -> list:
     """The scales that enter the loss: all four (averaged) or the finest only."""
     return flows if cfg.loss_scales == "all" else flows[-1:]
@@ -113,9 +118,7 @@ class SupervisedLoss:
             raise ValueError("loss 'supervised' needs data with ground-truth flow (e.g. a synthetic split)")
         gt = torch.as_tensor(np.asarray(window.info["flow_gt"]), device=self.device)
         valid = torch.as_tensor(np.asarray(window.info["flow_gt_valid"]), device=self.device).unsqueeze(1)
-        errors = [((f - gt).norm(dim=1, keepdim=True) * valid).sum() / valid.sum().clamp_min(1)
-                  for f in to_full_resolution(window.flows)]
-        return torch.stack(errors).mean()
+        return torch.stack([_endpoint_error(f, gt, valid) for f in to_full_resolution(window.flows)]).mean()
 
     def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:
         return torch.stack([self._window(w) for w in rollout]).mean(), {}
@@ -123,10 +126,8 @@ class SupervisedLoss:
 
 def windows_from_info(info: dict, num_envs: int) -> list[dict]:
     """Per-env window dicts (events + bounds) out of a vector env's stacked info."""
-    return [
-        {**info["events"][i], "t_start": int(info["t_start"][i]), "t_end": int(info["t_end"][i])}
-        for i in range(num_envs)
-    ]
+    return [{**info["events"][i], "t_start": int(info["t_start"][i]), "t_end": int(info["t_end"][i])}
+            for i in range(num_envs)]
 
 
 def _subsample_window(window: dict, max_events: int) -> dict:
@@ -176,9 +177,8 @@ class TeacherLoss:
         errors, zero_errors = [], []
         for k, window in enumerate(rollout):
             t, w = target[k * n : (k + 1) * n], weight[k * n : (k + 1) * n]
-            zero_errors.append((t.norm(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1))
-            for f in to_full_resolution(window.flows):
-                errors.append(((f - t).norm(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1))
+            zero_errors.append(_endpoint_error(torch.zeros_like(t), t, w))
+            errors += [_endpoint_error(f, t, w) for f in to_full_resolution(window.flows)]
         return torch.stack(errors).mean(), {"zero_flow_teacher": torch.stack(zero_errors).mean().detach()}
 
 

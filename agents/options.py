@@ -64,12 +64,9 @@ def choices_of(cls: type) -> dict[str, tuple]:
 
 def check_choices(config) -> None:
     """ValueError naming the field, the bad value and the allowed ones, for a choice field of the
-    dataclass instance ``config`` that holds none of its allowed values (None passes where allowed)."""
-    hints = typing.get_type_hints(type(config))
+    dataclass instance ``config`` that holds none of its allowed values."""
     for name, allowed in choices_of(type(config)).items():
         value = getattr(config, name)
-        if value is None and _unwrap_optional(hints[name]) is not hints[name]:
-            continue
         if value not in allowed:
             raise ValueError(f"{type(config).__name__}.{name} must be one of {allowed}, got {value!r}")
 
