@@ -15,20 +15,15 @@ import json
 import textwrap
 import types
 import typing
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 __all__ = ["option", "field_docs", "choices_of", "check_choices", "add_options", "options_from_args", "to_argv"]
 
 
-def option(default: Any = dataclasses.MISSING, *, flag: str | None = None, nargs: str | None = None,
-           type: Callable | None = None, convert: Callable | None = None, action: str | None = None,
-           metavar: str | None = None, const: Any = None, choices: list | None = None,
-           default_factory: Any = dataclasses.MISSING) -> Any:
+def option(default: Any = dataclasses.MISSING, *, default_factory: Any = dataclasses.MISSING, **cli) -> Any:
     """A dataclass field with how its command-line option differs from what its type implies:
-    ``flag`` (its spelling), ``nargs``/``type``/``action``/``metavar``/``const``/``choices`` (argparse's), and
-    ``convert`` (parsed value -> field value; it must also accept a field value as it is)."""
-    cli = {k: v for k, v in dict(flag=flag, nargs=nargs, type=type, convert=convert, action=action,
-                                 metavar=metavar, const=const, choices=choices).items() if v is not None}
+    ``flag`` (its spelling), argparse's ``nargs``, ``type``, ``action``, ``metavar``, ``const`` or
+    ``choices``, and ``convert`` (parsed value -> field value; it must also accept a field value)."""
     return dataclasses.field(default=default, default_factory=default_factory, metadata={"cli": cli})
 
 

@@ -68,8 +68,7 @@ class LossWeights:
     def of(self, loss: Literal["hmc", "at"]) -> dict:
         """The keyword arguments of ``hmc_loss`` / ``at_loss`` (the border penalty is per window:
         :func:`border_rule_weight`)."""
-        if loss not in ("hmc", "at"):
-            raise ValueError(f"loss must be one of ('hmc', 'at'), got {loss!r}")
+        _check_choice("loss", loss, ("hmc", "at"))
         weights = {"lambda_2": self.lambda_2, "border_ramp": self.border_ramp}
         return {**weights, "lambda_1": self.lambda_1, "alpha": self.alpha} if loss == "hmc" else weights
 
