@@ -47,12 +47,12 @@ from losses import (
 
 from .checkpoint import rng_state, set_rng_state
 from .objectives import RolloutWindow, make_objective, window_loss, windows_from_info
-from .options import check_choices, choices_of, option, to_argv
+from .options import check_choices, option, to_argv
 from .policy import RecurrentPolicy
 from .registry import make_model, width_kwargs
 from .teacher import TeacherTargets
 
-__all__ = ["TrainConfig", "Learner", "make_vector_env", "PRESETS", "preset_config", "preset_options", "CHOICES"]
+__all__ = ["TrainConfig", "Learner", "make_vector_env", "PRESETS", "preset_config", "preset_options"]
 
 
 def _width(text: str | int) -> str | int:
@@ -183,9 +183,6 @@ class TrainConfig:
         """The loss weights of this run."""
         return LossWeights(self.lambda_1, self.lambda_2, self.alpha, self.border_penalty, self.border_ramp)
 
-
-#: The allowed values of the config's choices (its Literal fields).
-CHOICES: dict[str, tuple] = choices_of(TrainConfig)
 
 _RECIPE = {"model": "ev-mgrflownet", "width": "cpu", "input": "voxel_grid", "crop": (64, 64), "random_crop": True,
            "flow_scaling": 32.0, "num_envs": 8, "unroll": 4}

@@ -98,8 +98,7 @@ def add_options(parser: argparse.ArgumentParser, cls: type, *, groups: dict[str,
             kwargs.update(cli)
             if kwargs.get("action") == "append":
                 kwargs["default"] = []
-        if "%" in kwargs["help"]:
-            kwargs["help"] = kwargs["help"].replace("%", "%%")
+        kwargs["help"] = kwargs["help"].replace("%", "%%")  # argparse formats the help with %
         if kwargs.get("default") is not None and "action" not in kwargs:
             kwargs["help"] += " (default: %(default)s)"
         target.add_argument(_flag(f, default if hint is bool else None), **kwargs)

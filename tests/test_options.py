@@ -13,7 +13,7 @@ import pytest
 
 from agents.commands import train as train_command
 from agents.commands.evaluate import EvaluateOptions
-from agents.learner import CHOICES, PRESETS, TrainConfig, preset_config, preset_options
+from agents.learner import PRESETS, TrainConfig, preset_config, preset_options
 from agents.options import choices_of, field_docs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -37,7 +37,7 @@ def test_a_bad_value_of_every_choice_field_raises_naming_the_field_and_the_allow
 
 
 def test_every_choice_field_is_a_literal_and_every_field_has_its_help():
-    assert {"loss", "loss_mode", "vector", "decay", "input", "window", "teacher_pixels"} <= set(CHOICES)
+    assert {"loss", "loss_mode", "vector", "decay", "input", "window", "teacher_pixels"} <= set(choices_of(TrainConfig))
     for cls in (TrainConfig, EvaluateOptions):
         docs = field_docs(cls)
         assert all(docs.get(name) for name in cls.__dataclass_fields__), set(cls.__dataclass_fields__) - set(docs)

@@ -1,2 +1,1 @@
-"""The command lines (``evflow-*`` console commands; ``python scripts/X.py`` runs the same
-``main``): argument parsing, progress and output files over the library."""
+"""The command lines (``evflow-*``; ``python scripts/X.py`` runs the same ``main``) over the library."""
