@@ -52,7 +52,7 @@ __all__ = ["Configuration", "CONFIGURATIONS", "Budget", "AblationRunner", "needs
 Loss = Literal["hmc", "at"]
 LOSSES: tuple[str, ...] = ("hmc", "at")
 
-#: The paper's MVSEC dt = 1 AEE (outdoor_day1, indoor_flying1, 2, 3), from docs REFERENCE section 7.
+#: The paper's MVSEC dt = 1 AEE (outdoor_day1, indoor_flying1, 2, 3) (docs/method.md, "Metrics").
 PAPER_MVSEC_DT1: dict[str, tuple[float, float, float, float]] = {
     "mgr-hmc": (0.28, 0.41, 0.70, 0.59),
     "mgr-no-st": (0.32, 0.45, 0.80, 0.67),
