@@ -136,6 +136,8 @@ class AedatReader(EventReader):
         info = streams[stream_id]
         self.sensor_size = (int(info["height"]), int(info["width"]))
         frame_ids = sorted(k for k, s in streams.items() if s.get("type") == "frame")
+        if cache_dir is not None:
+            Path(cache_dir).mkdir(parents=True, exist_ok=True)  # a cache folder that does not exist yet
         fd, tmp = tempfile.mkstemp(prefix=f"{self.name}-", suffix=".evflow.h5", dir=cache_dir)
         os.close(fd)
         self._cache_path = Path(tmp)
