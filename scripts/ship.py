@@ -104,7 +104,9 @@ def main(argv=None) -> int:
 
             steps = load_checkpoint(checkpoint).get("step")
             provenance = {
-                "command": "python scripts/ship.py " + " ".join(argv),
+                # the snapshot's location is this machine's business, not the provenance's
+                "command": "python scripts/ship.py " + " ".join(
+                    "SNAPSHOT" if args.code and a == args.code else a for a in argv),
                 "date": datetime.date.today().isoformat(),
                 "note": args.note,
                 "validation": {"data": args.val_data, "windows_per_sequence": args.val_windows, "score": score,
