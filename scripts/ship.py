@@ -46,8 +46,8 @@ def validation_score(checkpoint: Path, data: str, windows: int, out: Path) -> tu
     return sum(ratios) / len(ratios), results
 
 
-def shipped_score(name: str) -> float:
-    meta = ROOT / "agents" / "weights" / f"{name}.json"
+def shipped_score(name: str, weights_dir: Path) -> float:
+    meta = weights_dir / f"{name}.json"
     if not meta.exists():
         return float("inf")
     return float(json.loads(meta.read_text()).get("validation", {}).get("score", float("inf")))
@@ -66,6 +66,7 @@ def main(argv=None) -> int:
     p.add_argument("--val-windows", type=int, default=8, help="windows per validation sequence")
     p.add_argument("--note", default="", help="what the run is, for the provenance")
     p.add_argument("--no-commit", action="store_true", help="export improved weights but do not commit them")
+    p.add_argument("--weights-dir", default=None, help="where to ship (default: agents/weights of this checkout)")
     p.add_argument("--code", default=None,
                    help="run training and validation from this checkout (e.g. a git worktree of a fixed commit, so "
                         "edits to this one cannot disturb a long run); weights are still shipped into this one")
@@ -73,6 +74,7 @@ def main(argv=None) -> int:
     global CODE
     CODE = Path(args.code).resolve() if args.code else ROOT
     sys.path.insert(0, str(CODE))
+    weights_dir = Path(args.weights_dir) if args.weights_dir else ROOT / "agents" / "weights"
     recipe = argv[cut + 1 :]
     out = Path(args.out)
     train_dir = out / "train"
@@ -88,14 +90,14 @@ def main(argv=None) -> int:
         else:
             # a fresh machine: continue from the committed model when there is one
             init = args.init
-            if (ROOT / "agents" / "weights" / f"{args.name}.pt").exists():
-                init = args.name
+            if (weights_dir / f"{args.name}.pt").exists():
+                init = str(weights_dir / f"{args.name}.pt")
             cmd = [*recipe, "--out", str(train_dir), "--minutes", minutes, "--val-data", "",
                    *(["--init", init] if init else [])]
         print(f"[ship] chunk {chunk}: train.py {' '.join(cmd)}", flush=True)
         subprocess.run([sys.executable, str(CODE / "scripts" / "train.py"), *cmd, "--no-progress"], check=True)
         score, results = validation_score(checkpoint, args.val_data, args.val_windows, out / "val" / f"chunk{chunk}")
-        best = shipped_score(args.name)
+        best = shipped_score(args.name, weights_dir)
         record = {"chunk": chunk, "score": score, "best_before": best, "time": datetime.datetime.now().isoformat()}
         print(f"[ship] validation score {score:.4f} (shipped: {best:.4f})", flush=True)
         if score < best:
@@ -113,7 +115,7 @@ def main(argv=None) -> int:
                                "definition": "mean over dt = 1 and 4 of AEE / zero flow's AEE", "step": steps},
                 "evaluation": results,
             }
-            export_pretrained(checkpoint, args.name, provenance, directory=ROOT / "agents" / "weights")
+            export_pretrained(checkpoint, args.name, provenance, directory=weights_dir)
             record["shipped"] = True
             if not args.no_commit:
                 files = [f"agents/weights/{args.name}.pt", f"agents/weights/{args.name}.json"]
