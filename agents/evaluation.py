@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from envs.dataset import resolve_data
 from envs.env import EventFlowEnv, NoWindowsError
-from envs.representations import event_mask
+from envs.representations import EventView, event_mask
 from envs.visualize import count_image_to_rgb, flow_legend, flow_to_rgb, panel, save_animation, save_png
 from envs.windows import FALLBACK_INTERVAL_US, window_grid
 from losses import EventBatch, flow_error, fwl, hmc_loss, rsat, sample_flow, warped_event_images
@@ -70,11 +70,6 @@ class SequenceResult:
     def as_dict(self) -> dict[str, Any]:
         return {"sequence": self.name, "windows": self.windows, "size": list(self.size), "windowing": self.windowing,
                 **{k: self.mean(k) for k in self.keys()}}
-
-
-class _EventView:
-    def __init__(self, events):
-        self.x, self.y, self.p = events["x"], events["y"], events["p"]
 
 
 def _iwe_picture(flow: np.ndarray, window: dict, size) -> np.ndarray:
@@ -217,7 +212,7 @@ def _evaluate_sequence(env: EventFlowEnv, policy, index: int, total: int, *, win
             result.add("rsat", rsat(flow, win, size))
         if "flow_gt" in info and (n_events or score is not None):
             if score is None:
-                scored = event_mask(_EventView(win), size)
+                scored = event_mask(EventView(win), size)
                 err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], scored, dt_ratio=dt_ratio)
                 scored = scored & info["flow_gt_valid"]
             else:

@@ -42,7 +42,7 @@ from tqdm import tqdm
 
 from envs.atomic import remove_stale_temporaries, same_file, temporary_path
 from envs.env import EventFlowEnv
-from envs.representations import event_mask
+from envs.representations import EventView, event_mask
 from envs.visualize import count_image_to_rgb, flow_to_rgb, panel, save_animation
 from envs.windows import WINDOW_MODES, window_bounds
 from losses import EventBatch, flow_error, fwl, hmc_loss, rsat
@@ -266,17 +266,12 @@ def _score_window(per_window: dict, k: int, flow: np.ndarray, win: dict, info: d
     per_window["fwl"][k] = fwl(flow, win, size)
     per_window["rsat"][k] = rsat(flow, win, size)
     if "flow_gt" in info:
-        mask = event_mask(_EventView(win), size)
+        mask = event_mask(EventView(win), size)
         err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], mask)
         if err["n_pixels"] > 0:
             per_window["aee"][k], per_window["outlier_pct"][k] = err["aee"], err["outlier_pct"]
             zero = flow_error(np.zeros_like(flow), info["flow_gt"], info["flow_gt_valid"], mask)
             per_window["aee_zero"][k] = zero["aee"]
-
-
-class _EventView:
-    def __init__(self, events: dict) -> None:
-        self.x, self.y, self.p = events["x"], events["y"], events["p"]
 
 
 def _fmt(value: float, digits: int = 4) -> str:

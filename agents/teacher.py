@@ -233,7 +233,7 @@ def score_targets(path: str | os.PathLike, data=None) -> dict[str, dict[str, flo
     targets' AEE against the ground truth and of zero flow's, on pixels with events and valid
     ground truth (the evaluation's metric). ``data`` defaults to the file's own. Returns
     ``{"1": {"aee": .., "aee_zero": .., "windows": ..}, ...}`` (keys: window lengths)."""
-    from envs.representations import event_mask
+    from envs.representations import EventView, event_mask
     from losses import flow_error
 
     targets = TeacherTargets(path)
@@ -247,7 +247,7 @@ def score_targets(path: str | os.PathLike, data=None) -> dict[str, dict[str, flo
                 gt = env.sources[0].reader().flow_between(window["t_start"], window["t_end"])
                 if gt is None or not len(window["t"]):
                     continue
-                mask = event_mask(_Events(window), env.sensor_size)
+                mask = event_mask(EventView(window), env.sensor_size)
                 target = targets.target(source.name, window["t_start"], window["t_end"]).numpy()
                 err = flow_error(target, gt[0], gt[1], mask)
                 zero = flow_error(np.zeros_like(target), gt[0], gt[1], mask)
@@ -258,8 +258,3 @@ def score_targets(path: str | os.PathLike, data=None) -> dict[str, dict[str, flo
                     acc[2] += 1
             env.close()
     return {k: {"aee": a / n, "aee_zero": z / n, "ratio": a / z, "windows": n} for k, (a, z, n) in sums.items()}
-
-
-class _Events:
-    def __init__(self, window: dict) -> None:
-        self.x, self.y, self.t, self.p = window["x"], window["y"], window["t"], window["p"]

@@ -14,7 +14,7 @@ from gymnasium import spaces
 from envs.dataset import resolve_data
 from envs.events import Events
 from envs.readers._common import resolve_crop
-from envs.representations import count_image, count_time_image, voxel_grid
+from envs.representations import EventView, count_image, count_time_image, voxel_grid
 from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import WINDOW_MODES, window_bounds, window_grid
 from losses import BORDER_RAMP, EventBatch, LossWeights, at_loss, border_rule_weight, check_border_ramp, hmc_loss
@@ -476,11 +476,11 @@ class EventFlowEnv(gym.Env):
         size = (self.height, self.width)
         obs: dict[str, np.ndarray] = {}
         if "count_image" in self.observation_keys:
-            obs["count_image"] = count_image(_EventView(ev), size)
+            obs["count_image"] = count_image(EventView(ev), size)
         if "voxel_grid" in self.observation_keys:
-            obs["voxel_grid"] = voxel_grid(_EventView(ev), self.voxel_bins, window["t_start"], window["t_end"], size)
+            obs["voxel_grid"] = voxel_grid(EventView(ev), self.voxel_bins, window["t_start"], window["t_end"], size)
         if "count_time_image" in self.observation_keys:
-            obs["count_time_image"] = count_time_image(_EventView(ev), window["t_start"], window["t_end"], size)
+            obs["count_time_image"] = count_time_image(EventView(ev), window["t_start"], window["t_end"], size)
         if "events" in self.observation_keys:
             n = len(ev["t"])
             rows = np.zeros((self.max_events, 4), np.float32)
@@ -545,7 +545,7 @@ class EventFlowEnv(gym.Env):
         # the window the last action was scored on; before any step, the current one
         shown = self._scored_window if self._scored_window is not None else self._window
         if shown is not None:
-            counts = count_image(_EventView(shown["events"]), size)
+            counts = count_image(EventView(shown["events"]), size)
         else:
             counts = np.zeros((2,) + size, np.float32)
         left = count_image_to_rgb(counts)
@@ -623,10 +623,3 @@ class WindowEvents(Mapping):
 
     def __setstate__(self, state) -> None:
         self._arrays = state
-
-
-class _EventView:
-    """Attribute access over an events dict (what the representation functions read)."""
-
-    def __init__(self, events: dict[str, np.ndarray]) -> None:
-        self.x, self.y, self.t, self.p = events["x"], events["y"], events["t"], events["p"]

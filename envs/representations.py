@@ -28,7 +28,16 @@ __all__ = [
     "count_image_torch",
     "voxel_grid_torch",
     "event_mask_torch",
+    "EventView",
 ]
+
+
+class EventView:
+    """Attribute access (``x``, ``y``, ``t``, ``p``) over a window's events held as a dict of
+    numpy arrays (``info["events"]``, a window dict): what the functions here read."""
+
+    def __init__(self, events) -> None:
+        self.x, self.y, self.t, self.p = events["x"], events["y"], events["t"], events["p"]
 
 
 def _pixel_index(x: np.ndarray, y: np.ndarray, width: int) -> np.ndarray:
