@@ -11,8 +11,10 @@ Every configuration is trained the same way, in two stages through ``scripts/tra
 
 Then each is evaluated on the same splits and window lengths (AEE, outliers, cosine, L_HMC,
 FWL, RSAT), and its cost measured (parameters, arithmetic and time per window). A finished
-configuration's row is appended at once to ``OUT/rows.jsonl``; the Markdown tables and the
-validation curves are regenerated from those rows after every row.
+configuration's row is appended at once to ``RECORD/rows.jsonl`` (``RECORD`` defaults to ``OUT``;
+``scripts/ablations.py`` keeps it in the repository, ``docs/ablations``, and commits it after
+every row, so finished rows outlive the machine); the Markdown tables and the validation curves
+are regenerated there from those rows after every row.
 
 Resumable: a (configuration, seed) with a row is skipped; a stage with a checkpoint but no
 ``done.json`` continues from it (``--resume``); an evaluation keeps its finished parts. A stage
@@ -222,11 +224,16 @@ class AblationRunner:
     """Trains, evaluates and tabulates the configurations under ``out``.
 
     train: the training command as a function of its argv (``scripts/train.py``'s ``main``).
+    record: the folder of what must outlive the run folder (rows.jsonl, budget.json, tables.md,
+    curves/); default ``out``. on_row: called with the files written after each finished row
+    (e.g. to commit them).
     """
 
     def __init__(self, out: str | os.PathLike, budget: Budget, train: Callable[[list[str]], object], *,
                  seeds: tuple[int, ...] = (0, 1, 2), only: list[str] | None = None, device: str = "cpu",
-                 targets: dict[str, str] | None = None, log: Callable[[str], None] = print) -> None:
+                 targets: dict[str, str] | None = None, log: Callable[[str], None] = print,
+                 record: str | os.PathLike | None = None,
+                 on_row: Callable[[list[Path]], None] | None = None) -> None:
         unknown = sorted(set(only or []) - set(CONFIGURATIONS))
         if unknown:
             raise ValueError(f"unknown configuration(s) {unknown}; known: {list(CONFIGURATIONS)}")
@@ -240,7 +247,9 @@ class AblationRunner:
         self.device = device
         self.given_targets = dict(targets or {})
         self.log = log
-        self.rows_path = self.out / "rows.jsonl"
+        self.record = Path(record) if record is not None else self.out
+        self.rows_path = self.record / "rows.jsonl"
+        self.on_row = on_row
 
     # -- the plan ------------------------------------------------------------------------------
 
@@ -271,7 +280,7 @@ class AblationRunner:
     def _check_budget(self) -> None:
         """Record the budget in OUT/budget.json; a folder holding runs at another budget is
         refused (its rows would count as finished), naming the fields that differ."""
-        path = self.out / "budget.json"
+        path = self.record / "budget.json"
         budget = json.loads(json.dumps(dataclasses.asdict(self.budget), default=str))
         if path.exists():
             stored = json.loads(path.read_text())
@@ -297,15 +306,20 @@ class AblationRunner:
         split, dt = self.budget.eval_splits[0], f"dt{self.budget.eval_dts[0]}"
         self.log(f"[ablations] {name} seed {seed}: done, {split} {dt} AEE {row['eval'][split][dt]['aee']}")
         self.write_outputs(report)
+        if self.on_row is not None:
+            written = [self.rows_path, self.record / "budget.json", self.record / "tables.md",
+                       *sorted((self.record / "curves").glob("*.png"))]
+            self.on_row(written + ([report] if report is not None else []))
 
     def write_outputs(self, report: Path | None = None) -> str:
         """Regenerate OUT/tables.md, the validation curves and, with ``report``, the tables in it."""
         rows = read_rows(self.rows_path)
         zero = self.zero_flow()
         text = render_tables(rows, zero, self.budget, self.seeds)
-        (self.out / "tables.md").write_text(text + "\n")
+        self.record.mkdir(parents=True, exist_ok=True)
+        (self.record / "tables.md").write_text(text + "\n")
         for name in {r["config"] for r in rows}:
-            plot_validation_curves([r for r in rows if r["config"] == name], self.out / "curves" / f"{name}.png")
+            plot_validation_curves([r for r in rows if r["config"] == name], self.record / "curves" / f"{name}.png")
         if report is not None:
             write_report(report, text)
         return text
@@ -509,7 +523,7 @@ def render_tables(rows: list[dict], zero: dict, budget: Budget, seeds: tuple[int
         + f" of {', '.join(f'`{s}`' for s in splits)} at their own sensor size. "
         f"Runs finished (configuration x seed): {len(rows)}" + (f", {dates[0]} to {dates[-1]}" if dates else "") + ". "
         "The paper column is MVSEC, another data set: compare orderings, not values. "
-        "Validation curves: `curves/<configuration>.png` in the run folder.",
+        "Validation curves: `curves/<configuration>.png` in the record folder (`docs/ablations` by default).",
         "",
         *table(2, "network ablations (L_HMC)"),
         *table(3, "losses and baselines"),

@@ -12,8 +12,10 @@ agents/ablations.py; this is the command line.
   nohup python scripts/ablations.py > runs/ablations.log 2>&1 &      # in the background
   python scripts/ablations.py --tables-only         # regenerate the tables from the rows so far
 
-Writes OUT/rows.jsonl (a row per finished configuration and seed, at once), OUT/tables.md,
-OUT/curves/<configuration>.png (validation AEE against step) and the tables into --report.
+Writes RECORD/rows.jsonl (a row per finished configuration and seed, at once), RECORD/tables.md,
+RECORD/curves/<configuration>.png (validation AEE against step) and the tables into --report, and
+commits them with git after every row (--no-commit to skip): RECORD (docs/ablations) is in the
+repository, so finished rows survive a new machine; checkpoints and evaluations stay in --out.
 Resumable: rerun the same command; finished configurations are skipped, a killed one continues
 from its checkpoint (SIGTERM / Ctrl-C stop a stage cleanly).
 """
@@ -22,10 +24,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
 import torch  # noqa: E402
 
@@ -36,7 +40,10 @@ from agents.commands import train as train_script  # noqa: E402
 def build_parser() -> argparse.ArgumentParser:
     d = Budget()
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", default="runs/ablations", help="run folder (rows, tables, curves, checkpoints)")
+    p.add_argument("--out", default="runs/ablations", help="run folder (targets, checkpoints, evaluations)")
+    p.add_argument("--record", default="docs/ablations",
+                   help="folder of the rows, budget, tables and curves, committed after every row")
+    p.add_argument("--no-commit", action="store_true", help="do not git-commit the record after each row")
     p.add_argument("--report", default="docs/results.md", help="file whose ablation markers get the tables ('' for none)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
                    help="the full model's seeds; the first is every configuration's, the second the adaptive one's")
@@ -59,8 +66,18 @@ def main(argv=None) -> int:
     budget = dataclasses.replace(Budget(), teacher_steps=args.teacher_steps, finetune_steps=args.finetune_steps,
                                  eval_windows=args.eval_windows)
     targets = {loss: path for loss, path in (("hmc", args.targets_hmc), ("at", args.targets_at)) if path}
+
+    def commit(files: list[Path]) -> None:
+        if args.no_commit:
+            return
+        paths = [str(f) for f in files if f.exists()]
+        subprocess.run(["git", "add", *paths], cwd=ROOT, check=True)
+        rows = len(Path(args.record, "rows.jsonl").read_text().splitlines())
+        subprocess.run(["git", "commit", "-q", "-m", f"Ablations: {rows} finished runs (rows, tables, curves)",
+                        "--", *paths], cwd=ROOT, check=False)
+
     runner = AblationRunner(args.out, budget, train_script.main, seeds=tuple(args.seeds), only=args.only,
-                            device=args.device, targets=targets)
+                            device=args.device, targets=targets, record=args.record, on_row=commit)
     report = Path(args.report) if args.report else None
     if args.tables_only:
         print(runner.write_outputs(report))

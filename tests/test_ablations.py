@@ -212,6 +212,27 @@ def test_the_runner_resumes_a_killed_configuration_and_skips_finished_ones(tmp_p
         mixed.targets("at")
 
 
+def test_the_record_outlives_the_run_folder(tmp_path):
+    """Rows, budget, tables and curves go to the record folder (the repository's docs/ablations),
+    handed to on_row after each row; a new machine (run folder gone) trains nothing already recorded."""
+    record, committed = tmp_path / "record", []
+    runner = AblationRunner(tmp_path / "run1", TINY, train_script.main, seeds=(0,), only=["mgr-hmc"],
+                            log=lambda _: None, record=record, on_row=committed.append)
+    runner.run()
+    assert [(r["config"], r["seed"]) for r in read_rows(record / "rows.jsonl")] == [("mgr-hmc", 0)]
+    assert not (tmp_path / "run1" / "rows.jsonl").exists()
+    assert len(committed) == 1 and {f.name for f in committed[0]} == {"rows.jsonl", "budget.json", "tables.md",
+                                                                        "mgr-hmc.png"}
+    assert all(f.exists() for f in committed[0])
+
+    def train(argv):
+        pytest.fail(f"trained again: {argv}")
+
+    again = AblationRunner(tmp_path / "run2", TINY, train, seeds=(0,), only=["mgr-hmc"], log=lambda _: None,
+                           record=record, on_row=committed.append)
+    assert len(again.run()) == 1 and len(committed) == 1
+
+
 def test_one_runner_per_folder(tmp_path):
     import fcntl
 
