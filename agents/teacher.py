@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Sequence
@@ -102,10 +103,11 @@ def compute_teacher_targets(
 ) -> Path:
     """Solve every ``frames`` window of ``data`` (each size in ``window_sizes``) and write ``out``.
 
-    Resumable: recordings are written one at a time to ``out + ".partial"``; a rerun with the
-    same data and settings skips those already there; ``out`` appears (renamed) only when every
-    recording is done. ``progress``: optional callable(done_windows, recording_name), e.g. a
-    tqdm bar's update. Returns ``out``.
+    Resumable: each finished recording is written at once (atomically) into the folder
+    ``out + ".parts"``; a rerun with the same data and settings skips those already there (a kill
+    at any moment loses at most the recording being solved); ``out`` appears, written whole then
+    renamed, only when every recording is done. ``progress``: optional callable(done_windows,
+    recording_name), e.g. a tqdm bar's update. Returns ``out``.
     """
     settings = settings or TeacherSettings()
     out = Path(out)
@@ -118,43 +120,65 @@ def compute_teacher_targets(
               "window_sizes": sizes, "sensor_size": list(first_env.sensor_size), **asdict(settings)}
     first_env.close()
     config = json.loads(json.dumps(config))  # tuples as lists, as they read back
-    partial = out.with_name(out.name + ".partial")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with h5py.File(partial, "a") as f:
-        if "config" in f.attrs and json.loads(f.attrs["config"]) != config:
-            raise TeacherCacheError(f"{partial}: an unfinished run with other settings is there; delete it or pass "
-                                    f"the same settings ({json.loads(f.attrs['config'])})")
-        f.attrs["config"] = json.dumps(config)
-        f.attrs["complete"] = False
-        for index, name in enumerate(names):
-            if name in f:  # done by an earlier, interrupted run
+    parts = out.with_name(out.name + ".parts")
+    parts.mkdir(parents=True, exist_ok=True)
+    config_path = parts / "config.json"
+    if config_path.exists() and json.loads(config_path.read_text()) != config:
+        raise TeacherCacheError(f"{parts}: an unfinished run with other settings is there; delete it or pass "
+                                f"the same settings ({json.loads(config_path.read_text())})")
+    _replace_with(config_path, lambda tmp: tmp.write_text(json.dumps(config)))
+    for index, name in enumerate(names):
+        part = parts / f"{index:05d}.npz"
+        if part.exists():  # done by an earlier, interrupted run
+            if progress is not None:
+                with np.load(part) as done:
+                    progress(len(done["bounds"]), name)
+            continue
+        # one env per recording and window length: each recording in its own frame
+        envs = {k: EventFlowEnv(data, window="frames", window_size=k, compute_reward=False, sequences=[index])
+                for k in sizes}
+        H, W = envs[sizes[0]].sensor_size
+        bounds, grids = [], []
+        for k in sizes:  # one solve per window length: each has its own step size
+            windows = _windows_of(envs[k], 0)
+            for start in range(0, len(windows), batch_size):
+                chunk = windows[start : start + batch_size]
+                batch = EventBatch.from_windows(chunk, device=device)
+                grids.extend(_solve_coarse(batch, H, W, settings, lr=settings.lr_per_frame * k))
                 if progress is not None:
-                    progress(len(f[name]["bounds"]), name)
-                continue
-            # one env per recording and window length: each recording in its own frame
-            envs = {k: EventFlowEnv(data, window="frames", window_size=k, compute_reward=False, sequences=[index])
-                    for k in sizes}
-            H, W = envs[sizes[0]].sensor_size
-            bounds, grids = [], []
-            for k in sizes:  # one solve per window length: each has its own step size
-                windows = _windows_of(envs[k], 0)
-                for start in range(0, len(windows), batch_size):
-                    chunk = windows[start : start + batch_size]
-                    batch = EventBatch.from_windows(chunk, device=device)
-                    grids.extend(_solve_coarse(batch, H, W, settings, lr=settings.lr_per_frame * k))
-                    if progress is not None:
-                        progress(len(chunk), name)
-                bounds += [[w["t_start"], w["t_end"]] for w in windows]
-            for env in envs.values():
-                env.close()
-            group = f.create_group(name)
-            group.attrs["sensor_size"] = (H, W)
-            group["bounds"] = np.array(bounds, np.int64).reshape(-1, 2)
-            group["grid"] = torch.stack(grids).numpy().astype(np.float32)
-            f.flush()
-        f.attrs["complete"] = True
-    os.replace(partial, out)
+                    progress(len(chunk), name)
+            bounds += [[w["t_start"], w["t_end"]] for w in windows]
+        for env in envs.values():
+            env.close()
+        arrays = {"name": np.array(name), "sensor_size": np.array((H, W), np.int64),
+                  "bounds": np.array(bounds, np.int64).reshape(-1, 2),
+                  "grid": torch.stack(grids).numpy().astype(np.float32)}
+        _replace_with(part, lambda tmp, arrays=arrays: np.savez(tmp, **arrays))
+
+    def assemble(tmp: Path) -> None:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["config"] = json.dumps(config)
+            for index in range(len(names)):
+                with np.load(parts / f"{index:05d}.npz") as part:
+                    group = f.create_group(str(part["name"]))
+                    group.attrs["sensor_size"] = tuple(int(v) for v in part["sensor_size"])
+                    group["bounds"] = part["bounds"]
+                    group["grid"] = part["grid"]
+            f.attrs["complete"] = True
+
+    _replace_with(out, assemble)
+    shutil.rmtree(parts)
     return out
+
+
+def _replace_with(path: Path, write) -> None:
+    """``write(tmp)`` a sibling temporary file, then rename it to ``path`` (never half-written)."""
+    tmp = path.with_name(path.name + f".tmp{os.getpid()}" + path.suffix)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _solve_coarse(batch: EventBatch, height: int, width: int, s: TeacherSettings, *, lr: float) -> torch.Tensor:

@@ -74,7 +74,7 @@ def test_computed_targets_are_the_solvers_flow_and_an_interrupted_run_resumes(tm
     recs = [write_translating_recording(tmp_path / f"dots{i}.h5", np.random.default_rng(i), sensor_size=(24, 32))
             for i in range(2)]
     out = tmp_path / "targets.h5"
-    partial = out.with_name(out.name + ".partial")
+    parts = out.with_name(out.name + ".parts")
 
     def interrupt(n, name):  # stop inside the second recording: the first is on disk
         if name == "dots1":
@@ -83,15 +83,17 @@ def test_computed_targets_are_the_solvers_flow_and_an_interrupted_run_resumes(tm
     with pytest.raises(KeyboardInterrupt):
         compute_teacher_targets(recs, out, window_sizes=(1, 2), settings=TINY, batch_size=4, progress=interrupt)
     assert not out.exists()
-    with h5py.File(partial, "r") as f:
-        assert list(f) == ["dots0"]
-        first = f["dots0/grid"][()]
+    assert sorted(f.name for f in parts.iterdir()) == ["00000.npz", "config.json"]  # no temporary left
+    with np.load(parts / "00000.npz") as part:
+        assert str(part["name"]) == "dots0"
+        first = part["grid"]
+    (parts / "00001.npz.tmp999.npz").write_bytes(b"cut by a kill")  # a killed write: ignored, not read
     with pytest.raises(TeacherCacheError, match="unfinished run with other settings"):
         compute_teacher_targets(recs, out, window_sizes=(1,), settings=TINY)
     done = []
     compute_teacher_targets(recs, out, window_sizes=(1, 2), settings=TINY, batch_size=4,
                             progress=lambda n, name: done.append((name, n)))
-    assert out.exists() and not partial.exists()
+    assert out.exists() and not parts.exists()
     assert done[0] == ("dots0", 15)  # skipped, counted once
     targets = TeacherTargets(out)
     assert len(targets) == count_windows(recs, (1, 2)) == sum(n for _, n in done) == 2 * (10 + 5)
