@@ -7,7 +7,7 @@ on full frames) for ``scripts/train.py --loss teacher --teacher-cache FILE``.
     python scripts/train.py --loss teacher --teacher-cache runs/teacher-targets/train.h5 --window-size 1 2 3 4 ...
 
 Every window of every recording at each ``--window-size`` (frames) is solved; the file is
-written recording by recording to OUT.partial (an interrupted run resumes there) and renamed to
+written recording by recording into OUT.parts/ (an interrupted run resumes there) and assembled into
 OUT when complete. On the project's 2-core CPU synthetic-train (32 recordings, sizes 1-4,
 ~3,900 windows) takes about 15-25 minutes. See agents/teacher.py for the file layout.
 """
