@@ -271,6 +271,8 @@ def _make_refiner(parallel: bool, n: int):
             for i in range(t.shape[0]):
                 dest[i] = g[i] * (one - t[i] * t[i])
 
+    # update_forward and update_backward open alike (the same per-plane views of q and hidden):
+    # each kernel slices for itself, so that it reads alone next to its equation.
     @numba.njit(parallel=parallel, **_OPTIONS)
     def update_forward(q, hidden, out):
         one = out.dtype.type(1.0)

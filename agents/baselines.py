@@ -74,6 +74,15 @@ def _recurrent_encode(self, x: Tensor, state: State, new_state: State) -> list[T
     return skips
 
 
+def _feedforward_encode(self, x: Tensor, state: State, new_state: State) -> list[Tensor]:
+    """Four stateless encoder levels ``F_l = conv_down_l(F_{l-1})`` (``self.downs``)."""
+    skips = []
+    for down in self.downs:
+        x = down(x)
+        skips.append(x)
+    return skips
+
+
 # -- the published baselines ------------------------------------------------------------------
 
 
@@ -100,12 +109,7 @@ class EVFlowNet(_Baseline):
         for head in self.decoder.heads:
             zhu_init_(head)
 
-    def encode(self, x: Tensor, state: State, new_state: State) -> list[Tensor]:
-        skips = []
-        for down in self.downs:
-            x = down(x)
-            skips.append(x)
-        return skips
+    encode = _feedforward_encode
 
 
 class ConvGRUEVFlowNet(_Baseline):
@@ -236,12 +240,7 @@ class UNetFeedforward(_Baseline):
         super().__init__(in_channels, base_width, width, flow_scaling)
         self.downs = nn.ModuleList(ConvDown(i, o) for i, o in zip(*_channels(self.in_channels, self.base_width)))
 
-    def encode(self, x: Tensor, state: State, new_state: State) -> list[Tensor]:
-        skips = []
-        for down in self.downs:
-            x = down(x)
-            skips.append(x)
-        return skips
+    encode = _feedforward_encode
 
 
 class UNetConvGRU(_Baseline):

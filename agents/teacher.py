@@ -43,7 +43,7 @@ from envs.windows import window_bounds
 from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
 
 __all__ = ["TeacherSettings", "TeacherTargets", "compute_teacher_targets", "count_windows", "TeacherCacheError",
-           "score_targets"]
+           "score_targets", "derive_targets"]
 
 FORMAT = "evflow-teacher-targets"
 
@@ -250,6 +250,68 @@ class TeacherTargets:
             self.target(info["sequence"][i], info["t_start"][i], info["t_end"][i], info["crop"][i], info["flips"][i])
             for i in range(num_envs)
         ])
+
+
+def derive_targets(source: str | os.PathLike, out: str | os.PathLike, *, from_size: int,
+                   window_sizes: Sequence[int] = (1, 2, 3, 4), smooth: int = 0) -> Path:
+    """Targets of every ``window_sizes`` window derived from the ``from_size``-frame ones of
+    ``source`` (another target file) instead of solved: a k-frame window's flow is the velocity
+    of the long windows it overlaps (their flow over their duration, weighted by the overlap)
+    times its own duration (the nearest long window's velocity for the few short windows after the
+    last long one). Long windows are where the loss prefers the truth most often (their
+    events travel further); short ones inherit that, at the price of assuming constant velocity
+    within a long window.
+
+    smooth: also average each long window's velocity with its ``smooth`` neighbours on each side
+    (a triangular weight, 1 at the window, falling to 0 after smooth + 1), a prior that motion
+    changes slowly. Writes ``out`` (same format, ``config`` noting the derivation); returns it.
+    """
+    src = TeacherTargets(source)
+    if from_size not in src.config["window_sizes"]:
+        raise TeacherCacheError(f"teacher targets {src.path}: no {from_size}-frame windows to derive from "
+                                f"(it holds {src.config['window_sizes']})")
+    if smooth < 0:
+        raise ValueError(f"smooth must be >= 0 windows, got {smooth}")
+    sizes = sorted({int(k) for k in window_sizes})
+    config = {**src.config, "window_sizes": sizes, "derived": {"from": str(src.path.name), "from_size": from_size,
+                                                                 "smooth": smooth}}
+    sources = resolve_data(config["data"])
+
+    def write(tmp: Path) -> None:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["config"] = json.dumps(config)
+            for data_source in sources:
+                name, reader = data_source.name, data_source.reader()
+                long = window_bounds(reader, "frames", from_size)[:, :2]
+                grids = torch.stack([src._index[(name, int(a), int(b))] for a, b in long])
+                velocity = grids / torch.from_numpy((long[:, 1] - long[:, 0]).astype(np.float32)).view(-1, 1, 1, 1)
+                if smooth:
+                    weights = torch.tensor([smooth + 1 - abs(d) for d in range(-smooth, smooth + 1)], dtype=torch.float32)
+                    padded = torch.cat([velocity[:1].expand(smooth, *velocity.shape[1:]), velocity,
+                                        velocity[-1:].expand(smooth, *velocity.shape[1:])])
+                    velocity = sum(w * padded[i : i + len(velocity)] for i, w in enumerate(weights)) / weights.sum()
+                bounds, out_grids = [], []
+                for k in sizes:
+                    for t0, t1 in window_bounds(reader, "frames", k)[:, :2].tolist():
+                        overlap = np.clip(np.minimum(long[:, 1], t1) - np.maximum(long[:, 0], t0), 0, None)
+                        if overlap.sum() == 0:  # past the last long window (the frames do not divide): the nearest
+                            overlap = (np.arange(len(long)) == np.argmin(np.abs(long.mean(1) - (t0 + t1) / 2))) * 1.0
+                        w = torch.from_numpy((overlap / overlap.sum()).astype(np.float32)).view(-1, 1, 1, 1)
+                        out_grids.append((w * velocity).sum(0) * (t1 - t0))
+                        bounds.append([t0, t1])
+                group = f.create_group(name)
+                group.attrs["sensor_size"] = src._sizes.get(name, src.sensor_size)
+                group["bounds"] = np.array(bounds, np.int64).reshape(-1, 2)
+                group["grid"] = torch.stack(out_grids).numpy().astype(np.float32)
+            f.attrs["complete"] = True
+
+    out = Path(out)
+    try:
+        _replace_with(out, write)
+    finally:
+        for data_source in sources:
+            data_source.close()
+    return out
 
 
 def score_targets(path: str | os.PathLike, data=None) -> dict[str, dict[str, float]]:

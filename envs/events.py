@@ -152,6 +152,7 @@ class Events:
     def __len__(self) -> int:
         return len(self.t)
 
+    # sensor_size's parts by name (readers name their time range alike: t_start, t_end)
     @property
     def height(self) -> int:
         return self.sensor_size[0]

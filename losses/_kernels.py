@@ -286,6 +286,8 @@ def _charbonnier_direction_grad(img, has, scale, out, g_b, eps2, zero, slope, dr
 def _make_smoothness(parallel: bool):
     loop = numba.prange if parallel else range
 
+    # forward and backward open alike (the same constants and per-task views): each kernel
+    # unpacks its own, so that it reads alone.
     @numba.njit(parallel=parallel, **_VECTOR)
     def forward(f, event_mask, consts, total):
         """f: (B, 2, H, W) flow in pixels; event_mask: (B, H, W) bool; consts = [eps,

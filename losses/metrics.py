@@ -79,6 +79,7 @@ def flow_error_torch(
     return {"aee": aee, "outlier_pct": pct, "n_pixels": n}
 
 
+# The numpy face of flow_error_torch: the same arguments for one map instead of a batch.
 def flow_error(
     flow: np.ndarray,
     flow_gt: np.ndarray,

@@ -19,6 +19,7 @@ detected from the file:
 
 from __future__ import annotations
 
+import importlib
 import os
 from pathlib import Path
 
@@ -119,6 +120,18 @@ def detect_format(path: str | os.PathLike) -> tuple[Path, str]:
     raise FormatError(f"{path}: cannot tell the format; pass format= one of {FORMATS}")
 
 
+#: format -> (module, reader class) of every format but the project's own
+_READERS = {
+    "mvsec": ("envs.readers.mvsec", "MVSECReader"),
+    "dsec": ("envs.readers.dsec", "DSECReader"),
+    "hagenaars": ("envs.readers.hagenaars", "HagenaarsReader"),
+    "ecd-text": ("envs.readers.text", "TextReader"),
+    "aedat4": ("envs.readers.aedat", "AedatReader"),
+    "prophesee-raw": ("envs.readers.prophesee", "PropheseeRawReader"),
+    "prophesee-dat": ("envs.readers.prophesee", "PropheseeDatReader"),
+}
+
+
 def open_recording(path: str | os.PathLike, format: str | None = None, **options) -> EventReader:
     """Open a recording as an :class:`EventReader`; ``format`` one of FORMATS or None (detect)."""
     if format is None:
@@ -128,32 +141,7 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
         path = resolved
     if format == "evflow-h5":
         return H5Reader(path, **options)
-    if format == "mvsec":
-        from envs.readers.mvsec import MVSECReader
-
-        return MVSECReader(path, **options)
-    if format == "dsec":
-        from envs.readers.dsec import DSECReader
-
-        return DSECReader(path, **options)
-    if format == "hagenaars":
-        from envs.readers.hagenaars import HagenaarsReader
-
-        return HagenaarsReader(path, **options)
-    if format == "ecd-text":
-        from envs.readers.text import TextReader
-
-        return TextReader(path, **options)
-    if format == "aedat4":
-        from envs.readers.aedat import AedatReader
-
-        return AedatReader(path, **options)
-    if format == "prophesee-raw":
-        from envs.readers.prophesee import PropheseeRawReader
-
-        return PropheseeRawReader(path, **options)
-    if format == "prophesee-dat":
-        from envs.readers.prophesee import PropheseeDatReader
-
-        return PropheseeDatReader(path, **options)
-    raise ValueError(f"unknown format {format!r}; expected one of {FORMATS}")
+    if format not in _READERS:
+        raise ValueError(f"unknown format {format!r}; expected one of {FORMATS}")
+    module, name = _READERS[format]  # imported on use: each reader's dependencies load only when needed
+    return getattr(importlib.import_module(module), name)(path, **options)

@@ -140,6 +140,7 @@ class DSECReader(EventReader):
 
     layout = "dsec"
 
+    # Like every reader: the path, then keyword-only options (open_recording passes them on).
     def __init__(
         self,
         path: str | os.PathLike,

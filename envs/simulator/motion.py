@@ -44,6 +44,8 @@ class AffineMotion:
     angular velocity in rad/s, frequencies in Hz, ``zoom_amp`` in log-scale units.
     """
 
+    # The defaults describe a still layer: every term off (scale 1). Alike in shape only to the
+    # other simulator settings (FactorRanges, SensorConfig): different quantities.
     anchor: Pair = (0.0, 0.0)
     velocity: Pair = (0.0, 0.0)
     trans_amp: Pair = (0.0, 0.0)

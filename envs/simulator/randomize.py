@@ -68,6 +68,7 @@ class FactorRanges:
         probability 0.7, else no low-pass).
     """
 
+    # One range or probability per factor of the draw (the docstring says which are log-uniform).
     sizes: tuple[tuple[int, int], ...] = ((64, 64), (96, 128), (128, 128), (120, 160), (180, 240), (128, 256), (260, 346))
     families: tuple[str, ...] = ("dead_leaves", "noise", "edges", "lines", "checker", "glyphs", "gradient", "flat")
     contrast: Range = (0.1, 4.5)

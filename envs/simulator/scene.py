@@ -62,6 +62,7 @@ class SensorConfig:
         silence the pixel like any event); False keeps the first model, where they do not.
     """
 
+    # The defaults: an ideal sensor but for the threshold spread and the refractory period.
     contrast_threshold: float = 0.25
     threshold_sigma: float = 0.03
     min_threshold: float = 0.05
