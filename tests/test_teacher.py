@@ -18,6 +18,7 @@ from agents.teacher import (
     TeacherTargets,
     compute_teacher_targets,
     count_windows,
+    derive_targets,
 )
 from envs.env import EventFlowEnv
 from losses import EventBatch, contrast_maximisation_flow
@@ -152,3 +153,36 @@ def test_upsampling_a_same_size_grid_is_the_identity():
     """The ground-truth files above rely on it."""
     grid = torch.randn(1, 2, 7, 9)
     torch.testing.assert_close(F.interpolate(grid, size=(7, 9), mode="bilinear", align_corners=False), grid)
+
+
+def _windows(path, name):
+    """{(t_start, t_end): grid} of one recording in a target file, in time order."""
+    with h5py.File(path, "r") as f:
+        return {tuple(b): g for b, g in zip(f[name]["bounds"][()].tolist(), f[name]["grid"][()])}
+
+
+def test_derived_targets_are_the_long_windows_velocity_times_each_windows_duration(tmp_path):
+    rec = write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(3), sensor_size=(24, 32))
+    solved = compute_teacher_targets([rec], tmp_path / "solved.h5", window_sizes=(1, 2), settings=TINY)
+    long = _windows(solved, "dots")
+    two = sorted(b for b in long if any(b[0] < c[0] < b[1] for c in long))  # the 2-frame windows contain a start
+    assert len(two) >= 4 and min(np.abs(long[w]).max() for w in two) > 0.01  # moving: not zero against zero
+
+    derived = _windows(derive_targets(solved, tmp_path / "d.h5", from_size=2, window_sizes=(1, 2)), "dots")
+    assert set(derived) == set(long)
+    for a, b in two:  # the long windows themselves: unchanged
+        np.testing.assert_allclose(derived[(a, b)], long[(a, b)], rtol=1e-5, atol=1e-6)
+        for (c, d) in derived:  # a 1-frame window inside: the same velocity, its own duration
+            if a <= c and d <= b and (c, d) != (a, b):
+                np.testing.assert_allclose(derived[(c, d)], long[(a, b)] * (d - c) / (b - a), rtol=1e-5, atol=1e-6)
+
+    smoothed = _windows(derive_targets(solved, tmp_path / "s.h5", from_size=2, smooth=1, window_sizes=(2,)), "dots")
+    velocity = [long[w] / (w[1] - w[0]) for w in two]
+    for i in range(1, len(two) - 1):  # weights 1, 2, 1 over the neighbours
+        expected = (velocity[i - 1] + 2 * velocity[i] + velocity[i + 1]) / 4 * (two[i][1] - two[i][0])
+        np.testing.assert_allclose(smoothed[two[i]], expected, rtol=1e-5, atol=1e-6)
+    assert TeacherTargets(tmp_path / "s.h5").config["derived"]["smooth"] == 1
+
+    with pytest.raises(TeacherCacheError, match="no 4-frame windows"):
+        derive_targets(solved, tmp_path / "x.h5", from_size=4)
+    assert not (tmp_path / "x.h5").exists()
