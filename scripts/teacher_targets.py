@@ -4,6 +4,8 @@ on full frames) for ``scripts/train.py --loss teacher --teacher-cache FILE``.
     python scripts/teacher_targets.py --data synthetic-train --out runs/teacher-targets/train.h5
     python scripts/teacher_targets.py --data synthetic-dr-train:32 --out runs/teacher-targets/dr32.h5 \
         --sensor-scales 4 2 1 --steps 40 30 30 --lr-per-frame 0.3 --lr-decay 10     # coarse sensor grid
+    python scripts/teacher_targets.py --derive-from runs/teacher-targets/dr32.h5 --from-size 2 --smooth 1 \
+        --out runs/teacher-targets/dr32-from2-smooth1.h5      # 1-4 frame targets from the 2-frame ones
     python scripts/train.py --loss teacher --teacher-cache runs/teacher-targets/train.h5 --window-size 1 2 3 4 ...
 
 Every window of every recording at each ``--window-size`` (frames) is solved; the file is
@@ -35,6 +37,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, help="output h5 file (with --score: the file to score)")
     p.add_argument("--score", action="store_true",
                    help="do not solve: score the targets in --out against the ground truth (AEE vs zero flow's)")
+    p.add_argument("--derive-from", type=Path, default=None, metavar="TARGETS",
+                   help="do not solve: derive --out's windows from the --from-size-frame windows of this target file "
+                        "(their velocity, optionally smoothed, times each window's duration)")
+    p.add_argument("--from-size", type=int, default=2, help="with --derive-from: the window length solved (frames)")
+    p.add_argument("--smooth", type=int, default=0,
+                   help="with --derive-from: average each long window's velocity with this many neighbours a side")
     p.add_argument("--window-size", type=int, nargs="+", default=[1, 2, 3, 4], help="window lengths in frames (default 1 2 3 4)")
     p.add_argument("--grids", type=int, nargs="+", default=list(d.grids),
                    help="coarse-to-fine grid cells along the longer side (default 4 8 16)")
@@ -68,6 +76,13 @@ def main(argv=None) -> int:
     if args.out.exists():
         print(f"{args.out} exists; delete it to recompute", file=sys.stderr)
         return 1
+    if args.derive_from is not None:
+        from agents.teacher import derive_targets
+
+        derive_targets(args.derive_from, args.out, from_size=args.from_size, smooth=args.smooth,
+                       window_sizes=args.window_size)
+        print(f"{args.out}: derived from the {args.from_size}-frame windows of {args.derive_from}")
+        return 0
     data = args.data[0] if len(args.data) == 1 else args.data
     steps = args.steps[0] if len(args.steps) == 1 else tuple(args.steps)
     settings = TeacherSettings(grids=tuple(args.grids), steps=steps, lr_per_frame=args.lr_per_frame,
