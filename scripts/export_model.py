@@ -1,80 +1,11 @@
 #!/usr/bin/env python
-"""Ship a trained model: turn a training checkpoint into agents/weights/NAME.pt (weights only)
-and NAME.json (provenance), loadable with RecurrentPolicy.from_pretrained(NAME) and
-scripts/evaluate.py --pretrained NAME.
-
-  python scripts/export_model.py runs/ship/train/checkpoint.pt --name ev-mgrflownet-cpu-synthetic \\
-      --command "python scripts/train.py ..." --eval runs/ship/eval/results.json
-
-The provenance records the command, the training data and budget (from the checkpoint's config
-and the run's metrics.jsonl, by default the one beside it, counted up to the checkpoint's step),
-the date, and the evaluation metrics when --eval is given.
-
-  python scripts/export_model.py --upgrade runs/old/checkpoint.pt [MORE.pt ...]
-
-converts, in place, checkpoints written before the safe format (pickled numpy objects, refused by
-the safe loader) so that they load with weights_only=True. This unpickles them once: only for
-files you trust.
-"""
-
-from __future__ import annotations
-
-import argparse
-import datetime
-import json
+"""Ship a trained model: turn a training checkpoint into agents/weights/NAME.pt (weights only) (agents/commands/export_model.py)."""
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from agents.checkpoint import load_checkpoint, upgrade_checkpoint  # noqa: E402
-from agents.pretrained import export_pretrained  # noqa: E402
-
-
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("checkpoint", nargs="+", help="the training checkpoint (several with --upgrade)")
-    p.add_argument("--name", default=None, help="the shipped model's name (required unless --upgrade)")
-    p.add_argument("--upgrade", action="store_true",
-                   help="convert old-format checkpoints in place to the safe format, then stop (trusted files only)")
-    p.add_argument("--command", default="", help="the command(s) that trained it")
-    p.add_argument("--eval", default=None, help="results.json of scripts/evaluate.py on the model")
-    p.add_argument("--note", default="")
-    p.add_argument("--dir", default=None, help="default: agents/weights/")
-    p.add_argument("--metrics", default=None, help="the run's metrics.jsonl (default: beside the checkpoint)")
-    args = p.parse_args(argv)
-    if args.upgrade:
-        for path in args.checkpoint:
-            print(f"upgraded {upgrade_checkpoint(path)}")
-        return 0
-    if args.name is None or len(args.checkpoint) != 1:
-        p.error("exporting takes one checkpoint and --name NAME")
-    ckpt = Path(args.checkpoint[0])
-    step = int(load_checkpoint(ckpt)["step"])
-    metrics = Path(args.metrics) if args.metrics else ckpt.parent / "metrics.jsonl"
-    budget = {}
-    if metrics.exists():
-        rows = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
-        logged = [r for r in rows if "loss" in r and r["step"] <= step]
-        seconds, last = 0.0, 0.0
-        for r in logged:  # elapsed_s restarts at each --resume: add up the segments
-            e = r.get("elapsed_s", 0.0)
-            if e < last:
-                seconds += last
-            last = e
-        seconds += last
-        # one row per step up to the checkpoint's (a resume re-logs the steps after the last save)
-        steps = {r["step"]: r for r in logged}
-        budget = {"optimizer_steps": step,
-                  "training_windows": int(sum(r.get("windows", 0) for r in steps.values())),
-                  "wall_minutes": round(seconds / 60, 1)}
-    provenance = {"command": args.command, "date": datetime.date.today().isoformat(), "budget": budget, "note": args.note}
-    if args.eval:
-        provenance["evaluation"] = json.loads(Path(args.eval).read_text())
-    weights, meta = export_pretrained(ckpt, args.name, provenance, args.dir)
-    print(f"wrote {weights} ({weights.stat().st_size / 1e6:.1f} MB) and {meta}")
-    return 0
-
+from agents.commands.export_model import *  # noqa: E402, F401, F403 - `import export_model` from scripts/ keeps working
+from agents.commands.export_model import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main())

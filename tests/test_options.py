@@ -69,7 +69,8 @@ def test_every_console_command_prints_its_help(command, capsys):
 
 
 def test_the_scripts_still_run_as_files():
-    for script in ("train", "evaluate", "predict", "convert", "generate_synthetic", "benchmark"):
+    for script in ("train", "evaluate", "predict", "convert", "generate_synthetic", "benchmark", "teacher_targets", "ship",
+                   "export_model", "ablations", "main", "param_counts"):
         out = subprocess.run([sys.executable, str(ROOT / "scripts" / f"{script}.py"), "--help"], capture_output=True,
                              text=True, check=True).stdout
         assert out.startswith("usage:"), script

@@ -1,0 +1,93 @@
+"""The paper's ablations (Tables 2-4 layout) with the project's recipe, at one budget for all.
+
+Each configuration (EV-MGRFlowNet and its ablations without ST-ConvGRU / prior flows / both;
+EV-MGRFlowNet, ConvGRU-EV-FlowNet and XLIF-EV-FlowNet with L_HMC and with L_AT; EV-FlowNet with
+L_HMC) trains a teacher stage on cached contrast-maximisation targets of its loss, then a
+fine-tuning stage on the loss itself; is evaluated on synthetic-test and synthetic-stress at
+dt = 1 and 4; and its parameters, arithmetic and time per window are measured. Everything is in
+agents/ablations.py; this is the command line.
+
+  python scripts/ablations.py                       # the documented budget (docs/results.md)
+  nohup python scripts/ablations.py > runs/ablations.log 2>&1 &      # in the background
+  python scripts/ablations.py --tables-only         # regenerate the tables from the rows so far
+
+Writes RECORD/rows.jsonl (a row per finished configuration and seed, at once), RECORD/tables.md,
+RECORD/curves/<configuration>.png (validation AEE against step) and the tables into --report, and
+commits them with git after every row (--no-commit to skip): RECORD (docs/ablations) is in the
+repository, so finished rows survive a new machine; checkpoints and evaluations stay in --out.
+Resumable: rerun the same command; finished configurations are skipped, a killed one continues
+from its checkpoint (SIGTERM / Ctrl-C stop a stage cleanly).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]  # the checkout
+
+import torch
+
+from agents.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped
+from agents.commands import train as train_script
+
+
+def build_parser() -> argparse.ArgumentParser:
+    d = Budget()
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default="runs/ablations", help="run folder (targets, checkpoints, evaluations)")
+    p.add_argument("--record", default="docs/ablations",
+                   help="folder of the rows, budget, tables and curves, committed after every row")
+    p.add_argument("--no-commit", action="store_true", help="do not git-commit the record after each row")
+    p.add_argument("--report", default="docs/results.md", help="file whose ablation markers get the tables ('' for none)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
+                   help="the full model's seeds; the first is every configuration's, the second the adaptive one's")
+    p.add_argument("--only", nargs="+", default=None, choices=list(CONFIGURATIONS), help="run only these configurations")
+    p.add_argument("--teacher-steps", type=int, default=d.teacher_steps, help="teacher stage steps (documented budget)")
+    p.add_argument("--finetune-steps", type=int, default=d.finetune_steps, help="fine-tuning stage steps (0: none)")
+    p.add_argument("--eval-windows", type=int, default=None, help="windows per evaluated sequence (default: all)")
+    p.add_argument("--targets-hmc", default=None, help="existing L_HMC teacher targets of the training split to reuse")
+    p.add_argument("--targets-at", default=None, help="existing L_AT teacher targets (lambda_1 = 0) to reuse")
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    p.add_argument("--tables-only", action="store_true", help="only regenerate the tables and curves from the rows")
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    budget = dataclasses.replace(Budget(), teacher_steps=args.teacher_steps, finetune_steps=args.finetune_steps,
+                                 eval_windows=args.eval_windows)
+    targets = {loss: path for loss, path in (("hmc", args.targets_hmc), ("at", args.targets_at)) if path}
+
+    def commit(files: list[Path]) -> None:
+        if args.no_commit:
+            return
+        paths = [str(f) for f in files if f.exists()]
+        subprocess.run(["git", "add", *paths], cwd=ROOT, check=True)
+        rows = len(Path(args.record, "rows.jsonl").read_text().splitlines())
+        subprocess.run(["git", "commit", "-q", "-m", f"Ablations: {rows} finished runs (rows, tables, curves)",
+                        "--", *paths], cwd=ROOT, check=False)
+
+    runner = AblationRunner(args.out, budget, train_script.main, seeds=tuple(args.seeds), only=args.only,
+                            device=args.device, targets=targets, record=args.record, on_row=commit)
+    report = Path(args.report) if args.report else None
+    if args.tables_only:
+        print(runner.write_outputs(report))
+        return 0
+    try:
+        runner.run(report)
+    except RunnerStopped as stop:
+        print(f"[ablations] {stop}", file=sys.stderr)
+        return 3
+    print(runner.write_outputs(report))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
