@@ -132,3 +132,21 @@ def test_env_refuses_mixed_sizes_but_evaluation_takes_them(tmp_path, rng):
     with pytest.raises(ValueError, match=r"'a' 32x32.*'b' 40x32"):
         env = EventFlowEnv([str(a), str(b)])
         env.reset(options={"sequence": 1})
+
+
+def test_the_time_per_window_leaves_out_each_sequences_warm_up_window(tmp_path, rng):
+    import time
+
+    class SlowFirst:  # a policy whose first window of a sequence is slow (as kernel compilation is)
+        def reset(self):
+            self.first = True
+
+        def act_on_window(self, obs, window):
+            if self.first:
+                time.sleep(0.3)
+                self.first = False
+            return np.zeros((2, 32, 32), np.float32)
+
+    path = write_translating_recording(tmp_path / "dots.h5", rng, sensor_size=(32, 32))
+    (result,) = evaluate(SlowFirst(), str(path), progress=False, max_windows=4)
+    assert result.windows == 4 and result.counts["ms"] == 3 and result.mean("ms") < 150
