@@ -112,16 +112,29 @@ class RefinedPolicy:
     The solve optimises a coarse residual grid added to the network's flow (so the network's
     detail stays); ``steps = 0`` returns the network's flow unchanged. The refinement does not
     feed back into the network (its state carries its own prediction, as without refinement).
-    settings: the residual solve (default: one 16-cell level on sensor pixels, ``steps`` Adam
-    steps); given, its steps override ``steps``.
+    solver: "fine", one 16-cell level on sensor pixels of ``steps`` Adam steps (0.1 px per frame,
+    decaying 3x): a local correction; "cmax", the ``--cmax`` row's coarse-to-fine solve (4-8-16
+    cells on 4x-2x-1x coarser sensor grids, its step size) started from the network's flow,
+    ``steps`` shared 40/30/30 among the levels: it can move as far as the solve from zero, and
+    starts nearer the truth wherever the network is. settings: any other solve (its steps then
+    override ``steps``).
     """
 
-    def __init__(self, policy, *, steps: int = 30, settings: CMaxSettings | None = None) -> None:
+    SOLVERS = ("fine", "cmax")
+
+    def __init__(self, policy, *, steps: int = 30, solver: str = "fine", settings: CMaxSettings | None = None) -> None:
         self.policy = policy
         if int(steps) < 0:
             raise ValueError(f"refinement steps must be >= 0, got {steps}")
-        self.settings = settings or CMaxSettings(grids=(16,), sensor_scales=(1,), steps=(int(steps),),
-                                                 lr_per_frame=0.1, lr_decay=3.0)
+        if solver not in self.SOLVERS:
+            raise ValueError(f"refinement solver must be one of {self.SOLVERS}, got {solver!r}")
+        if settings is None and solver == "fine":
+            settings = CMaxSettings(grids=(16,), sensor_scales=(1,), steps=(int(steps),), lr_per_frame=0.1,
+                                    lr_decay=3.0)
+        elif settings is None:
+            first, second = round(0.4 * int(steps)), round(0.3 * int(steps))
+            settings = CMaxSettings(steps=(first, second, int(steps) - first - second))
+        self.settings = settings
         self.steps = sum(self.settings.steps)
         self.input_key = policy.input_key
         self.voxel_bins = policy.voxel_bins

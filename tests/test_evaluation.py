@@ -101,13 +101,16 @@ class _Constant:
         return self.flow.copy()
 
 
-def test_refinement_lowers_the_loss_honours_zero_steps_and_converges(rng):
+@pytest.mark.parametrize("solver, steps", [("fine", 60), ("cmax", 100)])
+def test_refinement_lowers_the_loss_honours_zero_steps_and_converges(rng, solver, steps):
     window, truth = _translation_window(rng)
     start = np.zeros((2, 48, 64), np.float32)
     start[0], start[1] = truth[0] * 0.5, truth[1] * 0.5  # a network half way there
     obs = {"count_image": np.zeros((2, 48, 64), np.float32)}
-    assert np.array_equal(RefinedPolicy(_Constant(start), steps=0).act_on_window(obs, window), start)
-    refined = RefinedPolicy(_Constant(start), steps=60).act_on_window(obs, window)
+    assert np.array_equal(RefinedPolicy(_Constant(start), steps=0, solver=solver).act_on_window(obs, window), start)
+    policy = RefinedPolicy(_Constant(start), steps=steps, solver=solver)
+    assert policy.steps == steps
+    refined = policy.act_on_window(obs, window)
     batch = EventBatch.from_windows([window])
 
     def loss(f):
@@ -115,6 +118,11 @@ def test_refinement_lowers_the_loss_honours_zero_steps_and_converges(rng):
 
     assert loss(refined) < loss(start)
     assert np.abs(refined.reshape(2, -1).mean(1) - truth).max() < 0.5 < np.abs(start[:, 0, 0] - truth).max()
+
+
+def test_an_unknown_refinement_solver_is_refused():
+    with pytest.raises(ValueError, match=r"solver must be one of \('fine', 'cmax'\), got 'coarse'"):
+        RefinedPolicy(_Constant(np.zeros((2, 4, 4), np.float32)), solver="coarse")
 
 
 def test_table_counts_sequences_below_zero_flow(tmp_path, rng):

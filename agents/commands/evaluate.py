@@ -74,6 +74,8 @@ class EvaluateOptions:
     """add per-window contrast maximisation (no network, no ground truth; agents/cmax.py)"""
     refine: int | None = option(None, metavar="K")
     """also evaluate each model with its flow refined by K contrast-maximisation steps"""
+    refine_solver: Literal["fine", "cmax"] = "fine"
+    """--refine's solve: 'fine' (one 16-cell level, a local correction) or 'cmax' (the --cmax coarse-to-fine solve started from the network's flow, K steps over its levels)"""
     data: list[str] = option(default_factory=lambda: ["synthetic-test"])
     """synthetic split, recording files or directories"""
     format: str | None = None
@@ -182,7 +184,8 @@ def build_policies(args) -> dict:
                                                device=args.device)
     if args.refine:
         for name, policy in list(policies.items()):
-            policies[f"{name} + refine {args.refine}"] = RefinedPolicy(policy, steps=args.refine)
+            label = f"{name} + refine {args.refine}" + (" (cmax)" if args.refine_solver == "cmax" else "")
+            policies[label] = RefinedPolicy(policy, steps=args.refine, solver=args.refine_solver)
     if args.cmax:
         policies["contrast maximisation (no network)"] = ContrastMaximisationPolicy(device=args.device)
     if args.zero or not policies:
