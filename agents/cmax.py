@@ -43,6 +43,8 @@ class CMaxSettings:
     The loss weights are those of the env's reward except lambda_2 (a stronger smoothness term
     regularises the coarse grid) and a fixed flow_scaling (pixels per unit in that term).
     max_events: windows with more events are solved on an even subsample (cost bound).
+    prior_weight: with a base flow (refinement), the weight of the residual's mean square in
+    flow-scaling units (``losses.contrast_maximisation_flow``); 0: none.
     """
 
     grids: tuple[int, ...] = (4, 8, 16)
@@ -57,6 +59,7 @@ class CMaxSettings:
     border_ramp: float = BORDER_RAMP
     flow_scaling: float = 32.0
     max_events: int = 60_000
+    prior_weight: float = 0.0
 
     def solve(self, window: dict, size: tuple[int, int], base: np.ndarray | None = None,
               device: str | torch.device = "cpu") -> np.ndarray:
@@ -77,7 +80,7 @@ class CMaxSettings:
             batch, height, width, grids=self.grids, steps=self.steps, lr=self.lr_per_frame * frames,
             sensor_scales=self.sensor_scales, lr_decay=self.lr_decay, flow_scaling=self.flow_scaling,
             lambda_1=self.lambda_1, lambda_2=self.lambda_2, alpha=self.alpha, border_penalty=self.border_penalty,
-            border_ramp=self.border_ramp, base=offset,
+            border_ramp=self.border_ramp, base=offset, prior_weight=self.prior_weight if base is not None else 0.0,
         )
         return flow[0].cpu().numpy().astype(np.float32)
 
@@ -116,13 +119,15 @@ class RefinedPolicy:
     decaying 3x): a local correction; "cmax", the ``--cmax`` row's coarse-to-fine solve (4-8-16
     cells on 4x-2x-1x coarser sensor grids, its step size) started from the network's flow,
     ``steps`` shared 40/30/30 among the levels: it can move as far as the solve from zero, and
-    starts nearer the truth wherever the network is. settings: any other solve (its steps then
-    override ``steps``).
+    starts nearer the truth wherever the network is. prior_weight: how strongly the solve is held
+    to the network's flow (``CMaxSettings.prior_weight``). settings: any other solve (its steps
+    and prior then override ``steps`` and ``prior_weight``).
     """
 
     SOLVERS = ("fine", "cmax")
 
-    def __init__(self, policy, *, steps: int = 30, solver: str = "fine", settings: CMaxSettings | None = None) -> None:
+    def __init__(self, policy, *, steps: int = 30, solver: str = "fine", prior_weight: float = 0.0,
+                 settings: CMaxSettings | None = None) -> None:
         self.policy = policy
         if int(steps) < 0:
             raise ValueError(f"refinement steps must be >= 0, got {steps}")
@@ -130,10 +135,10 @@ class RefinedPolicy:
             raise ValueError(f"refinement solver must be one of {self.SOLVERS}, got {solver!r}")
         if settings is None and solver == "fine":
             settings = CMaxSettings(grids=(16,), sensor_scales=(1,), steps=(int(steps),), lr_per_frame=0.1,
-                                    lr_decay=3.0)
+                                    lr_decay=3.0, prior_weight=prior_weight)
         elif settings is None:
             first, second = round(0.4 * int(steps)), round(0.3 * int(steps))
-            settings = CMaxSettings(steps=(first, second, int(steps) - first - second))
+            settings = CMaxSettings(steps=(first, second, int(steps) - first - second), prior_weight=prior_weight)
         self.settings = settings
         self.steps = sum(self.settings.steps)
         self.input_key = policy.input_key

@@ -44,6 +44,7 @@ def contrast_maximisation_flow(
     sensor_scales: Sequence[int] | None = None,
     lr_decay: float = 1.0,
     base: torch.Tensor | None = None,
+    prior_weight: float = 0.0,
 ) -> torch.Tensor:
     """(B, 2, height, width) flow in pixels per window minimising L_HMC of each window.
 
@@ -65,6 +66,10 @@ def contrast_maximisation_flow(
     base: optional (B, 2, height, width) flow in pixels that the grid is a residual on (the
     flow is ``base + upsampled grid``, the grid starting at zero), e.g. a network's prediction
     (test-time refinement keeps its detail and corrects it); default none.
+    prior_weight: with ``base``, adds ``prior_weight * mean(|residual| / flow_scaling)^2`` over the
+    grid's cells to each window's loss: a Gaussian prior that the base is right, so the solve
+    leaves it only where the loss gains more (the loss alone also rewards collapsing the events
+    of a still scene); 0: none.
     """
     device = events.x.device
     B = events.x.shape[0]
@@ -78,6 +83,8 @@ def contrast_maximisation_flow(
     if base is not None and (return_coarse or tuple(base.shape) != (B, 2, height, width)):
         raise ValueError(f"base must be (B, 2, height, width) = {(B, 2, height, width)} and excludes return_coarse, "
                          f"got {tuple(base.shape)}")
+    if prior_weight < 0 or (prior_weight and base is None):
+        raise ValueError(f"prior_weight must be >= 0 and needs a base flow, got {prior_weight}")
     total = max(1, sum(per_level))
     coarse = None
     done = 0
@@ -109,6 +116,8 @@ def contrast_maximisation_flow(
                     flow = flow + offset
                 loss = hmc_loss(flow, level_events, border_penalty=penalty, border_ramp=border_ramp / scale,
                                 **level).per_sample.sum()
+                if prior_weight:
+                    loss = loss + prior_weight * (param / scaling).pow(2).sum(1).mean(dim=(1, 2)).sum()
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()

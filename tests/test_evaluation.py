@@ -15,7 +15,7 @@ from agents.evaluation import evaluate, results_table
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
 from envs.env import EventFlowEnv
-from losses import EventBatch, hmc_loss
+from losses import EventBatch, contrast_maximisation_flow, hmc_loss
 from tests.recordings import translating_dots, write_translating_recording
 from tests.test_readers import _stream, write_hagenaars
 
@@ -118,6 +118,18 @@ def test_refinement_lowers_the_loss_honours_zero_steps_and_converges(rng, solver
 
     assert loss(refined) < loss(start)
     assert np.abs(refined.reshape(2, -1).mean(1) - truth).max() < 0.5 < np.abs(start[:, 0, 0] - truth).max()
+
+
+def test_a_strong_prior_holds_the_refinement_to_the_networks_flow(rng):
+    window, truth = _translation_window(rng)
+    start = np.zeros((2, 48, 64), np.float32)
+    start[0], start[1] = truth[0] * 0.5, truth[1] * 0.5
+    obs = {"count_image": np.zeros((2, 48, 64), np.float32)}
+    moved = {w: np.abs(RefinedPolicy(_Constant(start), steps=60, prior_weight=w).act_on_window(obs, window)
+                       - start).mean() for w in (0.0, 1e4)}
+    assert moved[1e4] < 0.05 * moved[0.0] and moved[0.0] > 0.5  # held near the start, and free without
+    with pytest.raises(ValueError, match="prior_weight must be >= 0 and needs a base flow"):
+        contrast_maximisation_flow(EventBatch.from_windows([window]), 48, 64, prior_weight=1.0)
 
 
 def test_an_unknown_refinement_solver_is_refused():

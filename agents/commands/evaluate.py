@@ -76,6 +76,8 @@ class EvaluateOptions:
     """also evaluate each model with its flow refined by K contrast-maximisation steps"""
     refine_solver: Literal["fine", "cmax"] = "fine"
     """--refine's solve: 'fine' (one 16-cell level, a local correction) or 'cmax' (the --cmax coarse-to-fine solve started from the network's flow, K steps over its levels)"""
+    refine_prior: float = 0.0
+    """--refine holds the flow to the network's with this weight (mean square of the correction in flow-scaling units; 0: none)"""
     data: list[str] = option(default_factory=lambda: ["synthetic-test"])
     """synthetic split, recording files or directories"""
     format: str | None = None
@@ -185,7 +187,9 @@ def build_policies(args) -> dict:
     if args.refine:
         for name, policy in list(policies.items()):
             label = f"{name} + refine {args.refine}" + (" (cmax)" if args.refine_solver == "cmax" else "")
-            policies[label] = RefinedPolicy(policy, steps=args.refine, solver=args.refine_solver)
+            label += f" prior {args.refine_prior:g}" if args.refine_prior else ""
+            policies[label] = RefinedPolicy(policy, steps=args.refine, solver=args.refine_solver,
+                                            prior_weight=args.refine_prior)
     if args.cmax:
         policies["contrast maximisation (no network)"] = ContrastMaximisationPolicy(device=args.device)
     if args.zero or not policies:
@@ -224,6 +228,8 @@ def main(argv=None) -> int:
     args = options_from_args(EvaluateOptions, build_parser().parse_args(argv))
     if args.refine is not None and args.refine < 0:
         raise SystemExit(f"--refine must be >= 0 steps, got {args.refine}")
+    if args.refine_prior < 0:
+        raise SystemExit(f"--refine-prior must be >= 0, got {args.refine_prior}")
     policies = build_policies(args)
     data = args.data[0] if len(args.data) == 1 else args.data
     if args.dsec_submission and not args.dsec_test_timestamps:

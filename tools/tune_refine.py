@@ -1,0 +1,53 @@
+#!/usr/bin/env python
+"""Compare test-time refinement settings (agents/cmax.py, RefinedPolicy) of a shipped model on
+a split: AEE, L_HMC and time per window at dt = 1 and dt = 4, first windows of every sequence.
+
+    python tools/tune_refine.py --data synthetic-dr-val --max-windows 5 \\
+        --refine fine:30:0 cmax:100:0 cmax:100:1 cmax:100:10
+
+Each --refine is SOLVER:STEPS:PRIOR (``RefinedPolicy(solver=, steps=, prior_weight=)``). Tune on
+the selection split (synthetic-dr-val), never on synthetic-stress or a test split.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agents.cmax import ContrastMaximisationPolicy, RefinedPolicy  # noqa: E402
+from agents.evaluation import evaluate, results_table  # noqa: E402
+from agents.policy import RecurrentPolicy  # noqa: E402
+from agents.pretrained import DEFAULT_PRETRAINED  # noqa: E402
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", nargs="+", default=["synthetic-dr-val"])
+    p.add_argument("--pretrained", default=DEFAULT_PRETRAINED)
+    p.add_argument("--max-windows", type=int, default=5, help="per sequence")
+    p.add_argument("--dt", type=int, nargs="+", default=[1, 4])
+    p.add_argument("--refine", nargs="+", default=["cmax:100:0"], help="SOLVER:STEPS:PRIOR, one row each")
+    p.add_argument("--cmax", action="store_true", help="add the --cmax row (the solve from zero)")
+    args = p.parse_args(argv)
+    data = args.data[0] if len(args.data) == 1 else args.data
+    network = RecurrentPolicy.from_pretrained(args.pretrained)
+    rows: dict = {args.pretrained: network}
+    for spec in args.refine:
+        solver, steps, prior = spec.split(":")
+        rows[f"refine {spec}"] = RefinedPolicy(network, solver=solver, steps=int(steps), prior_weight=float(prior))
+    if args.cmax:
+        rows["contrast maximisation (no network)"] = ContrastMaximisationPolicy()
+    rows["zero flow"] = None
+    for dt in args.dt:
+        named = {k: evaluate(v, data, window_size=dt, max_windows=args.max_windows, progress=False)
+                 for k, v in rows.items()}
+        print(results_table(named, title=f"dt = {dt}, first {args.max_windows} windows per sequence",
+                            per_sequence=False) + "\n", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
