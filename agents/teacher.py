@@ -81,11 +81,12 @@ def _windows_of(env: EventFlowEnv, sequence: int) -> list[dict]:
             return out
 
 
-def count_windows(data, window_sizes: Sequence[int]) -> int:
+def count_windows(data, window_sizes: Sequence[int], max_windows: int | None = None) -> int:
     """How many ``frames`` windows ``compute_teacher_targets`` solves for ``data``."""
     sources = resolve_data(data)
     try:
-        return sum(len(window_bounds(source.reader(), "frames", int(k))) for source in sources for k in set(window_sizes))
+        return sum(len(window_bounds(source.reader(), "frames", int(k))[:max_windows])
+                   for source in sources for k in set(window_sizes))
     finally:
         for source in sources:
             source.close()
@@ -100,8 +101,11 @@ def compute_teacher_targets(
     batch_size: int = 16,
     device: str = "cpu",
     progress=None,
+    max_windows: int | None = None,
 ) -> Path:
-    """Solve every ``frames`` window of ``data`` (each size in ``window_sizes``) and write ``out``.
+    """Solve every ``frames`` window of ``data`` (each size in ``window_sizes``) and write ``out``
+    (``max_windows``: only the first that many of each recording and size, e.g. to score a
+    solver on part of a large split; a training run needs them all).
 
     Resumable: each finished recording is written at once (atomically) into the folder
     ``out + ".parts"``; a rerun with the same data and settings skips those already there (a kill
@@ -118,6 +122,8 @@ def compute_teacher_targets(
     first_env = EventFlowEnv(data, window="frames", compute_reward=False, sequences=[0])
     config = {"format": FORMAT, "data": data if isinstance(data, str) else [str(d) for d in np.atleast_1d(data)],
               "window_sizes": sizes, "sensor_size": list(first_env.sensor_size), **asdict(settings)}
+    if max_windows is not None:
+        config["max_windows"] = int(max_windows)
     first_env.close()
     config = json.loads(json.dumps(config))  # tuples as lists, as they read back
     parts = out.with_name(out.name + ".parts")
@@ -140,7 +146,7 @@ def compute_teacher_targets(
         H, W = envs[sizes[0]].sensor_size
         bounds, grids = [], []
         for k in sizes:  # one solve per window length: each has its own step size
-            windows = _windows_of(envs[k], 0)
+            windows = _windows_of(envs[k], 0)[:max_windows]
             for start in range(0, len(windows), batch_size):
                 chunk = windows[start : start + batch_size]
                 batch = EventBatch.from_windows(chunk, device=device)
@@ -283,6 +289,8 @@ def derive_targets(source: str | os.PathLike, out: str | os.PathLike, *, from_si
             for data_source in sources:
                 name, reader = data_source.name, data_source.reader()
                 long = window_bounds(reader, "frames", from_size)[:, :2]
+                partial = "max_windows" in src.config  # only the first long windows were solved
+                long = long[[(name, int(a), int(b)) in src._index for a, b in long]] if partial else long
                 grids = torch.stack([src._index[(name, int(a), int(b))] for a, b in long])
                 velocity = grids / torch.from_numpy((long[:, 1] - long[:, 0]).astype(np.float32)).view(-1, 1, 1, 1)
                 if smooth:
@@ -293,6 +301,8 @@ def derive_targets(source: str | os.PathLike, out: str | os.PathLike, *, from_si
                 bounds, out_grids = [], []
                 for k in sizes:
                     for t0, t1 in window_bounds(reader, "frames", k)[:, :2].tolist():
+                        if partial and t1 > long[-1, 1]:
+                            break  # past the solved span
                         overlap = np.clip(np.minimum(long[:, 1], t1) - np.maximum(long[:, 0], t0), 0, None)
                         if overlap.sum() == 0:  # past the last long window (the frames do not divide): the nearest
                             overlap = (np.arange(len(long)) == np.argmin(np.abs(long.mean(1) - (t0 + t1) / 2))) * 1.0
@@ -314,22 +324,25 @@ def derive_targets(source: str | os.PathLike, out: str | os.PathLike, *, from_si
     return out
 
 
-def score_targets(path: str | os.PathLike, data=None) -> dict[str, dict[str, float]]:
+def score_targets(path: str | os.PathLike, data=None, *, max_windows: int | None = None,
+                  window_sizes: Sequence[int] | None = None) -> dict[str, dict[str, float]]:
     """How good stored targets are: per window length (frames), the mean over windows of the
     targets' AEE against the ground truth and of zero flow's, on pixels with events and valid
-    ground truth (the evaluation's metric). ``data`` defaults to the file's own. Returns
+    ground truth (the evaluation's metric). ``data`` defaults to the file's own; ``max_windows``:
+    the first that many windows of each recording and length; ``window_sizes``: these lengths
+    (default: the file's). Returns
     ``{"1": {"aee": .., "aee_zero": .., "windows": ..}, ...}`` (keys: window lengths)."""
     from envs.representations import EventView, event_mask
     from losses import flow_error
 
     targets = TeacherTargets(path)
     data = targets.config["data"] if data is None else data
-    sizes = targets.config["window_sizes"]
+    sizes = targets.config["window_sizes"] if window_sizes is None else list(window_sizes)
     sums: dict[str, list[float]] = {}
     for index, source in enumerate(resolve_data(data)):
         for k in sizes:
             env = EventFlowEnv(data, window="frames", window_size=k, compute_reward=False, sequences=[index])
-            for window in _windows_of(env, 0):
+            for window in _windows_of(env, 0)[:max_windows]:
                 gt = env.sources[0].reader().flow_between(window["t_start"], window["t_end"])
                 if gt is None or not len(window["t"]):
                     continue

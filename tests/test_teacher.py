@@ -19,6 +19,7 @@ from agents.teacher import (
     compute_teacher_targets,
     count_windows,
     derive_targets,
+    score_targets,
 )
 from envs.env import EventFlowEnv
 from losses import EventBatch, contrast_maximisation_flow
@@ -186,3 +187,13 @@ def test_derived_targets_are_the_long_windows_velocity_times_each_windows_durati
     with pytest.raises(TeacherCacheError, match="no 4-frame windows"):
         derive_targets(solved, tmp_path / "x.h5", from_size=4)
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_targets_of_the_first_windows_only_derive_and_score_on_their_span(tmp_path):
+    rec = write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(4), sensor_size=(24, 32))
+    solved = compute_teacher_targets([rec], tmp_path / "first.h5", window_sizes=(1, 2), settings=TINY, max_windows=3)
+    assert len(TeacherTargets(solved)) == 6 == count_windows([rec], (1, 2), 3)
+    derived = _windows(derive_targets(solved, tmp_path / "d.h5", from_size=2, window_sizes=(1, 2)), "dots")
+    assert len(derived) == 3 + 6  # the 3 solved 2-frame windows and the 6 1-frame windows inside them
+    scores = score_targets(tmp_path / "d.h5", max_windows=3, window_sizes=(1,))
+    assert list(scores) == ["1"] and scores["1"]["windows"] == 3 and scores["1"]["aee"] < scores["1"]["aee_zero"]

@@ -41,7 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--from-size", type=int, default=2, help="with --derive-from: the window length solved (frames)")
     p.add_argument("--smooth", type=int, default=0,
                    help="with --derive-from: average each long window's velocity with this many neighbours a side")
-    p.add_argument("--window-size", type=int, nargs="+", default=[1, 2, 3, 4], help="window lengths in frames (default 1 2 3 4)")
+    p.add_argument("--window-size", type=int, nargs="+", default=None,
+                   help="window lengths in frames (default 1 2 3 4; with --score, the file's)")
     p.add_argument("--grids", type=int, nargs="+", default=list(d.grids),
                    help="coarse-to-fine grid cells along the longer side (default 4 8 16)")
     p.add_argument("--steps", type=int, nargs="+", default=[d.steps],
@@ -53,6 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Adam step size in pixels per frame of window length (default 0.05)")
     p.add_argument("--lambda-2", type=float, default=d.lambda_2, help="smoothness weight (default 0.01)")
     p.add_argument("--flow-scaling", type=float, default=d.flow_scaling, help="the loss's flow scaling (default 32)")
+    p.add_argument("--max-windows", type=int, default=None,
+                   help="only the first N windows of each recording and size (solving or --score; not for training)")
     p.add_argument("--batch-size", type=int, default=16, help="windows solved together")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
@@ -67,10 +70,11 @@ def main(argv=None) -> int:
     if args.score:
         from agents.teacher import score_targets
 
-        for k, row in score_targets(args.out).items():
+        for k, row in score_targets(args.out, max_windows=args.max_windows, window_sizes=args.window_size).items():
             print(f"{k}-frame windows: targets' AEE {row['aee']:.3f}, zero flow's {row['aee_zero']:.3f} "
                   f"({row['ratio']:.2f}x) over {row['windows']} windows")
         return 0
+    args.window_size = args.window_size or [1, 2, 3, 4]
     if args.out.exists():
         print(f"{args.out} exists; delete it to recompute", file=sys.stderr)
         return 1
@@ -86,7 +90,7 @@ def main(argv=None) -> int:
     settings = TeacherSettings(grids=tuple(args.grids), steps=steps, lr_per_frame=args.lr_per_frame,
                                lambda_2=args.lambda_2, flow_scaling=args.flow_scaling, lr_decay=args.lr_decay,
                                sensor_scales=None if args.sensor_scales is None else tuple(args.sensor_scales))
-    total = count_windows(data, args.window_size)
+    total = count_windows(data, args.window_size, args.max_windows)
     bar = tqdm(total=total, unit="win", disable=args.no_progress)
     start = time.perf_counter()
 
@@ -95,7 +99,8 @@ def main(argv=None) -> int:
         bar.update(n)
 
     compute_teacher_targets(data, args.out, window_sizes=args.window_size, settings=settings,
-                            batch_size=args.batch_size, device=args.device, progress=progress)
+                            batch_size=args.batch_size, device=args.device, progress=progress,
+                            max_windows=args.max_windows)
     bar.close()
     print(f"{args.out}: {total} windows in {time.perf_counter() - start:.0f} s")
     return 0
