@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -32,7 +33,6 @@ ROOT = Path(__file__).resolve().parents[2]  # the checkout
 import torch
 
 from agents.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped
-from agents.commands import train as train_script
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,7 +74,13 @@ def main(argv=None) -> int:
         subprocess.run(["git", "commit", "-q", "-m", f"Ablations: {rows} finished runs (rows, tables, curves)",
                         "--", *paths], cwd=ROOT, check=False)
 
-    runner = AblationRunner(args.out, budget, train_script.main, seeds=tuple(args.seeds), only=args.only,
+    def train(argv: list[str]) -> None:
+        # each stage in its own process (as ship.py does): a stage run inside the runner's process
+        # did not learn (docs/results.md, tenth round), the same options in a process of their own did
+        env = {**os.environ, **({"OMP_NUM_THREADS": str(args.threads)} if args.threads else {})}
+        subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), *argv], check=True, env=env)
+
+    runner = AblationRunner(args.out, budget, train, seeds=tuple(args.seeds), only=args.only,
                             device=args.device, targets=targets, record=args.record, on_row=commit)
     report = Path(args.report) if args.report else None
     if args.tables_only:
