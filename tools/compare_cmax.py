@@ -38,12 +38,17 @@ def main(argv=None) -> int:
             settings = SETTINGS[name] if lr is None else CMaxSettings(**{**SETTINGS[name].describe(), "lr_per_frame": lr})
             rows[name if lr is None else f"{name} lr {lr}"] = ContrastMaximisationPolicy(settings)
     rows["zero flow"] = None
-    for dt in args.dt:
-        named = {k: evaluate(v, data, window_size=dt, max_windows=args.max_windows, progress=False)
-                 for k, v in rows.items()}
-        print(results_table(named, title=f"dt = {dt}, first {args.max_windows} windows per sequence",
-                            per_sequence=False) + "\n", flush=True)
+    print_comparison(rows, data, args.dt, args.max_windows)
     return 0
+
+
+def print_comparison(rows: dict, data, dts, max_windows: int) -> None:
+    """One table per window length of the named policies (None: zero flow) on ``data``."""
+    for dt in dts:
+        named = {k: evaluate(v, data, window_size=dt, max_windows=max_windows, progress=False)
+                 for k, v in rows.items()}
+        print(results_table(named, title=f"dt = {dt}, first {max_windows} windows per sequence",
+                            per_sequence=False) + "\n", flush=True)
 
 
 if __name__ == "__main__":

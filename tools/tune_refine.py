@@ -16,9 +16,11 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from compare_cmax import print_comparison  # noqa: E402
 
 from agents.cmax import ContrastMaximisationPolicy, RefinedPolicy  # noqa: E402
-from agents.evaluation import evaluate, results_table  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
 from agents.pretrained import DEFAULT_PRETRAINED  # noqa: E402
 
@@ -41,11 +43,7 @@ def main(argv=None) -> int:
     if args.cmax:
         rows["contrast maximisation (no network)"] = ContrastMaximisationPolicy()
     rows["zero flow"] = None
-    for dt in args.dt:
-        named = {k: evaluate(v, data, window_size=dt, max_windows=args.max_windows, progress=False)
-                 for k, v in rows.items()}
-        print(results_table(named, title=f"dt = {dt}, first {args.max_windows} windows per sequence",
-                            per_sequence=False) + "\n", flush=True)
+    print_comparison(rows, data, args.dt, args.max_windows)
     return 0
 
 
