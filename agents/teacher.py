@@ -25,6 +25,7 @@ teacher sees only events, so a run on these targets stays unsupervised.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import shutil
@@ -37,6 +38,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from envs.atomic import remove_stale_temporaries, temporary_path
 from envs.dataset import resolve_data
 from envs.env import EventFlowEnv
 from envs.windows import window_bounds
@@ -159,7 +161,7 @@ def compute_teacher_targets(
         arrays = {"name": np.array(name), "sensor_size": np.array((H, W), np.int64),
                   "bounds": np.array(bounds, np.int64).reshape(-1, 2),
                   "grid": torch.stack(grids).numpy().astype(np.float32)}
-        _replace_with(part, lambda tmp, arrays=arrays: np.savez(tmp, **arrays))
+        _replace_with(part, lambda tmp, arrays=arrays: tmp.write_bytes(_npz_bytes(arrays)))
 
     def assemble(tmp: Path) -> None:
         with h5py.File(tmp, "w") as f:
@@ -177,9 +179,17 @@ def compute_teacher_targets(
     return out
 
 
+def _npz_bytes(arrays: dict) -> bytes:
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
 def _replace_with(path: Path, write) -> None:
-    """``write(tmp)`` a sibling temporary file, then rename it to ``path`` (never half-written)."""
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}" + path.suffix)
+    """``write(tmp)`` a sibling temporary file (envs.atomic), then rename it to ``path`` (never
+    half-written); a killed writer's leftover temporary is removed first."""
+    remove_stale_temporaries(path)
+    tmp = temporary_path(path)
     try:
         write(tmp)
         os.replace(tmp, path)

@@ -89,7 +89,7 @@ def test_computed_targets_are_the_solvers_flow_and_an_interrupted_run_resumes(tm
     with np.load(parts / "00000.npz") as part:
         assert str(part["name"]) == "dots0"
         first = part["grid"]
-    (parts / "00001.npz.tmp999.npz").write_bytes(b"cut by a kill")  # a killed write: ignored, not read
+    (parts / "00001.npz.tmp-999999999").write_bytes(b"cut by a kill")  # a killed write: ignored, not read
     with pytest.raises(TeacherCacheError, match="unfinished run with other settings"):
         compute_teacher_targets(recs, out, window_sizes=(1,), settings=TINY)
     done = []
