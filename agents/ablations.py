@@ -46,7 +46,7 @@ from .checkpoint import load_checkpoint, load_model
 from .evaluation import evaluate, results_json
 from .policy import RecurrentPolicy
 from .summary import count_parameters, forward_flops, forward_latency_ms
-from .teacher import TeacherSettings, TeacherTargets, compute_teacher_targets
+from .teacher import TeacherSettings, TeacherTargets, compute_teacher_targets, copy_targets
 
 __all__ = ["Configuration", "CONFIGURATIONS", "Budget", "AblationRunner", "needs_second_seed", "render_tables",
            "read_rows", "plot_validation_curves", "PAPER_MVSEC_DT1"]
@@ -225,15 +225,17 @@ class AblationRunner:
 
     train: the training command as a function of its argv (``scripts/train.py``'s ``main``).
     record: the folder of what must outlive the run folder (rows.jsonl, budget.json, tables.md,
-    curves/); default ``out``. on_row: called with the files written after each finished row
-    (e.g. to commit them).
+    curves/, targets/); default ``out``. on_row: called with the files written after each
+    finished row (e.g. to commit them); on_targets: called with the record's copy of teacher
+    targets solved here.
     """
 
     def __init__(self, out: str | os.PathLike, budget: Budget, train: Callable[[list[str]], object], *,
                  seeds: tuple[int, ...] = (0, 1, 2), only: list[str] | None = None, device: str = "cpu",
                  targets: dict[str, str] | None = None, log: Callable[[str], None] = print,
                  record: str | os.PathLike | None = None,
-                 on_row: Callable[[list[Path]], None] | None = None) -> None:
+                 on_row: Callable[[list[Path]], None] | None = None,
+                 on_targets: Callable[[list[Path]], None] | None = None) -> None:
         unknown = sorted(set(only or []) - set(CONFIGURATIONS))
         if unknown:
             raise ValueError(f"unknown configuration(s) {unknown}; known: {list(CONFIGURATIONS)}")
@@ -250,6 +252,7 @@ class AblationRunner:
         self.record = Path(record) if record is not None else self.out
         self.rows_path = self.record / "rows.jsonl"
         self.on_row = on_row
+        self.on_targets = on_targets
 
     # -- the plan ------------------------------------------------------------------------------
 
@@ -327,22 +330,44 @@ class AblationRunner:
     # -- one configuration ---------------------------------------------------------------------
 
     def targets(self, loss: Loss) -> Path:
-        """The teacher targets of ``loss`` on the training split, solved once (resumable)."""
+        """The teacher targets of ``loss`` on the training split, solved once (resumable).
+
+        Looked for in this order: the file given for ``loss``, ``OUT/targets/<loss>.h5``,
+        ``RECORD/targets/<loss>.h5`` (the copy kept with the rows: a new machine does not solve
+        them again, about an hour per loss on the 2-core CPU); each is checked against the budget's
+        solver settings. Solved here, they are copied into the record (lossless, compressed) and
+        handed to ``on_targets``."""
         settings = dataclasses.replace(self.budget.teacher, lambda_1=1.0 if loss == "hmc" else 0.0)
-        path = Path(self.given_targets.get(loss) or self.out / "targets" / f"{loss}.h5")
-        if path.exists():  # solved earlier, or given: the same data, window lengths and solver
-            stored = TeacherTargets(path).config
-            wanted = json.loads(json.dumps({"data": self.budget.train_data, **dataclasses.asdict(settings)}))
-            differ = sorted(key for key in wanted if stored.get(key) != wanted[key])
-            if not set(self.budget.teacher_window_sizes) <= set(stored.get("window_sizes", [])):
-                differ.append("window_sizes")
-            if differ:
-                raise ValueError(f"{path}: not the {loss} teacher's targets this budget asks for (differs in "
-                                 f"{', '.join(differ)}: {', '.join(f'{k}={stored.get(k)!r}' for k in differ)})")
-            return path
+        given = self.given_targets.get(loss)
+        candidates = [Path(given)] if given else [self.out / "targets" / f"{loss}.h5", self.record_targets(loss)]
+        for path in candidates:
+            if path.exists():  # solved earlier, or given: the same data, window lengths and solver
+                self._check_targets(path, loss, settings)
+                return path
+        path = candidates[0]
         self.log(f"[ablations] solving the {loss} teacher's targets of {self.budget.train_data} into {path}")
-        return compute_teacher_targets(self.budget.train_data, path, window_sizes=self.budget.teacher_window_sizes,
+        path = compute_teacher_targets(self.budget.train_data, path, window_sizes=self.budget.teacher_window_sizes,
                                        settings=settings, device=self.device)
+        kept = self.record_targets(loss)
+        if kept != path and not given:
+            copy_targets(path, kept)
+            if self.on_targets is not None:
+                self.on_targets([kept])
+        return path
+
+    def record_targets(self, loss: Loss) -> Path:
+        """Where the record keeps the targets of ``loss``."""
+        return self.record / "targets" / f"{loss}.h5"
+
+    def _check_targets(self, path: Path, loss: Loss, settings: TeacherSettings) -> None:
+        stored = TeacherTargets(path).config
+        wanted = json.loads(json.dumps({"data": self.budget.train_data, **dataclasses.asdict(settings)}))
+        differ = sorted(key for key in wanted if stored.get(key) != wanted[key])
+        if not set(self.budget.teacher_window_sizes) <= set(stored.get("window_sizes", [])):
+            differ.append("window_sizes")
+        if differ:
+            raise ValueError(f"{path}: not the {loss} teacher's targets this budget asks for (differs in "
+                             f"{', '.join(differ)}: {', '.join(f'{k}={stored.get(k)!r}' for k in differ)})")
 
     def _stage(self, folder: Path, options: list[str], steps: int, seed: int) -> Path:
         """Run (or continue, or skip) one training stage; returns its checkpoint."""

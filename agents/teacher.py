@@ -45,7 +45,7 @@ from envs.windows import window_bounds
 from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
 
 __all__ = ["TeacherSettings", "TeacherTargets", "compute_teacher_targets", "count_windows", "TeacherCacheError",
-           "score_targets", "derive_targets"]
+           "score_targets", "derive_targets", "copy_targets"]
 
 FORMAT = "evflow-teacher-targets"
 
@@ -179,6 +179,28 @@ def compute_teacher_targets(
     return out
 
 
+def copy_targets(source: str | os.PathLike, out: str | os.PathLike) -> Path:
+    """Copy a complete target file to ``out``, the same values compressed (gzip, byte shuffle):
+    the copy a repository can keep so that a new machine need not solve them again."""
+    TeacherTargets(source)  # refuses an incomplete or foreign file, naming it
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    def write(tmp: Path) -> None:
+        with h5py.File(source, "r") as src, h5py.File(tmp, "w") as dst:
+            for key, value in src.attrs.items():
+                dst.attrs[key] = value
+            for name, group in src.items():
+                copy = dst.create_group(name)
+                for key, value in group.attrs.items():
+                    copy.attrs[key] = value
+                for key, data in group.items():
+                    copy.create_dataset(key, data=data[()], compression="gzip", compression_opts=9, shuffle=True)
+
+    _replace_with(out, write)
+    return out
+
+
 def _npz_bytes(arrays: dict) -> bytes:
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)
@@ -232,7 +254,7 @@ class TeacherTargets:
             for name, group in f.items():
                 size = group.attrs.get("sensor_size", self.sensor_size)
                 self._sizes[name] = (int(size[0]), int(size[1]))
-                grid = torch.from_numpy(group["grid"][()])
+                grid = torch.from_numpy(group["grid"][()]).float()
                 for (t0, t1), g in zip(group["bounds"][()].tolist(), grid):
                     self._index[(name, int(t0), int(t1))] = g
 

@@ -233,6 +233,35 @@ def test_the_record_outlives_the_run_folder(tmp_path):
     assert len(again.run()) == 1 and len(committed) == 1
 
 
+def test_solved_targets_are_kept_in_the_record_and_reused_by_a_new_machine(tmp_path, monkeypatch):
+    """Targets solved in the run folder are copied into the record (the same values), handed to
+    on_targets; a runner with a new run folder and the same record solves nothing."""
+    from agents import ablations
+    from agents.teacher import TeacherTargets
+
+    record, kept = tmp_path / "record", []
+    first = AblationRunner(tmp_path / "run1", TINY, train_script.main, seeds=(0,), log=lambda _: None, record=record,
+                           on_targets=kept.extend)
+    solved = first.targets("hmc")
+    assert solved == tmp_path / "run1" / "targets" / "hmc.h5"
+    assert kept == [record / "targets" / "hmc.h5"]
+    original, copy = TeacherTargets(solved), TeacherTargets(kept[0])
+    assert copy.config == original.config and original._index.keys() == copy._index.keys() and len(copy) > 0
+    assert all(torch.equal(original._index[key], copy._index[key]) for key in original._index)
+
+    def solve(*args, **kwargs):
+        pytest.fail("solved the targets again")
+
+    monkeypatch.setattr(ablations, "compute_teacher_targets", solve)
+    second = AblationRunner(tmp_path / "run2", TINY, train_script.main, seeds=(0,), log=lambda _: None, record=record,
+                            on_targets=kept.extend)
+    assert second.targets("hmc") == record / "targets" / "hmc.h5" and len(kept) == 1
+    # the record's copy is checked like any other: L_HMC targets are not L_AT ones
+    with pytest.raises(ValueError, match="lambda_1=1.0"):
+        AblationRunner(tmp_path / "run3", TINY, train_script.main, seeds=(0,), record=record,
+                       targets={"at": str(kept[0])}).targets("at")
+
+
 def test_one_runner_per_folder(tmp_path):
     import fcntl
 

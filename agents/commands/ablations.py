@@ -14,7 +14,9 @@ agents/ablations.py; this is the command line.
 Writes RECORD/rows.jsonl (a row per finished configuration and seed, at once), RECORD/tables.md,
 RECORD/curves/<configuration>.png (validation AEE against step) and the tables into --report, and
 commits them with git after every row (--no-commit to skip): RECORD (docs/ablations) is in the
-repository, so finished rows survive a new machine; checkpoints and evaluations stay in --out.
+repository, so finished rows survive a new machine. The teacher targets, once solved, are kept
+there too (RECORD/targets/<loss>.h5, committed): a new machine starts training at once.
+Checkpoints and evaluations stay in --out.
 Resumable: rerun the same command; finished configurations are skipped, a killed one continues
 from its checkpoint (SIGTERM / Ctrl-C stop a stage cleanly).
 """
@@ -65,14 +67,19 @@ def main(argv=None) -> int:
                                  eval_windows=args.eval_windows)
     targets = {loss: path for loss, path in (("hmc", args.targets_hmc), ("at", args.targets_at)) if path}
 
-    def commit(files: list[Path]) -> None:
+    def commit(files: list[Path], message: str | None = None) -> None:
         if args.no_commit:
             return
         paths = [str(f) for f in files if f.exists()]
         subprocess.run(["git", "add", *paths], cwd=ROOT, check=True)
-        rows = len(Path(args.record, "rows.jsonl").read_text().splitlines())
-        subprocess.run(["git", "commit", "-q", "-m", f"Ablations: {rows} finished runs (rows, tables, curves)",
-                        "--", *paths], cwd=ROOT, check=False)
+        if message is None:
+            rows = len(Path(args.record, "rows.jsonl").read_text().splitlines())
+            message = f"Ablations: {rows} finished runs (rows, tables, curves)"
+        subprocess.run(["git", "commit", "-q", "-m", message, "--", *paths], cwd=ROOT, check=False)
+
+    def commit_targets(files: list[Path]) -> None:
+        commit(files, f"Ablations: the teacher targets {', '.join(f.name for f in files)} of "
+                      f"{budget.train_data} kept in the record (a new machine does not solve them again)")
 
     def train(argv: list[str]) -> None:
         # each stage in its own process (as ship.py does): a stage run inside the runner's process
@@ -81,7 +88,8 @@ def main(argv=None) -> int:
         subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), *argv], check=True, env=env)
 
     runner = AblationRunner(args.out, budget, train, seeds=tuple(args.seeds), only=args.only,
-                            device=args.device, targets=targets, record=args.record, on_row=commit)
+                            device=args.device, targets=targets, record=args.record, on_row=commit,
+                            on_targets=commit_targets)
     report = Path(args.report) if args.report else None
     if args.tables_only:
         print(runner.write_outputs(report))
