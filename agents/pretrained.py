@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+import h5py
 import torch
 
 from envs.atomic import remove_stale_temporaries, temporary_path
@@ -90,9 +91,22 @@ def export_pretrained(
     record = {"name": name, "model": payload["model_name"], "model_config": payload["model_config"],
               "input": config.get("input", "count_image"), "voxel_bins": config.get("voxel_bins", 5),
               "steps": payload.get("step"), **provenance}
+    if config.get("teacher_cache") and "teacher_targets" not in record:
+        record["teacher_targets"] = _targets_provenance(Path(config["teacher_cache"]))
     meta = directory / f"{name}.json"
     remove_stale_temporaries(meta)
     tmp = temporary_path(meta)
     tmp.write_text(json.dumps(record, indent=2, default=str) + "\n")
     os.replace(tmp, meta)
     return weights, meta
+
+
+def _targets_provenance(path: Path) -> dict[str, Any]:
+    """How the teacher targets a run regressed onto were made (their file's config: data, window
+    lengths, solver settings, and the derivation where they were derived), by file name."""
+    try:
+        with h5py.File(path, "r") as f:
+            config = json.loads(f.attrs.get("config", "null"))
+    except (OSError, ValueError) as err:
+        return {"file": path.name, "config": None, "error": f"not readable at export ({type(err).__name__})"}
+    return {"file": path.name, "config": config}

@@ -148,6 +148,13 @@ def test_a_teacher_run_regresses_onto_the_cached_targets(tmp_path):
         assert row["zero_flow_teacher"] > 0.1  # synthetic-mini moves 1-8 px per frame
         assert row["loss"] == pytest.approx(row["zero_flow_teacher"], rel=1e-6)
     assert json.loads((out / "config.json").read_text())["teacher_cache"] == str(path)
+    # the shipped model's provenance says how its targets were made
+    from agents.pretrained import export_pretrained, pretrained_info
+
+    export_pretrained(out / "checkpoint.pt", "tiny", {"command": "train.py ..."}, directory=tmp_path / "weights")
+    with h5py.File(path, "r") as f:
+        made = json.loads(f.attrs["config"])
+    assert pretrained_info("tiny", tmp_path / "weights")["teacher_targets"] == {"file": "gt.h5", "config": made}
 
 
 def test_upsampling_a_same_size_grid_is_the_identity():
