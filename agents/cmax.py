@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
+from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow, hmc_loss
 
 __all__ = ["CMaxSettings", "ContrastMaximisationPolicy", "RefinedPolicy", "FRAME_US"]
 
@@ -122,15 +122,27 @@ class RefinedPolicy:
     starts nearer the truth wherever the network is. prior_weight: how strongly the solve is held
     to the network's flow (``CMaxSettings.prior_weight``). settings: any other solve (its steps
     and prior then override ``steps`` and ``prior_weight``).
+
+    accept: keep the refined flow only where it lowers the window's L_HMC (the env's reward loss,
+    paper weights, flow scaling max(H, W)) by at least this fraction of the network's; otherwise
+    the network's flow stays (None: always the refined flow). Why: where the network is already
+    near the truth (still or slow scenes), the solve still finds a slightly lower loss by inventing
+    motion (the loss's optimum is biased there), a small drop; where the network is far off, the
+    drop is large (docs/results.md, eleventh round).
     """
 
     SOLVERS = ("fine", "cmax")
 
     def __init__(self, policy, *, steps: int = 30, solver: str = "fine", prior_weight: float = 0.0,
-                 settings: CMaxSettings | None = None) -> None:
+                 settings: CMaxSettings | None = None, accept: float | None = None) -> None:
         self.policy = policy
         if int(steps) < 0:
             raise ValueError(f"refinement steps must be >= 0, got {steps}")
+        if accept is not None and not 0.0 <= accept < 1.0:
+            raise ValueError(f"refinement accept must be a fraction in [0, 1), got {accept}")
+        self.accept = accept
+        self.accepted = 0  # windows whose refined flow was kept / refined, when gated
+        self.refined = 0
         if solver not in self.SOLVERS:
             raise ValueError(f"refinement solver must be one of {self.SOLVERS}, got {solver!r}")
         if settings is None and solver == "fine":
@@ -152,4 +164,15 @@ class RefinedPolicy:
         if self.steps == 0:
             return flow
         size = tuple(flow.shape[-2:])
-        return self.settings.solve(window, size, base=flow, device=self.policy.device)
+        refined = self.settings.solve(window, size, base=flow, device=self.policy.device)
+        if self.accept is None or len(window["t"]) == 0:
+            return refined
+        batch = EventBatch.from_windows([window], device=self.policy.device)
+        with torch.no_grad():
+            before, after = (float(hmc_loss(torch.as_tensor(f, device=self.policy.device)[None], batch,
+                                            flow_scaling=float(max(size))).loss) for f in (flow, refined))
+        self.refined += 1
+        if after <= (1.0 - self.accept) * before:
+            self.accepted += 1
+            return refined
+        return flow

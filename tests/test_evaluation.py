@@ -132,6 +132,32 @@ def test_a_strong_prior_holds_the_refinement_to_the_networks_flow(rng):
         contrast_maximisation_flow(EventBatch.from_windows([window]), 48, 64, prior_weight=1.0)
 
 
+def test_the_acceptance_gate_keeps_the_refinement_only_where_the_loss_drops_enough(rng):
+    """accept = a: the refined flow where L_HMC (paper weights, flow scaling max(H, W)) falls by at
+    least a of the network's, else the network's flow exactly; checked against the rule computed
+    here, from a start half way to a translation (a large drop), from the translation itself (a
+    small one: the solve still finds a slightly lower loss) and from zero (the local solve raises it)."""
+    window, truth = _translation_window(rng)
+    obs = {"count_image": np.zeros((2, 48, 64), np.float32)}
+    batch = EventBatch.from_windows([window])
+
+    def loss(f):
+        return float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=64).loss)
+
+    for fraction, expect_refined in ((0.5, True), (1.0, False), (0.0, False)):
+        start = np.zeros((2, 48, 64), np.float32)
+        start[0], start[1] = truth[0] * fraction, truth[1] * fraction
+        refined = RefinedPolicy(_Constant(start), steps=60).act_on_window(obs, window)
+        drop = 1 - loss(refined) / loss(start)
+        gated = RefinedPolicy(_Constant(start), steps=60, accept=0.15)
+        out = gated.act_on_window(obs, window)
+        assert (drop >= 0.15) == expect_refined, drop
+        assert np.array_equal(out, refined if expect_refined else start)
+        assert (gated.accepted, gated.refined) == (int(expect_refined), 1)
+    with pytest.raises(ValueError, match=r"accept must be a fraction in \[0, 1\), got 1.5"):
+        RefinedPolicy(_Constant(start), accept=1.5)
+
+
 def test_an_unknown_refinement_solver_is_refused():
     with pytest.raises(ValueError, match=r"solver must be one of \('fine', 'cmax'\), got 'coarse'"):
         RefinedPolicy(_Constant(np.zeros((2, 4, 4), np.float32)), solver="coarse")

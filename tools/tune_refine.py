@@ -3,9 +3,10 @@
 a split: AEE, L_HMC and time per window at dt = 1 and dt = 4, first windows of every sequence.
 
     python tools/tune_refine.py --data synthetic-dr-val --max-windows 5 \\
-        --refine fine:30:0 cmax:100:0 cmax:100:1 cmax:100:10
+        --refine fine:30:0 cmax:100:0 cmax:100:1 cmax:100:10 cmax:100:0:0.05
 
-Each --refine is SOLVER:STEPS:PRIOR (``RefinedPolicy(solver=, steps=, prior_weight=)``). Tune on
+Each --refine is SOLVER:STEPS:PRIOR[:ACCEPT] (``RefinedPolicy(solver=, steps=, prior_weight=,
+accept=)``; without ACCEPT the refined flow is always kept). Tune on
 the selection split (synthetic-dr-val), never on synthetic-stress or a test split.
 """
 
@@ -31,15 +32,16 @@ def main(argv=None) -> int:
     p.add_argument("--pretrained", default=DEFAULT_PRETRAINED)
     p.add_argument("--max-windows", type=int, default=5, help="per sequence")
     p.add_argument("--dt", type=int, nargs="+", default=[1, 4])
-    p.add_argument("--refine", nargs="+", default=["cmax:100:0"], help="SOLVER:STEPS:PRIOR, one row each")
+    p.add_argument("--refine", nargs="+", default=["cmax:100:0"], help="SOLVER:STEPS:PRIOR[:ACCEPT], one row each")
     p.add_argument("--cmax", action="store_true", help="add the --cmax row (the solve from zero)")
     args = p.parse_args(argv)
     data = args.data[0] if len(args.data) == 1 else args.data
     network = RecurrentPolicy.from_pretrained(args.pretrained)
     rows: dict = {args.pretrained: network}
     for spec in args.refine:
-        solver, steps, prior = spec.split(":")
-        rows[f"refine {spec}"] = RefinedPolicy(network, solver=solver, steps=int(steps), prior_weight=float(prior))
+        solver, steps, prior, *accept = spec.split(":")
+        rows[f"refine {spec}"] = RefinedPolicy(network, solver=solver, steps=int(steps), prior_weight=float(prior),
+                                               accept=float(accept[0]) if accept else None)
     if args.cmax:
         rows["contrast maximisation (no network)"] = ContrastMaximisationPolicy()
     rows["zero flow"] = None

@@ -78,6 +78,8 @@ class EvaluateOptions:
     """--refine's solve: 'fine' (one 16-cell level, a local correction) or 'cmax' (the --cmax coarse-to-fine solve started from the network's flow, K steps over its levels)"""
     refine_prior: float = 0.0
     """--refine holds the flow to the network's with this weight (mean square of the correction in flow-scaling units; 0: none)"""
+    refine_accept: float | None = option(None, metavar="A")
+    """--refine keeps the refined flow of a window only where it lowers L_HMC by at least the fraction A of the network's (else the network's flow); default: always"""
     data: list[str] = option(default_factory=lambda: ["synthetic-test"])
     """synthetic split, recording files or directories"""
     format: str | None = None
@@ -188,8 +190,9 @@ def build_policies(args) -> dict:
         for name, policy in list(policies.items()):
             label = f"{name} + refine {args.refine}" + (" (cmax)" if args.refine_solver == "cmax" else "")
             label += f" prior {args.refine_prior:g}" if args.refine_prior else ""
+            label += f" accept {args.refine_accept:g}" if args.refine_accept is not None else ""
             policies[label] = RefinedPolicy(policy, steps=args.refine, solver=args.refine_solver,
-                                            prior_weight=args.refine_prior)
+                                            prior_weight=args.refine_prior, accept=args.refine_accept)
     if args.cmax:
         policies["contrast maximisation (no network)"] = ContrastMaximisationPolicy(device=args.device)
     if args.zero or not policies:
@@ -230,6 +233,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"--refine must be >= 0 steps, got {args.refine}")
     if args.refine_prior < 0:
         raise SystemExit(f"--refine-prior must be >= 0, got {args.refine_prior}")
+    if args.refine_accept is not None and not 0 <= args.refine_accept < 1:
+        raise SystemExit(f"--refine-accept must be a fraction in [0, 1), got {args.refine_accept}")
     policies = build_policies(args)
     data = args.data[0] if len(args.data) == 1 else args.data
     if args.dsec_submission and not args.dsec_test_timestamps:
