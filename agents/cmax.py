@@ -24,7 +24,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow, hmc_loss
+from envs.env import score_flow
+from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
 
 __all__ = ["CMaxSettings", "ContrastMaximisationPolicy", "RefinedPolicy", "FRAME_US"]
 
@@ -123,12 +124,13 @@ class RefinedPolicy:
     to the network's flow (``CMaxSettings.prior_weight``). settings: any other solve (its steps
     and prior then override ``steps`` and ``prior_weight``).
 
-    accept: keep the refined flow only where it lowers the window's L_HMC (the env's reward loss,
-    paper weights, flow scaling max(H, W)) by at least this fraction of the network's; otherwise
-    the network's flow stays (None: always the refined flow). Why: where the network is already
-    near the truth (still or slow scenes), the solve still finds a slightly lower loss by inventing
-    motion (the loss's optimum is biased there), a small drop; where the network is far off, the
-    drop is large (docs/results.md, eleventh round).
+    accept: keep the refined flow only where it lowers the window's loss as the env scores it
+    (``envs.env.score_flow``: L_HMC, paper weights, with the border rule; flow scaling max(H, W))
+    by at least the fraction ``accept`` of the network's; otherwise the network's flow stays
+    (None: always the refined flow; 0: the refined flow unless it raises that loss). The idea:
+    where the network is near the truth the solve still finds a slightly lower loss by inventing
+    motion, a small drop. Whether a drop says where the refinement helps is measured, per split,
+    by ``tools/refine_gate.py`` (docs/results.md, eleventh round).
     """
 
     SOLVERS = ("fine", "cmax")
@@ -168,9 +170,8 @@ class RefinedPolicy:
         if self.accept is None or len(window["t"]) == 0:
             return refined
         batch = EventBatch.from_windows([window], device=self.policy.device)
-        with torch.no_grad():
-            before, after = (float(hmc_loss(torch.as_tensor(f, device=self.policy.device)[None], batch,
-                                            flow_scaling=float(max(size))).loss) for f in (flow, refined))
+        before, after = (float(score_flow(torch.as_tensor(f, device=self.policy.device)[None], batch,
+                                          flow_scaling=float(max(size))).loss) for f in (flow, refined))
         self.refined += 1
         if after <= (1.0 - self.accept) * before:
             self.accepted += 1

@@ -14,7 +14,7 @@ from agents.commands import evaluate as evaluate_script  # noqa: E402
 from agents.evaluation import evaluate, results_table
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
-from envs.env import EventFlowEnv
+from envs.env import EventFlowEnv, score_flow
 from losses import EventBatch, contrast_maximisation_flow, hmc_loss
 from tests.recordings import translating_dots, write_translating_recording
 from tests.test_readers import _stream, write_hagenaars
@@ -133,8 +133,9 @@ def test_a_strong_prior_holds_the_refinement_to_the_networks_flow(rng):
 
 
 def test_the_acceptance_gate_keeps_the_refinement_only_where_the_loss_drops_enough(rng):
-    """accept = a: the refined flow where L_HMC (paper weights, flow scaling max(H, W)) falls by at
-    least a of the network's, else the network's flow exactly; checked against the rule computed
+    """accept = a: the refined flow where the env's loss (score_flow: L_HMC with the border rule,
+    flow scaling max(H, W)) falls by at least a of the network's, else the network's flow exactly;
+    accept = 0 keeps only refinements that do not raise it. Checked against the rule computed
     here, from a start half way to a translation (a large drop), from the translation itself (a
     small one: the solve still finds a slightly lower loss) and from zero (the local solve raises it)."""
     window, truth = _translation_window(rng)
@@ -142,7 +143,7 @@ def test_the_acceptance_gate_keeps_the_refinement_only_where_the_loss_drops_enou
     batch = EventBatch.from_windows([window])
 
     def loss(f):
-        return float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=64).loss)
+        return float(score_flow(torch.from_numpy(f)[None], batch, flow_scaling=64).loss)
 
     for fraction, expect_refined in ((0.5, True), (1.0, False), (0.0, False)):
         start = np.zeros((2, 48, 64), np.float32)
@@ -154,6 +155,8 @@ def test_the_acceptance_gate_keeps_the_refinement_only_where_the_loss_drops_enou
         assert (drop >= 0.15) == expect_refined, drop
         assert np.array_equal(out, refined if expect_refined else start)
         assert (gated.accepted, gated.refined) == (int(expect_refined), 1)
+        kept = RefinedPolicy(_Constant(start), steps=60, accept=0.0).act_on_window(obs, window)
+        assert np.array_equal(kept, refined if drop >= 0 else start)
     with pytest.raises(ValueError, match=r"accept must be a fraction in \[0, 1\), got 1.5"):
         RefinedPolicy(_Constant(start), accept=1.5)
 

@@ -3,10 +3,12 @@
 
 For the first windows of every sequence of a split (dt = 1 and 4), the shipped network's flow
 and its refinement (``RefinedPolicy``, the network's flow fed back as in evaluation) are scored
-on the window's L_HMC (the env's reward loss) and on the AEE to the ground truth (pixels with
-events). Prints the mean AEE of the network, the refinement, zero flow and of the acceptance
-gate (``RefinedPolicy(accept=A)``: the refinement kept only where the loss falls by >= A) for
-several A, from the same windows, so one pass prices every threshold.
+on the window's loss as the env scores it (``score_flow``: L_HMC with the border rule, which the
+gate ``RefinedPolicy(accept=A)`` uses), on plain L_HMC (evaluation's column, no border rule) and
+on the AEE to the ground truth (pixels with events and valid truth). Prints the mean AEE of the
+network, the refinement, zero flow and of the gate (the refinement kept only where the loss
+falls by at least the fraction A) for several A, by either loss, from the same windows: one
+pass prices every threshold.
 
     python tools/refine_gate.py --data synthetic-dr-val --max-windows 5 --out runs/refine-gate.jsonl
     python tools/refine_gate.py --from runs/refine-gate.jsonl      # the table again, nothing solved
@@ -34,11 +36,13 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
     from agents.cmax import RefinedPolicy
     from agents.policy import RecurrentPolicy
     from envs.dataset import resolve_data
-    from envs.env import EventFlowEnv
+    from envs.env import EventFlowEnv, score_flow
     from envs.representations import EventView, event_mask
     from losses import EventBatch, flow_error, hmc_loss
 
     network = RecurrentPolicy.from_pretrained(pretrained)
+    if spec.count(":") != 2:
+        raise SystemExit(f"--refine {spec}: expected SOLVER:STEPS:PRIOR (the gate's thresholds are all priced)")
     solver, steps, prior = spec.split(":")
     refine = RefinedPolicy(network, solver=solver, steps=int(steps), prior_weight=float(prior))
     rows = []
@@ -56,16 +60,19 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
                     refined = refine.settings.solve(window, size, base=flow, device="cpu")
                     flows = (flow, refined, np.zeros_like(flow))
                     batch = EventBatch.from_windows([window])
+                    scale = float(max(size))
                     with torch.no_grad():
-                        losses = [float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=float(max(size))).loss)
-                                  for f in flows]
+                        plain = [float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=scale).loss) for f in flows]
+                        env_loss = [float(score_flow(torch.from_numpy(f)[None], batch, flow_scaling=scale).loss)
+                                    for f in flows]
                     scored = event_mask(EventView(window), size)
-                    aee = [flow_error(f, info["flow_gt"], info["flow_gt_valid"], scored)["aee"] for f in flows]
-                    rows.append({"dt": dt, "sequence": index, "window": w, "loss": losses, "aee": aee,
-                                 "events": len(window["t"])})
-                    if out is not None:
-                        with out.open("a") as f:
-                            f.write(json.dumps(rows[-1]) + "\n")
+                    errors = [flow_error(f, info["flow_gt"], info["flow_gt_valid"], scored) for f in flows]
+                    if errors[0]["n_pixels"] > 0:  # no valid truth under the events: not scored (as in evaluation)
+                        rows.append({"dt": dt, "sequence": index, "window": w, "env_loss": env_loss, "loss": plain,
+                                     "aee": [e["aee"] for e in errors], "events": len(window["t"])})
+                        if out is not None:
+                            with out.open("a") as f:
+                                f.write(json.dumps(rows[-1]) + "\n")
                 obs, _, _, truncated, info = env.step(flow)
                 if truncated:
                     break
@@ -74,15 +81,19 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
 
 
 def table(rows: list[dict]) -> str:
-    """Mean AEE per window length: network, refined, zero flow, and the gate at each threshold."""
-    lines = ["| dt | windows | network | refined | zero flow | " + " | ".join(f"gate {t:g}" for t in THRESHOLDS) + " |",
-             "|---|---|---|---|---|" + "---|" * len(THRESHOLDS)]
+    """Mean AEE per window length: network, refined, zero flow, and the gate at each threshold,
+    deciding by the env's loss (``env_loss``, the gate's) and by plain L_HMC (``loss``)."""
+    lines = ["| dt | gate by | windows | network | refined | zero flow | "
+             + " | ".join(f"gate {t:g}" for t in THRESHOLDS) + " |", "|---|---|---|---|---|---|" + "---|" * len(THRESHOLDS)]
     for dt in sorted({r["dt"] for r in rows}):
         part = [r for r in rows if r["dt"] == dt]
         mean = [np.mean([r["aee"][k] for r in part]) for k in range(3)]
-        gated = [np.mean([r["aee"][1] if r["loss"][1] <= (1 - t) * r["loss"][0] else r["aee"][0] for r in part])
-                 for t in THRESHOLDS]
-        lines.append(f"| {dt} | {len(part)} | " + " | ".join(f"{v:.3f}" for v in [*mean, *gated]) + " |")
+        for key, label in (("env_loss", "env loss"), ("loss", "plain L_HMC")):
+            if not all(key in r for r in part):
+                continue
+            gated = [np.mean([r["aee"][1] if r[key][1] <= (1 - t) * r[key][0] else r["aee"][0] for r in part])
+                     for t in THRESHOLDS]
+            lines.append(f"| {dt} | {label} | {len(part)} | " + " | ".join(f"{v:.3f}" for v in [*mean, *gated]) + " |")
     return "\n".join(lines)
 
 
@@ -93,7 +104,7 @@ def main(argv=None) -> int:
     p.add_argument("--max-windows", type=int, default=5, help="per sequence")
     p.add_argument("--dt", type=int, nargs="+", default=[1, 4])
     p.add_argument("--refine", default="cmax:100:0", help="SOLVER:STEPS:PRIOR of the refinement")
-    p.add_argument("--out", type=Path, default=None, help="append each window's numbers here (JSON lines)")
+    p.add_argument("--out", type=Path, default=None, help="write each window's numbers here (JSON lines, as they come)")
     p.add_argument("--from", dest="source", type=Path, default=None, help="re-tabulate such a file, solve nothing")
     args = p.parse_args(argv)
     if args.source is not None:
@@ -104,6 +115,9 @@ def main(argv=None) -> int:
         from agents.pretrained import DEFAULT_PRETRAINED
 
         torch.set_num_threads(1)
+        if args.out is not None:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text("")
         rows = score_windows(args.data, args.pretrained or DEFAULT_PRETRAINED, args.max_windows, args.dt,
                              args.refine, args.out)
     print(table(rows))

@@ -39,6 +39,8 @@ def main(argv=None) -> int:
     network = RecurrentPolicy.from_pretrained(args.pretrained)
     rows: dict = {args.pretrained: network}
     for spec in args.refine:
+        if spec.count(":") not in (2, 3):
+            raise SystemExit(f"--refine {spec}: expected SOLVER:STEPS:PRIOR[:ACCEPT]")
         solver, steps, prior, *accept = spec.split(":")
         rows[f"refine {spec}"] = RefinedPolicy(network, solver=solver, steps=int(steps), prior_weight=float(prior),
                                                accept=float(accept[0]) if accept else None)
