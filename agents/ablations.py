@@ -42,6 +42,8 @@ from typing import Callable, Literal
 
 import torch
 
+from envs.atomic import same_file
+
 from .checkpoint import load_checkpoint, load_model
 from .evaluation import evaluate, results_json
 from .policy import RecurrentPolicy
@@ -332,28 +334,38 @@ class AblationRunner:
     def targets(self, loss: Loss) -> Path:
         """The teacher targets of ``loss`` on the training split, solved once (resumable).
 
-        Looked for in this order: the file given for ``loss``, ``OUT/targets/<loss>.h5``,
-        ``RECORD/targets/<loss>.h5`` (the copy kept with the rows: a new machine does not solve
-        them again, about an hour per loss on the 2-core CPU); each is checked against the budget's
-        solver settings. Solved here, they are copied into the record (lossless, compressed) and
-        handed to ``on_targets``."""
+        A file given for ``loss`` is used as it is (solved into that path if missing). Otherwise
+        ``OUT/targets/<loss>.h5`` if there, else the record's copy ``RECORD/targets/<loss>.h5`` (a
+        new machine need not solve them again: about an hour per loss on the 2-core CPU), else
+        they are solved into OUT. Whatever file is used is checked against the budget's solver
+        settings. Targets in OUT that the record lacks (just solved, or solved before the record
+        kept them) are copied there (lossless, compressed) and handed to ``on_targets``."""
         settings = dataclasses.replace(self.budget.teacher, lambda_1=1.0 if loss == "hmc" else 0.0)
         given = self.given_targets.get(loss)
-        candidates = [Path(given)] if given else [self.out / "targets" / f"{loss}.h5", self.record_targets(loss)]
-        for path in candidates:
-            if path.exists():  # solved earlier, or given: the same data, window lengths and solver
+        if given:
+            path = Path(given)
+            if path.exists():
                 self._check_targets(path, loss, settings)
                 return path
-        path = candidates[0]
-        self.log(f"[ablations] solving the {loss} teacher's targets of {self.budget.train_data} into {path}")
-        path = compute_teacher_targets(self.budget.train_data, path, window_sizes=self.budget.teacher_window_sizes,
-                                       settings=settings, device=self.device)
-        kept = self.record_targets(loss)
-        if kept != path and not given:
+            return self._solve(loss, settings, path)
+        path, kept = self.out / "targets" / f"{loss}.h5", self.record_targets(loss)
+        if not path.exists() and kept.exists():
+            self._check_targets(kept, loss, settings)
+            return kept
+        if path.exists():
+            self._check_targets(path, loss, settings)
+        else:
+            self._solve(loss, settings, path)
+        if not kept.exists() and not same_file(kept, path):
             copy_targets(path, kept)
             if self.on_targets is not None:
                 self.on_targets([kept])
         return path
+
+    def _solve(self, loss: Loss, settings: TeacherSettings, path: Path) -> Path:
+        self.log(f"[ablations] solving the {loss} teacher's targets of {self.budget.train_data} into {path}")
+        return compute_teacher_targets(self.budget.train_data, path, window_sizes=self.budget.teacher_window_sizes,
+                                       settings=settings, device=self.device)
 
     def record_targets(self, loss: Loss) -> Path:
         """Where the record keeps the targets of ``loss``."""

@@ -103,7 +103,9 @@ def export_pretrained(
 
 def _targets_provenance(path: Path) -> dict[str, Any]:
     """How the teacher targets a run regressed onto were made (their file's config: data, window
-    lengths, solver settings, and the derivation where they were derived), by file name."""
+    lengths, solver settings, and the derivation where they were derived), by file name. Read at
+    export: the run's own targets only (a stage started with ``--init`` from a teacher run does
+    not carry its parent's), and the file as it is then."""
     try:
         with h5py.File(path, "r") as f:
             config = json.loads(f.attrs.get("config", "null"))

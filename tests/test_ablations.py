@@ -256,10 +256,26 @@ def test_solved_targets_are_kept_in_the_record_and_reused_by_a_new_machine(tmp_p
     second = AblationRunner(tmp_path / "run2", TINY, train_script.main, seeds=(0,), log=lambda _: None, record=record,
                             on_targets=kept.extend)
     assert second.targets("hmc") == record / "targets" / "hmc.h5" and len(kept) == 1
-    # the record's copy is checked like any other: L_HMC targets are not L_AT ones
-    with pytest.raises(ValueError, match="lambda_1=1.0"):
-        AblationRunner(tmp_path / "run3", TINY, train_script.main, seeds=(0,), record=record,
-                       targets={"at": str(kept[0])}).targets("at")
+    # the record's copy is checked against the budget like any other file
+    other = dataclasses.replace(TINY, teacher=TeacherSettings(grids=(2,), steps=3))
+    with pytest.raises(ValueError, match=r"targets/hmc.h5: not the hmc teacher's targets .*steps=2"):
+        AblationRunner(tmp_path / "run3", other, train_script.main, seeds=(0,), record=record).targets("hmc")
+
+
+def test_targets_already_in_the_run_folder_reach_the_record(tmp_path):
+    """Solved before the record kept them (or killed before the copy): the next run copies them."""
+    import shutil
+
+    record, kept = tmp_path / "record", []
+    solved = AblationRunner(tmp_path / "run1", TINY, train_script.main, seeds=(0,), log=lambda _: None).targets("hmc")
+    (tmp_path / "run2" / "targets").mkdir(parents=True)
+    shutil.copy(solved, tmp_path / "run2" / "targets" / "hmc.h5")
+    runner = AblationRunner(tmp_path / "run2", TINY, lambda argv: pytest.fail("trained"), seeds=(0,),
+                            log=lambda _: None, record=record, on_targets=kept.extend)
+    assert runner.targets("hmc") == tmp_path / "run2" / "targets" / "hmc.h5"
+    assert kept == [record / "targets" / "hmc.h5"] and kept[0].exists()
+    runner.targets("hmc")
+    assert len(kept) == 1  # once
 
 
 def test_one_runner_per_folder(tmp_path):

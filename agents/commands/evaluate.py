@@ -233,6 +233,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"--refine must be >= 0 steps, got {args.refine}")
     if args.refine_prior < 0:
         raise SystemExit(f"--refine-prior must be >= 0, got {args.refine_prior}")
+    if args.refine_accept is not None and not args.refine:
+        raise SystemExit("--refine-accept gates a refinement: give --refine K too")
     if args.refine_accept is not None and not 0 <= args.refine_accept < 1:
         raise SystemExit(f"--refine-accept must be a fraction in [0, 1), got {args.refine_accept}")
     policies = build_policies(args)
