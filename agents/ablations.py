@@ -110,7 +110,7 @@ class Budget:
     """
 
     teacher_steps: int = 6000
-    """Adam steps of the teacher stage (about 30 minutes of EV-MGRFlowNet on 2 CPU cores)."""
+    """Adam steps of the teacher stage (EV-MGRFlowNet: about 0.9 steps/s on the 2-core CPU, ~1.9 hours)."""
     finetune_steps: int = 1500
     """Adam steps of the fine-tuning stage on the configuration's own loss (0: none)."""
     train_data: str = "synthetic-train"
