@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
 
+import numpy as np
 import torch
 
 from envs.atomic import same_file
@@ -339,7 +340,7 @@ class AblationRunner:
         new machine need not solve them again: about an hour per loss on the 2-core CPU), else
         they are solved into OUT. Whatever file is used is checked against the budget's solver
         settings. Targets in OUT that the record lacks (just solved, or solved before the record
-        kept them) are copied there (lossless, compressed) and handed to ``on_targets``."""
+        kept them) are copied there (float16, compressed) and handed to ``on_targets``."""
         settings = dataclasses.replace(self.budget.teacher, lambda_1=1.0 if loss == "hmc" else 0.0)
         given = self.given_targets.get(loss)
         if given:
@@ -357,7 +358,7 @@ class AblationRunner:
         else:
             self._solve(loss, settings, path)
         if not kept.exists() and not same_file(kept, path):
-            copy_targets(path, kept)
+            copy_targets(path, kept, dtype=np.float16)  # under 5 MB for a repository; ~0.016 px at 32 px
             if self.on_targets is not None:
                 self.on_targets([kept])
         return path

@@ -179,9 +179,11 @@ def compute_teacher_targets(
     return out
 
 
-def copy_targets(source: str | os.PathLike, out: str | os.PathLike) -> Path:
-    """Copy a complete target file to ``out``, the same values compressed (gzip, byte shuffle):
-    the copy a repository can keep so that a new machine need not solve them again."""
+def copy_targets(source: str | os.PathLike, out: str | os.PathLike, dtype=None) -> Path:
+    """Copy a complete target file to ``out``, compressed (gzip, byte shuffle): the copy a
+    repository can keep so that a new machine need not solve them again. dtype: the flow grids'
+    stored type (e.g. ``np.float16``: half the size, at most ~0.016 px off at 32 px; read back as
+    float32); None keeps them exactly."""
     TeacherTargets(source)  # refuses an incomplete or foreign file, naming it
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -195,7 +197,10 @@ def copy_targets(source: str | os.PathLike, out: str | os.PathLike) -> Path:
                 for key, value in group.attrs.items():
                     copy.attrs[key] = value
                 for key, data in group.items():
-                    copy.create_dataset(key, data=data[()], compression="gzip", compression_opts=9, shuffle=True)
+                    values = data[()]
+                    if dtype is not None and key == "grid":
+                        values = values.astype(dtype)
+                    copy.create_dataset(key, data=values, compression="gzip", compression_opts=9, shuffle=True)
 
     _replace_with(out, write)
     return out
