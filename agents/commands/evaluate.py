@@ -79,7 +79,7 @@ class EvaluateOptions:
     refine_prior: float = 0.0
     """--refine holds the flow to the network's with this weight (mean square of the correction in flow-scaling units; 0: none)"""
     refine_accept: float | None = option(None, metavar="A")
-    """--refine keeps the refined flow of a window only where it lowers L_HMC by at least the fraction A of the network's (else the network's flow); default: always"""
+    """--refine keeps the refined flow of a window only where it lowers the env's loss (L_HMC with the border rule) by at least the fraction A of the network's (else the network's flow); default: always"""
     data: list[str] = option(default_factory=lambda: ["synthetic-test"])
     """synthetic split, recording files or directories"""
     format: str | None = None
