@@ -162,7 +162,8 @@ class RefinedPolicy:
         self.policy.reset(mask)
 
     def act_on_window(self, obs, window: dict) -> np.ndarray:
-        flow = self.policy.act(obs)
+        inner = getattr(self.policy, "act_on_window", None)  # e.g. a SubWindowPolicy
+        flow = inner(obs, window) if inner is not None else self.policy.act(obs)
         if self.steps == 0:
             return flow
         size = tuple(flow.shape[-2:])

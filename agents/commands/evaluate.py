@@ -14,6 +14,7 @@ Examples:
       --dsec-test-timestamps test_forward_optical_flow_timestamps --dsec-submission runs/dsec_submission
   python scripts/evaluate.py --pretrained --zero --cmax --data synthetic-stress    # with the model-free row
   python scripts/evaluate.py --pretrained --refine 30 --data rec.h5                # + test-time refinement
+  python scripts/evaluate.py --pretrained --split dt --zero --cmax --data synthetic-stress   # network at a 1-frame cadence
 
 Each recording is evaluated whole at its own sensor size (the networks pad to a multiple of 16
 and crop their flow back) unless --crop is given. Each sequence is rolled from its first window
@@ -51,6 +52,7 @@ from agents.evaluation import evaluate, results_json, results_table, windowing_o
 from agents.options import add_options, check_choices, option, options_from_args
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model, width_kwargs
+from agents.subwindows import SubWindowPolicy
 
 
 @dataclass
@@ -80,6 +82,8 @@ class EvaluateOptions:
     """--refine holds the flow to the network's with this weight (mean square of the correction in flow-scaling units; 0: none)"""
     refine_accept: float | None = option(None, metavar="A")
     """--refine keeps the refined flow of a window only where it lowers the env's loss (L_HMC with the border rule) by at least the fraction A of the network's (else the network's flow); default: always"""
+    split: str | None = option(None, metavar="N|dt")
+    """also evaluate each model stepped through N equal sub-windows of every window, their flows composed (agents/subwindows.py); 'dt': one per ground-truth interval (N = the table's dt)"""
     data: list[str] = option(default_factory=lambda: ["synthetic-test"])
     """synthetic split, recording files or directories"""
     format: str | None = None
@@ -186,6 +190,10 @@ def build_policies(args) -> dict:
     if args.model and not args.checkpoint:
         policies[args.model] = RecurrentPolicy(make_model(args.model, **width_kwargs(args.width)).eval(),
                                                device=args.device)
+    if args.split:
+        for name, policy in list(policies.items()):
+            label = f"{name} + split {args.split}"
+            policies[label] = SubWindowPolicy(policy, splits=1 if args.split == "dt" else int(args.split))
     if args.refine:
         for name, policy in list(policies.items()):
             label = f"{name} + refine {args.refine}" + (" (cmax)" if args.refine_solver == "cmax" else "")
@@ -237,6 +245,8 @@ def main(argv=None) -> int:
         raise SystemExit("--refine-accept gates a refinement: give --refine K too")
     if args.refine_accept is not None and not 0 <= args.refine_accept < 1:
         raise SystemExit(f"--refine-accept must be a fraction in [0, 1), got {args.refine_accept}")
+    if args.split is not None and args.split != "dt" and not (args.split.isdigit() and int(args.split) >= 1):
+        raise SystemExit(f"--split must be a number of sub-windows >= 1 or 'dt', got {args.split!r}")
     policies = build_policies(args)
     data = args.data[0] if len(args.data) == 1 else args.data
     if args.dsec_submission and not args.dsec_test_timestamps:
@@ -254,6 +264,11 @@ def main(argv=None) -> int:
         else:
             runs = [(data, args.format, {}, None, None)]
         named = {name: [] for name in policies}
+        if args.split == "dt":  # one sub-window per ground-truth interval of this table
+            for policy in policies.values():
+                for layer in (policy, getattr(policy, "policy", None)):
+                    if isinstance(layer, SubWindowPolicy):
+                        layer.splits = size
         sinks = dsec_sinks(args, protocol, policies) if args.dsec_submission else {}
         for run_data, fmt, options, windows_fn, scorer_fn in runs:
             for name, policy in policies.items():
