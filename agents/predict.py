@@ -22,7 +22,7 @@ interrupted run leaves nothing under the final name):
 - attributes: ``format``, ``sensor_size`` (H, W of the flow frame), ``crop`` (its place in the
   recording's sensor), ``recording``, ``reader``, ``window`` and ``window_size`` (the mode and
   size that cut the windows: "time" when frames fell back for want of ground truth), ``model`` (JSON
-  provenance), ``units``.
+  provenance), ``split`` (sub-windows the network stepped through per window, 1: none), ``units``.
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ from envs.windows import WINDOW_MODES, window_bounds
 from losses import EventBatch, flow_error, fwl, hmc_loss, rsat
 
 from .policy import RecurrentPolicy
+from .subwindows import SubWindowPolicy
 
 __all__ = ["FLOW_FORMAT", "PredictResult", "load_policy", "predict", "summary_table"]
 
@@ -153,6 +154,7 @@ def predict(
     progress: bool = True,
     compression: int = 4,
     overwrite: bool = False,
+    split: int = 1,
 ) -> PredictResult:
     """Run ``policy`` over every window of ``recording`` and write the flows (module docstring).
 
@@ -164,9 +166,14 @@ def predict(
     sequence: which recording when ``recording`` names several (a folder, a synthetic split).
     overwrite: replace an existing ``out_path`` (refused otherwise, and always when it is the
     recording itself), as ``scripts/convert.py`` does.
+    split: step the network through this many equal sub-windows of every window and compose
+    their flows (``agents.subwindows``; for windows longer than the network's usual step).
     """
     if window not in WINDOW_MODES:
         raise ValueError(f"window must be one of {WINDOW_MODES}, got {window!r}")
+    if int(split) < 1:
+        raise ValueError(f"split must be a number of sub-windows >= 1, got {split}")
+    stepper = SubWindowPolicy(policy, int(split))
     out_path = Path(out_path)
     if Path(recording).exists() and same_file(out_path, recording):
         raise FileExistsError(f"{out_path}: is the input recording; write the flow to another file")
@@ -209,7 +216,7 @@ def predict(
             f.attrs.update(format=FLOW_FORMAT, version=1, sensor_size=(h, w),
                            recording=str(Path(recording).resolve()) if Path(recording).exists() else str(recording),
                            reader=type(reader).__name__, window=mode, window_size=size,
-                           model=json.dumps(provenance or {}, default=str),
+                           model=json.dumps(provenance or {}, default=str), split=int(split),
                            units="flow: pixels of displacement over the window, channel 0 = x (right), 1 = y (down)")
             flow_ds = f.create_dataset("flow", (k_total, 2, h, w), np.float16, chunks=(1, 2, h, w),
                                        compression="gzip", compression_opts=compression, shuffle=True)
@@ -223,8 +230,8 @@ def predict(
             f.attrs["crop"] = info["crop"]
             policy.reset()
             for k in range(k_total):
-                flow = policy.act(obs)
                 win = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+                flow = stepper.act_on_window(obs, win)
                 n = len(win["t"])
                 counts[k] = n
                 flow_ds[k] = flow.astype(np.float16)

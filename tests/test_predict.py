@@ -67,6 +67,21 @@ def test_predict_writes_the_flows_the_evaluation_produces(tmp_path, plugin_path,
     assert "zero flow" in table and f"{expected.mean('hmc'):.4f}" in table
 
 
+def test_predict_split_writes_the_flows_the_split_evaluation_produces(tmp_path, plugin_path):
+    from agents.subwindows import SubWindowPolicy
+
+    policy, sunk = tiny_policy(), []
+    runs = evaluate(SubWindowPolicy(policy, 3), "synthetic-mini", window_size=2, max_windows=4, progress=False,
+                    flow_sink=lambda reader, window, flow: sunk.append(flow))
+    out = tmp_path / "flow.h5"
+    predict(policy, "synthetic-mini", out, window_size=2, split=3, progress=False, video=None)
+    with h5py.File(out, "r") as f:
+        assert f.attrs["split"] == 3 and len(f["flow"]) >= 4
+        np.testing.assert_array_equal(f["flow"][:4], np.stack(sunk[:runs[0].windows][:4]).astype(np.float16))
+    with pytest.raises(ValueError, match="split"):
+        predict(policy, "synthetic-mini", tmp_path / "bad.h5", split=0, progress=False, video=None)
+
+
 def test_predict_carries_the_recurrent_state(tmp_path, plugin_path):
     """A window's flow depends on the windows before it (the state is carried): the same window
     predicted as the first of a cut span (--start/--end, fresh state) differs."""

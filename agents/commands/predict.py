@@ -45,6 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--crop", type=int, nargs="+", default=None, help="H W (centred) or TOP LEFT H W")
     p.add_argument("--sequence", default="0", help="which recording of a folder / split (index or name)")
     p.add_argument("--format", default=None, help="force a reader (see envs.readers.FORMATS)")
+    p.add_argument("--split", type=int, default=1, metavar="N",
+                   help="step the network through N equal sub-windows of each window and compose their flows "
+                        "(long windows of fast motion; N network steps per window)")
     p.add_argument("--per-event", action="store_true", help="also store the flow at every event")
     p.add_argument("--json", default=None, help="also write the summary as JSON here")
     p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1...")
@@ -68,7 +71,7 @@ def main(argv=None) -> int:  # opens as the other commands do: parse, then set t
         policy, args.recording, out, window=args.window, window_size=args.window_size, start_s=args.start, end_s=args.end,
         crop=args.crop, sequence=sequence, data_format=args.format, per_event=args.per_event, video=video,
         video_fps=args.fps, video_frames=args.video_frames, provenance=provenance, no_gt_window_us=args.no_gt_window,
-        progress=not args.no_progress, overwrite=args.overwrite,
+        progress=not args.no_progress, overwrite=args.overwrite, split=args.split,
     )
     name = provenance.get("name") or provenance.get("path") or "model"
     print(summary_table(result, name=str(name)))
