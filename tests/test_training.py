@@ -340,6 +340,7 @@ def test_main_job_runs_end_to_end_on_mini_data(tmp_path, capsys, stage):
     assert ("stage-1 model" in printed) == (stage == "hmc")
     table = (out / "eval" / "synthetic-mini" / "table.md").read_text()
     assert "| zero flow |" in table and ("| contrast maximisation (no network) |" in table) == (stage == "teacher")
+    assert "(pretrained) + split dt |" in table
     assert (out / "demo" / "checkpoint.pt").exists() and "| demo model |" in (out / "demo-eval" / "table.md").read_text()
     assert "L_HMC ratio" in printed and "scripts/train.py --preset teacher-cached" in printed
 
