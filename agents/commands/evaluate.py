@@ -49,6 +49,7 @@ import torch
 import agents.pretrained as pretrained_module
 from agents.checkpoint import load_model
 from agents.evaluation import evaluate, results_json, results_table, windowing_of
+from agents.mirror import MirrorPolicy
 from agents.options import add_options, check_choices, option, options_from_args
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model, width_kwargs
@@ -84,6 +85,8 @@ class EvaluateOptions:
     """--refine keeps the refined flow of a window only where it lowers the env's loss (L_HMC with the border rule) by at least the fraction A of the network's (else the network's flow); default: always"""
     split: str | None = option(None, metavar="N|dt")
     """also evaluate each model stepped through N equal sub-windows of every window, their flows composed (agents/subwindows.py); 'dt': one per ground-truth interval (N = the table's dt)"""
+    mirror: bool = False
+    """also evaluate each model (and split row) averaged over its flows on the input mirrored left-right, up-down and both (agents/mirror.py; 4 network steps per window)"""
     data: list[str] = option(default_factory=lambda: ["synthetic-test"])
     """synthetic split, recording files or directories"""
     format: str | None = None
@@ -194,6 +197,12 @@ def build_policies(args) -> dict:
         for name, policy in list(policies.items()):
             label = f"{name} + split {args.split}"
             policies[label] = SubWindowPolicy(policy, splits=1 if args.split == "dt" else int(args.split))
+    if args.mirror:
+        for name, policy in list(policies.items()):
+            if isinstance(policy, SubWindowPolicy):
+                policies[f"{name} + mirror"] = SubWindowPolicy(MirrorPolicy(policy.policy), splits=policy.splits)
+            else:
+                policies[f"{name} + mirror"] = MirrorPolicy(policy)
     if args.refine:
         for name, policy in list(policies.items()):
             label = f"{name} + refine {args.refine}" + (" (cmax)" if args.refine_solver == "cmax" else "")
