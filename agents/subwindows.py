@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from envs.representations import EventView, count_image, count_time_image, voxel_grid
+from envs.representations import EventView, image_input
 
 __all__ = ["SubWindowPolicy", "compose_flows", "sub_windows"]
 
@@ -87,16 +87,8 @@ class SubWindowPolicy:
 
     def observation(self, window: dict, size: tuple[int, int]) -> dict:
         """The wrapped policy's input for one (sub-)window, as the env builds it."""
-        events = EventView(window)
-        if self.input_key == "count_image":
-            part = count_image(events, size)
-        elif self.input_key == "voxel_grid":
-            part = voxel_grid(events, self.voxel_bins, window["t_start"], window["t_end"], size)
-        elif self.input_key == "count_time_image":
-            part = count_time_image(events, window["t_start"], window["t_end"], size)
-        else:
-            raise ValueError(f"SubWindowPolicy cannot build the input {self.input_key!r}")
-        return {self.input_key: part}
+        return {self.input_key: image_input(self.input_key, EventView(window), window["t_start"], window["t_end"],
+                                            size, self.voxel_bins)}
 
     def act_on_window(self, obs, window: dict) -> np.ndarray:
         if self.splits == 1:

@@ -14,7 +14,7 @@ from gymnasium import spaces
 from envs.dataset import resolve_data
 from envs.events import Events
 from envs.readers._common import resolve_crop
-from envs.representations import EventView, count_image, count_time_image, voxel_grid
+from envs.representations import IMAGE_INPUTS, EventView, count_image, image_input
 from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import WINDOW_MODES, window_bounds, window_grid
 from losses import BORDER_RAMP, EventBatch, LossWeights, at_loss, border_rule_weight, check_border_ramp, hmc_loss
@@ -474,13 +474,10 @@ class EventFlowEnv(gym.Env):
     def _observation(self, window: dict) -> dict[str, np.ndarray]:
         ev = window["events"]
         size = (self.height, self.width)
-        obs: dict[str, np.ndarray] = {}
-        if "count_image" in self.observation_keys:
-            obs["count_image"] = count_image(EventView(ev), size)
-        if "voxel_grid" in self.observation_keys:
-            obs["voxel_grid"] = voxel_grid(EventView(ev), self.voxel_bins, window["t_start"], window["t_end"], size)
-        if "count_time_image" in self.observation_keys:
-            obs["count_time_image"] = count_time_image(EventView(ev), window["t_start"], window["t_end"], size)
+        obs: dict[str, np.ndarray] = {
+            kind: image_input(kind, EventView(ev), window["t_start"], window["t_end"], size, self.voxel_bins)
+            for kind in IMAGE_INPUTS if kind in self.observation_keys
+        }
         if "events" in self.observation_keys:
             n = len(ev["t"])
             rows = np.zeros((self.max_events, 4), np.float32)

@@ -29,6 +29,8 @@ __all__ = [
     "voxel_grid_torch",
     "event_mask_torch",
     "EventView",
+    "IMAGE_INPUTS",
+    "image_input",
 ]
 
 
@@ -113,6 +115,22 @@ def voxel_grid(
     grid = np.bincount(lower * n_pix + idx, weights=p * (1.0 - frac), minlength=num_bins * n_pix)
     grid += np.bincount(upper * n_pix + idx, weights=p * frac, minlength=num_bins * n_pix)
     return grid.reshape(num_bins, height, width).astype(np.float32)
+
+
+#: The network inputs that are images of one window's events (what :func:`image_input` builds).
+IMAGE_INPUTS = ("count_image", "voxel_grid", "count_time_image")
+
+
+def image_input(kind: str, events, t_start: int, t_end: int, size: tuple[int, int], voxel_bins: int = 5) -> np.ndarray:
+    """The network input ``kind`` (one of :data:`IMAGE_INPUTS`) of the window ``[t_start, t_end)``
+    holding ``events`` (x, y, t, p attributes, e.g. an :class:`EventView`), on an ``size`` (H, W) frame."""
+    if kind == "count_image":
+        return count_image(events, size)
+    if kind == "voxel_grid":
+        return voxel_grid(events, voxel_bins, t_start, t_end, size)
+    if kind == "count_time_image":
+        return count_time_image(events, t_start, t_end, size)
+    raise ValueError(f"no image input named {kind!r}; one of {IMAGE_INPUTS}")
 
 
 # --- torch, batched -------------------------------------------------------------------------
