@@ -10,18 +10,24 @@ the four gives a flow whose independent errors partly cancel, at four network st
     flow = policy.act(obs)
 
 Each mirror keeps its own recurrent state (a mirrored sequence is a sequence of its own).
-``scripts/evaluate.py --mirror`` adds a row per model (with ``--split``, the split rows are
-mirrored too).
+Half the cost: ``MirrorPolicy(policy, ROTATION)``, the input and its rotation by 180 degrees
+(left-right and up-down at once), two network steps per window.
+``scripts/evaluate.py --mirror`` adds a row per model (``--mirror 2``: the rotation pair; with
+``--split``, the split rows are mirrored too).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["MirrorPolicy", "MIRRORS"]
+__all__ = ["MirrorPolicy", "MIRRORS", "ROTATION", "MIRROR_SETS"]
 
 #: (left-right, up-down) per copy.
 MIRRORS = ((False, False), (True, False), (False, True), (True, True))
+#: The input and its rotation by 180 degrees: the pair whose errors cancel best per step spent.
+ROTATION = ((False, False), (True, True))
+#: The copy sets by their size (``--mirror N``).
+MIRROR_SETS = {4: MIRRORS, 2: ROTATION}
 
 
 def _mirror(array: np.ndarray, lr: bool, ud: bool) -> np.ndarray:

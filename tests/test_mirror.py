@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from agents.mirror import MirrorPolicy
+from agents.commands import evaluate as evaluate_script
+from agents.mirror import ROTATION, MirrorPolicy
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
+from tests.recordings import write_translating_recording
 
 
 class _Gradient:
@@ -71,3 +73,26 @@ def test_each_mirror_carries_its_own_recurrent_state(rng):
     net.reset()
     for x in inputs:  # one mirror, no flip: the policy itself, window after window
         assert np.array_equal(single.act({"count_image": x}), net.act(x))
+
+
+def test_the_rotation_pair_averages_the_flow_with_its_half_turn(rng):
+    flow = rng.normal(size=(2, 5, 7)).astype(np.float32)
+    turned = -np.rot90(flow, 2, axes=(1, 2))  # a half turn reverses both components
+    got = MirrorPolicy(_Fixed(flow), ROTATION).act({"count_image": np.zeros((2, 5, 7), np.float32)})
+    assert np.allclose(got, (flow + turned) / 2, atol=1e-6)
+
+
+def test_evaluate_mirror_rows_by_number_of_copies(tmp_path, rng):
+    path = write_translating_recording(tmp_path / "rec.h5", rng, sensor_size=(32, 48))
+    out = tmp_path / "ev"
+    evaluate_script.main(["--model", "unet-feedforward", "--width", "4", "--mirror", "2", "--dt", "1",
+                          "--data", str(path), "--out", str(out), "--no-progress", "--pictures", "0",
+                          "--max-windows", "2"])
+    table = (out / "table.md").read_text()
+    assert "| unet-feedforward + mirror 2 |" in table and "+ mirror |" not in table
+    evaluate_script.main(["--model", "unet-feedforward", "--width", "4", "--mirror", "--dt", "1",
+                          "--data", str(path), "--out", str(out), "--no-progress", "--pictures", "0",
+                          "--max-windows", "2"])
+    assert "| unet-feedforward + mirror |" in (out / "table.md").read_text()
+    with pytest.raises(SystemExit, match="--mirror"):
+        evaluate_script.main(["--zero", "--mirror", "3", "--data", str(path), "--out", str(out)])

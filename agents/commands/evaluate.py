@@ -49,7 +49,7 @@ import torch
 import agents.pretrained as pretrained_module
 from agents.checkpoint import load_model
 from agents.evaluation import evaluate, results_json, results_table, windowing_of
-from agents.mirror import MirrorPolicy
+from agents.mirror import MIRROR_SETS, MirrorPolicy
 from agents.options import add_options, check_choices, option, options_from_args
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model, width_kwargs
@@ -85,8 +85,8 @@ class EvaluateOptions:
     """--refine keeps the refined flow of a window only where it lowers the env's loss (L_HMC with the border rule) by at least the fraction A of the network's (else the network's flow); default: always"""
     split: str | None = option(None, metavar="N|dt")
     """also evaluate each model stepped through N equal sub-windows of every window, their flows composed (agents/subwindows.py); 'dt': one per ground-truth interval (N = the table's dt)"""
-    mirror: bool = False
-    """also evaluate each model (and split row) averaged over its flows on the input mirrored left-right, up-down and both (agents/mirror.py; 4 network steps per window)"""
+    mirror: int | None = option(None, nargs="?", const=4, metavar="N")
+    """also evaluate each model (and split row) averaged over its flows on mirrored copies of the input (agents/mirror.py): N = 4 (alone: --mirror), the input mirrored left-right, up-down and both, 4 network steps per window; N = 2, the input and its rotation by 180 degrees, 2 steps"""
     data: list[str] = option(default_factory=lambda: ["synthetic-test"])
     """synthetic split, recording files or directories"""
     format: str | None = None
@@ -198,11 +198,13 @@ def build_policies(args) -> dict:
             label = f"{name} + split {args.split}"
             policies[label] = SubWindowPolicy(policy, splits=1 if args.split == "dt" else int(args.split))
     if args.mirror:
+        mirrors = MIRROR_SETS[args.mirror]
+        suffix = " + mirror" if args.mirror == 4 else f" + mirror {args.mirror}"
         for name, policy in list(policies.items()):
             if isinstance(policy, SubWindowPolicy):
-                policies[f"{name} + mirror"] = SubWindowPolicy(MirrorPolicy(policy.policy), splits=policy.splits)
+                policies[name + suffix] = SubWindowPolicy(MirrorPolicy(policy.policy, mirrors), splits=policy.splits)
             else:
-                policies[f"{name} + mirror"] = MirrorPolicy(policy)
+                policies[name + suffix] = MirrorPolicy(policy, mirrors)
     if args.refine:
         for name, policy in list(policies.items()):
             label = f"{name} + refine {args.refine}" + (" (cmax)" if args.refine_solver == "cmax" else "")
@@ -256,6 +258,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"--refine-accept must be a fraction in [0, 1), got {args.refine_accept}")
     if args.split is not None and args.split != "dt" and not (args.split.isdigit() and int(args.split) >= 1):
         raise SystemExit(f"--split must be a number of sub-windows >= 1 or 'dt', got {args.split!r}")
+    if args.mirror is not None and args.mirror not in MIRROR_SETS:
+        raise SystemExit(f"--mirror takes the number of copies, one of {sorted(MIRROR_SETS)}; got {args.mirror}")
     policies = build_policies(args)
     data = args.data[0] if len(args.data) == 1 else args.data
     if args.dsec_submission and not args.dsec_test_timestamps:
