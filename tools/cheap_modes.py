@@ -1,0 +1,204 @@
+#!/usr/bin/env python
+"""Cheap ways to run a shipped network, side by side in one process: AEE, its ratio to the
+``--cmax`` row, in how many sequences the L_HMC is below zero flow's, and the time per window
+(and how many times less than the ``--cmax`` row's, measured in the same process).
+
+    python tools/cheap_modes.py --pretrained ev-mgrflownet-cpu-dr --data synthetic-stress --dt 4 \\
+        --modes net split coarse:2 pick:net+coarse:2 cmax
+
+Modes (one row each):
+
+- ``net``: the network, one step per window.
+- ``mirror:4`` / ``mirror:2`` / ``mirror:lr``: averaged over mirrored copies of its input
+  (agents/mirror.py): all four mirrors, the input and its half turn, the input and its
+  left-right mirror.
+- ``split``: stepped through one sub-window per frame of the window (agents/subwindows.py).
+- ``coarse:F``: the window's events binned on an F-times coarser sensor grid (each F x F block
+  of pixels one pixel, the input divided by F^2 so that a block holds what one pixel did), the
+  flow upsampled bilinearly and multiplied by F: F^2 times fewer pixels, and F times the output
+  range in sensor pixels. ``coarse:F:split``: the same stepped through the window's frames.
+- ``gain:G``: the network's flow times G (a calibration of its magnitude).
+- ``avg:A+B`` / ``pick:A+B``: the mean of the modes' flows / the one whose L_HMC on the window
+  (the env's loss, border rule) is lowest; a mode may be ``zero`` here.
+- ``cmax``: per-window contrast maximisation (agents/cmax.py), the reference.
+
+``--truth`` adds the ground truth's own row (AEE 0): in how many sequences its L_HMC, computed
+as the evaluation computes a method's, is below zero flow's. A goal of "below zero flow's on
+every sequence" that the truth misses asks for invented motion.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+
+from agents.cmax import ContrastMaximisationPolicy  # noqa: E402
+from agents.evaluation import evaluate  # noqa: E402
+from agents.mirror import MIRRORS, ROTATION, MirrorPolicy  # noqa: E402
+from agents.policy import RecurrentPolicy  # noqa: E402
+from agents.subwindows import SubWindowPolicy, compose_flows, sub_windows  # noqa: E402
+from envs.dataset import resolve_data  # noqa: E402
+from envs.env import EventFlowEnv, score_flow  # noqa: E402
+from envs.representations import EventView, image_input  # noqa: E402
+from losses import hmc_loss  # noqa: E402
+from losses.events import EventBatch  # noqa: E402
+
+
+class CoarsePolicy(SubWindowPolicy):
+    """The wrapped policy on events binned ``factor`` x ``factor`` (see the module's help)."""
+
+    def __init__(self, policy, factor: int, splits: int = 1) -> None:
+        super().__init__(policy, splits)
+        self.factor = int(factor)
+
+    def act_on_window(self, obs, window: dict) -> np.ndarray:
+        height, width = np.asarray(obs[self.input_key]).shape[-2:]
+        f = self.factor
+        size = (-(-height // f), -(-width // f))
+        flows = []
+        for part in sub_windows(window, self.splits):
+            binned = {"x": np.asarray(part["x"]) // f, "y": np.asarray(part["y"]) // f, "t": part["t"], "p": part["p"]}
+            image = image_input(self.input_key, EventView(binned), part["t_start"], part["t_end"], size,
+                                self.voxel_bins) / float(f * f)
+            flows.append(self.policy.act({self.input_key: image}))
+        flow = torch.as_tensor(compose_flows(flows))[None]
+        up = F.interpolate(flow, size=(size[0] * f, size[1] * f), mode="bilinear", align_corners=False)
+        return (up[0, :, :height, :width] * f).numpy()
+
+
+class GainPolicy:
+    def __init__(self, policy, gain: float) -> None:
+        self.policy, self.gain = policy, float(gain)
+        self.input_key, self.voxel_bins, self.device = policy.input_key, policy.voxel_bins, "cpu"
+
+    def reset(self, mask=None) -> None:
+        self.policy.reset(mask)
+
+    def act(self, obs) -> np.ndarray:
+        return self.policy.act(obs) * self.gain
+
+
+class CombinedPolicy:
+    """Several modes on each window: their mean flow, or the flow with the lowest env loss."""
+
+    def __init__(self, modes: list, how: str) -> None:
+        self.modes, self.how = modes, how
+        first = next(m for m in modes if m is not None)
+        self.input_key, self.voxel_bins, self.device = first.input_key, first.voxel_bins, "cpu"
+        self.picked = [0] * len(modes)
+
+    def reset(self, mask=None) -> None:
+        for mode in self.modes:
+            if mode is not None:
+                mode.reset()
+
+    def act_on_window(self, obs, window: dict) -> np.ndarray:
+        size = np.asarray(obs[self.input_key]).shape[-2:]
+        flows = [np.zeros((2, *size), np.float32) if m is None else
+                 m.act_on_window(obs, window) if hasattr(m, "act_on_window") else m.act(obs) for m in self.modes]
+        if self.how == "avg":
+            return np.mean(flows, axis=0).astype(np.float32)
+        if len(window["t"]) == 0:
+            return flows[0]
+        batch = EventBatch.from_windows([window])
+        losses = [float(score_flow(torch.as_tensor(f)[None], batch, flow_scaling=float(max(size))).loss) for f in flows]
+        best = int(np.argmin(losses))
+        self.picked[best] += 1
+        return flows[best]
+
+
+def build(mode: str, name: str, dt: int):
+    """The policy of one mode (None: zero flow)."""
+    kind, _, rest = mode.partition(":")
+    if kind in ("avg", "pick"):
+        return CombinedPolicy([build(part, name, dt) for part in rest.split("+")], kind)
+    if kind == "zero":
+        return None
+    if kind == "cmax":
+        return ContrastMaximisationPolicy()
+    net = RecurrentPolicy.from_pretrained(name)
+    if kind == "net":
+        return net
+    if kind == "mirror":
+        return MirrorPolicy(net, {"4": MIRRORS, "2": ROTATION, "lr": ((False, False), (True, False))}[rest])
+    if kind == "split":
+        return SubWindowPolicy(net, dt)
+    if kind == "coarse":
+        factor, _, split = rest.partition(":")
+        return CoarsePolicy(net, int(factor), dt if split == "split" else 1)
+    if kind == "gain":
+        return GainPolicy(net, float(rest))
+    raise SystemExit(f"unknown mode {mode!r} (see --help)")
+
+
+def truth_below_zero(data, dt: int, max_windows: int) -> tuple[int, int]:
+    """(sequences whose mean L_HMC of the ground truth is below zero flow's, sequences scored),
+    over the first ``max_windows`` windows of each; pixels without valid truth get zero flow."""
+    below = scored = 0
+    for index in range(len(resolve_data(data))):
+        env = EventFlowEnv(data, window="frames", window_size=dt, compute_reward=False, sequences=[index])
+        _, info = env.reset(options={"sequence": 0})
+        sums = np.zeros(2)
+        for _ in range(max_windows):
+            win = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+            if len(win["t"]):
+                truth = np.where(info["flow_gt_valid"], info["flow_gt"], 0).astype(np.float32)
+                batch = EventBatch.from_windows([win])
+                with torch.no_grad():
+                    sums += [float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=env.flow_scaling).loss)
+                             for f in (truth, np.zeros_like(truth))]
+            _, _, _, truncated, info = env.step(np.zeros((2, *env.sensor_size), np.float32))
+            if truncated:
+                break
+        env.close()
+        below += int(sums[0] < sums[1])
+        scored += int(sums[1] > 0)
+    return below, scored
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--pretrained", default="ev-mgrflownet-cpu-dr", help="shipped model name")
+    p.add_argument("--data", default="synthetic-stress")
+    p.add_argument("--dt", type=int, default=1, help="window length in ground-truth intervals")
+    p.add_argument("--max-windows", type=int, default=5, help="per sequence")
+    p.add_argument("--modes", nargs="+", default=["net", "mirror:2", "coarse:2", "cmax"])
+    p.add_argument("--truth", action="store_true", help="add the ground truth's row (see above)")
+    p.add_argument("--threads", type=int, default=2)
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    rows = []
+    for mode in args.modes:
+        policy = build(mode, args.pretrained, args.dt)
+        start = time.time()
+        results = evaluate(policy, args.data, window_size=args.dt, max_windows=args.max_windows, progress=False)
+        aee = float(np.mean([r.mean("aee") for r in results]))
+        below = sum(r.mean("hmc") < r.mean("hmc_zero") for r in results if r.counts["hmc"])
+        ms = sum(r.sums["ms"] for r in results) / max(1, sum(r.counts["ms"] for r in results))
+        picked = f" picked {policy.picked}" if isinstance(policy, CombinedPolicy) and policy.how == "pick" else ""
+        rows.append((mode, aee, below, len(results), ms))
+        print(f"[{mode}] AEE {aee:.3f}, {time.time() - start:.0f} s{picked}", file=sys.stderr, flush=True)
+    ref = {mode: (aee, ms) for mode, aee, _, _, ms in rows}.get("cmax")
+    print(f"**{args.pretrained}, {args.data}, dt = {args.dt}, first {args.max_windows} windows per sequence**\n")
+    print("| mode | mean AEE | x `--cmax` | seq. L_HMC < zero | ms/win | x less time than `--cmax` |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for mode, aee, below, n, ms in rows:
+        ratio = f"{aee / ref[0]:.2f}" if ref else "-"
+        faster = f"{ref[1] / ms:.1f}" if ref and ms > 0 else "-"
+        print(f"| {mode} | {aee:.3f} | {ratio} | {below}/{n} | {ms:.0f} | {faster} |")
+    if args.truth:
+        below, scored = truth_below_zero(args.data, args.dt, args.max_windows)
+        print(f"| ground truth | 0 | 0 | {below}/{scored} | - | - |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
