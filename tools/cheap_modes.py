@@ -185,7 +185,9 @@ def main(argv=None) -> int:
         ms = sum(r.sums["ms"] for r in results) / max(1, sum(r.counts["ms"] for r in results))
         picked = f" picked {policy.picked}" if isinstance(policy, CombinedPolicy) and policy.how == "pick" else ""
         rows.append((mode, aee, below, len(results), ms))
-        print(f"[{mode}] AEE {aee:.3f}, {time.time() - start:.0f} s{picked}", file=sys.stderr, flush=True)
+        per_sequence = ", ".join(f"{r.name.removeprefix(args.data + '-')} {r.mean('aee'):.2f}" for r in results)
+        print(f"[{mode}] AEE {aee:.3f}, {time.time() - start:.0f} s{picked}; per sequence: {per_sequence}",
+              file=sys.stderr, flush=True)
     ref = {mode: (aee, ms) for mode, aee, _, _, ms in rows}.get("cmax")
     print(f"**{args.pretrained}, {args.data}, dt = {args.dt}, first {args.max_windows} windows per sequence**\n")
     print("| mode | mean AEE | x `--cmax` | seq. L_HMC < zero | ms/win | x less time than `--cmax` |")
