@@ -126,6 +126,8 @@ class TrainConfig:
     """step-size decay over --steps"""
     grad_clip: float = 100.0
     """gradient norm clip (Hagenaars)"""
+    moment_warmup: int = 50
+    """steps of linear warm-up after a resume whose state holds no Adam moments (a campaign's slim state)"""
     loss: Literal["hmc", "at", "teacher", "supervised"] = "hmc"
     """hmc (paper), at (baseline), teacher (regress per-window contrast maximisation), supervised (a reference)"""
     loss_mode: Literal["window", "accumulated"] = "window"
@@ -292,6 +294,7 @@ class Learner:
             for p in self.policy.parameters():
                 dist.broadcast(p.data, src=0)
         self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=cfg.lr)
+        self.rewarm_from: int | None = None  # the step Adam's moments restarted at (a campaign's slim state)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self._lr_factor)
         self.step = 0
         self.window_loss = window_loss(cfg, self.flow_scaling)
@@ -307,6 +310,8 @@ class Learner:
             factor = min(1.0, (step + 1) / cfg.warmup_steps)
         if cfg.decay == "cosine":
             factor *= 0.5 * (1 + math.cos(math.pi * min(step, cfg.steps) / max(cfg.steps, 1)))
+        if self.rewarm_from is not None and cfg.moment_warmup > 0:  # restarted moments: warm up again
+            factor *= min(1.0, (step - self.rewarm_from + 1) / cfg.moment_warmup)
         return factor
 
     def update(self) -> dict[str, float]:
@@ -366,6 +371,7 @@ class Learner:
             "step": self.step,
             "config": self.cfg.to_dict(),
             "rng": rng_state(self.device),
+            "rewarm_from": self.rewarm_from,
             "policy_state": None if state is None else {k: v.detach().cpu() for k, v in state.items()},
             "env_states": list(self.envs.call("episode_state")),
             "obs": {k: np.array(v) for k, v in self.obs.items()},
@@ -380,6 +386,11 @@ class Learner:
         self.optimizer.load_state_dict(payload["optimizer"])
         self.scheduler.load_state_dict(payload["scheduler"])
         self.step = int(payload["step"])
+        self.rewarm_from = payload.get("rewarm_from")
+        if not payload["optimizer"].get("state") and self.step > 0:
+            # a slim state without Adam's moments (agents.campaign): they restart from zero, and
+            # the step size warms up again over cfg.moment_warmup steps so the first steps stay small
+            self.rewarm_from = self.step
         self.scheduler.base_lrs = [self.cfg.lr for _ in self.optimizer.param_groups]
         for group in self.optimizer.param_groups:
             group["initial_lr"] = self.cfg.lr

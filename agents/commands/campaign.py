@@ -1,0 +1,399 @@
+"""Campaigns: long training kept resumable in the repository (agents/campaign.py says what the
+folder holds).
+
+  python scripts/campaign.py new mgr-devval --export ev-mgrflownet-cpu-next \\
+      --init ev-mgrflownet-cpu-synthetic --val-data '../shared/devval/*.h5' -- <scripts/train.py options>
+  python scripts/campaign.py resume mgr-devval --hours 2.5 --background   # on any machine, any clone
+  python scripts/campaign.py status mgr-devval
+  python scripts/campaign.py stop mgr-devval                              # SIGTERM: saves, then stops
+  python scripts/campaign.py plot mgr-devval
+
+resume trains in stretches of the campaign's interval (train.py --resume in runs/campaigns/NAME/),
+and after each: validates (evaluate.py on the validation data, every window unless the campaign
+says otherwise; score = mean over dt of the model's AEE / the reference row's AEE), appends the
+curve, exports the weights as float16 + provenance to agents/weights/EXPORT when the score is the
+campaign's best, and writes the slim resume state agents/campaigns/NAME/state.pt. SIGTERM or
+SIGINT stop the training step in progress, save, write the state and exit 0. On a fresh clone
+the state is where it continues from; nothing here writes to git (tools/campaign_commit.py does).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import glob
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from agents.campaign import CAMPAIGNS_DIR, STATE_BUDGET, Campaign, CampaignSpec, machine, plot_curve
+
+ROOT = Path(__file__).resolve().parents[2]  # the checkout
+PYTHON = sys.executable
+
+
+def _expand(patterns: list[str]) -> list[str]:
+    """Validation data: split names stay, file patterns are expanded (relative to the checkout)."""
+    out = []
+    for pattern in patterns:
+        if any(ch in pattern for ch in "*?[") or pattern.endswith(".h5") or "/" in pattern:
+            base = pattern if os.path.isabs(pattern) else str(ROOT / pattern)
+            found = sorted(glob.glob(base))
+            if not found:
+                raise FileNotFoundError(f"validation data {pattern!r}: no file matches (looked in {Path(base).parent})")
+            out += found
+        else:
+            out.append(pattern)
+    return out
+
+
+def _evaluate(args: list[str], out: Path, device: str) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    cmd = [PYTHON, str(ROOT / "scripts" / "evaluate.py"), *args, "--pictures", "0", "--no-progress",
+           "--out", str(out), "--device", device]
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    return json.loads((out / "results.json").read_text())
+
+
+def _eval_data_args(spec: CampaignSpec) -> list[str]:
+    return ["--data", *_expand(spec.val_data), "--dt", *map(str, spec.val_dt),
+            *(["--max-windows", str(spec.val_windows)] if spec.val_windows else [])]
+
+
+def _aee(block: dict, dts: list[int]) -> dict[str, float]:
+    return {f"dt{d}": block["overall"][f"dt{d}"]["aee"] for d in dts}
+
+
+def reference(campaign: Campaign, spec: CampaignSpec, device: str, log) -> dict:
+    """The reference row's AEE per dt on the validation data (computed once, then read)."""
+    key = {"data": spec.val_data, "dt": spec.val_dt, "windows": spec.val_windows, "reference": spec.reference}
+    if campaign.reference_path.exists():
+        stored = json.loads(campaign.reference_path.read_text())
+        if {k: stored.get(k) for k in key} == key:
+            return stored
+    log(f"[campaign] computing the reference row ({spec.reference}) on the validation data, once")
+    start = time.time()
+    flag = "--cmax" if spec.reference == "cmax" else "--zero"
+    results = _evaluate([flag, *_eval_data_args(spec)], campaign.work / "val" / "reference", device)
+    block = results if results["method"] != "model" else results["baselines"][spec.reference]
+    sequences = {name: {k: v.get("aee") for k, v in seq.items() if k.startswith("dt")}
+                 for name, seq in block["sequences"].items()}
+    stored = {**key, "aee": _aee(block, spec.val_dt), "sequences": sequences, "seconds": round(time.time() - start),
+              "date": datetime.date.today().isoformat()}
+    campaign.reference_path.write_text(json.dumps(stored, indent=1) + "\n")
+    return stored
+
+
+def validate(campaign: Campaign, spec: CampaignSpec, weights: list[str], tag: str, device: str, log) -> dict:
+    """Score the weights (``--checkpoint PATH`` or ``--pretrained NAME``) on the validation data."""
+    ref = reference(campaign, spec, device, log)
+    results = _evaluate([*weights, "--name", "model", *_eval_data_args(spec)], campaign.work / "val" / tag, device)
+    aee = _aee(results, spec.val_dt)
+    score = sum(aee[k] / ref["aee"][k] for k in aee) / len(aee)
+    sequences = {name: {k: v.get("aee") for k, v in seq.items() if k.startswith("dt")}
+                 for name, seq in results["sequences"].items()}
+    return {"score": round(score, 5), "aee": aee, "reference_aee": ref["aee"], "sequences": sequences}
+
+
+def _steps_of(recipe: list[str]) -> list[str]:
+    """``--steps N`` of a recipe (a campaign's budget may grow between stretches), or nothing."""
+    for i, arg in enumerate(recipe):
+        if arg == "--steps" and i + 1 < len(recipe):
+            return ["--steps", recipe[i + 1]]
+        if arg.startswith("--steps="):
+            return ["--steps", arg.split("=", 1)[1]]
+    return []
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def cmd_new(args, rest: list[str]) -> int:
+    campaign = Campaign(args.name, args.campaigns_dir)
+    if campaign.spec_path.exists() and not args.force:
+        raise SystemExit(f"campaign {args.name!r} exists ({campaign.spec_path}); --force replaces its description "
+                         "(not its state)")
+    banned = sorted({a for a in rest if a.split("=")[0] in ("--out", "--resume", "--init", "--minutes")})
+    if banned:
+        raise SystemExit(f"the recipe (after --) must not set {', '.join(banned)}: the campaign sets them")
+    from agents.commands.train import parse_args
+
+    parse_args([*rest, "--out", str(campaign.work / "train")])  # a recipe train.py would refuse fails here
+    spec = CampaignSpec(name=args.name, export=args.export, train=rest, init=args.init, val_data=args.val_data,
+                        val_dt=args.val_dt, val_windows=args.val_windows, reference=args.reference,
+                        interval_minutes=args.interval_minutes, state_budget_mb=args.state_budget_mb, note=args.note)
+    spec.write(campaign.spec_path)
+    print(f"wrote {campaign.spec_path}; start it with: python scripts/campaign.py resume {args.name} --background")
+    return 0
+
+
+def cmd_resume(args) -> int:
+    campaign = Campaign(args.name, args.campaigns_dir, args.runs)
+    spec = campaign.spec()
+    campaign.work.mkdir(parents=True, exist_ok=True)
+    pid_file = campaign.work / "campaign.pid"
+    if pid_file.exists() and pid_file.read_text().strip().isdigit():
+        pid = int(pid_file.read_text())
+        if pid != os.getpid() and _pid_alive(pid):
+            raise SystemExit(f"campaign {args.name!r} is already running (pid {pid}); stop it with "
+                             f"scripts/campaign.py stop {args.name}")
+    if args.background:
+        log = campaign.work / "campaign.log"
+        argv = [a for a in sys.argv[1:] if a != "--background"]
+        argv += [] if "--quiet" in argv else ["--quiet"]
+        with open(log, "a") as f:
+            child = subprocess.Popen([PYTHON, str(ROOT / "scripts" / "campaign.py"), *argv], stdout=f,
+                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
+                                     cwd=os.getcwd())
+        print(f"campaign {args.name} resumed in the background (pid {child.pid}); progress: {log}; "
+              f"stop it with: python scripts/campaign.py stop {args.name}")
+        return 0
+    pid_file.write_text(str(os.getpid()))
+    try:
+        return _resume(campaign, spec, args)
+    finally:
+        pid_file.unlink(missing_ok=True)
+
+
+def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
+    def log(message: str) -> None:
+        print(f"{datetime.datetime.now():%H:%M:%S} {message}", flush=True)
+
+    stop = {"signal": None}
+    child: dict = {"proc": None}
+
+    def on_signal(signum, _frame):
+        stop["signal"] = signum
+        if child["proc"] is not None and child["proc"].poll() is None:
+            child["proc"].send_signal(signal.SIGTERM)  # train.py finishes its step and saves
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    env = dict(os.environ)
+    if args.threads:
+        env.update({k: str(args.threads) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")})
+    weights_dir = Path(args.weights_dir) if args.weights_dir else ROOT / "agents" / "weights"
+    source = campaign.restore_working_checkpoint()
+    progress = campaign.progress()
+    progress["stretches"] = int(progress.get("stretches", 0)) + 1
+    here = machine(args.device)
+    log(f"[campaign] {campaign.name}: stretch {progress['stretches']} on {here}, from the "
+        f"{ {'working': 'working checkpoint', 'state': 'committed state', 'fresh': 'start'}[source]}")
+    if source == "fresh" and spec.init and spec.val_data and not campaign.curve():
+        row = validate(campaign, spec, ["--pretrained", spec.init] if "/" not in spec.init and not spec.init.endswith(
+            ".pt") else ["--checkpoint", spec.init], "init", args.device, log)
+        campaign.append_curve({"step": 0, **row, "wall_h": 0.0, "stretch": 0, "machine": here, "init": spec.init,
+                               "date": datetime.date.today().isoformat()})
+        log(f"[campaign] the initial weights ({spec.init}): score {row['score']:.4f} {row['aee']}")
+    deadline = time.time() + 3600 * args.hours if args.hours else float("inf")
+    if args.minutes:
+        deadline = min(deadline, time.time() + 60 * args.minutes)
+    try:
+        while time.time() < deadline and stop["signal"] is None:
+            minutes = min(spec.interval_minutes, max(0.25, (deadline - time.time()) / 60))
+            train = ["--out", str(campaign.work / "train"), "--minutes", f"{minutes:.2f}", "--val-data", "",
+                     "--device", args.device, *(["--no-progress"] if args.quiet else [])]
+            if campaign.checkpoint.exists():  # the recipe's step count may have grown since
+                train = ["--resume", *train, *_steps_of(spec.train)]
+            else:
+                train = [*spec.train, *train, *(["--init", spec.init] if spec.init else [])]
+            started = time.time()
+            child["proc"] = subprocess.Popen([PYTHON, str(ROOT / "scripts" / "train.py"), *train], env=env)
+            code = child["proc"].wait()
+            child["proc"] = None
+            progress["wall_s"] = float(progress.get("wall_s", 0.0)) + time.time() - started
+            if code != 0:
+                raise SystemExit(f"[campaign] train.py exited with {code}; the state keeps the last good interval")
+            from agents.checkpoint import load_checkpoint
+
+            payload = load_checkpoint(campaign.checkpoint)
+            step, total = int(payload["step"]), int(payload["config"]["steps"])
+            if stop["signal"] is None and spec.val_data:
+                row = validate(campaign, spec, ["--checkpoint", str(campaign.checkpoint)], f"step{step}", args.device,
+                               log)
+                best = campaign.best()
+                improved = best is None or row["score"] < best["score"]
+                campaign.append_curve({"step": step, **row, "wall_h": round(progress["wall_s"] / 3600, 4),
+                                       "stretch": progress["stretches"], "machine": here,
+                                       "date": datetime.date.today().isoformat(), "exported": improved})
+                log(f"[campaign] step {step}: score {row['score']:.4f} {row['aee']} "
+                    f"(best before: {best['score'] if best else '-'})")
+                if improved:
+                    export(campaign, spec, row, step, here, weights_dir)
+                    log(f"[campaign] exported to {weights_dir / spec.export}.pt")
+            size, kept = campaign.write_state(campaign.checkpoint, progress, int(spec.state_budget_mb * 2**20))
+            log(f"[campaign] state at step {step}: {campaign.state_path} ({size / 2**20:.1f} MB, Adam's moments "
+                f"{'kept' if kept else 'restart on resume'})")
+            if step >= total:
+                log(f"[campaign] reached the recipe's {total} steps")
+                break
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if campaign.curve():
+        plot_curve(campaign.curve(), campaign.dir / "curve.png", f"campaign {campaign.name}")
+    if stop["signal"] is not None:
+        log(f"[campaign] {signal.Signals(stop['signal']).name}: stopped; state saved")
+    return 0
+
+
+def export(campaign: Campaign, spec: CampaignSpec, row: dict, step: int, here: str, weights_dir: Path) -> None:
+    from agents.pretrained import export_pretrained
+
+    provenance = {
+        "command": f"python scripts/campaign.py resume {campaign.name} (agents/campaigns/{campaign.name}/campaign.json:"
+                   f" train.py {' '.join(spec.train)}" + (f", from {spec.init}" if spec.init else "") + ")",
+        "campaign": campaign.name,
+        "date": datetime.date.today().isoformat(),
+        "note": spec.note,
+        "machine": here,
+        "validation": {"data": spec.val_data, "dt": spec.val_dt, "windows_per_sequence": spec.val_windows or "all",
+                       "score": row["score"], "aee": row["aee"], "reference_aee": row["reference_aee"],
+                       "definition": f"mean over dt of AEE / the {spec.reference} row's AEE", "step": step},
+    }
+    export_pretrained(campaign.checkpoint, spec.export, provenance, directory=weights_dir)
+
+
+def _data_of(recipe: list[str]) -> list[str]:
+    """The values of the recipe's ``--data`` (train.py's default split when absent)."""
+    if "--data" not in recipe:
+        return ["synthetic-train"]
+    values = []
+    for arg in recipe[recipe.index("--data") + 1 :]:
+        if arg.startswith("--"):
+            break
+        values.append(arg)
+    return values
+
+
+def cmd_prepare(args) -> int:
+    """Simulate the synthetic splits the recipe trains on into the disk cache, in parallel
+    (a fresh machine; training would otherwise simulate them one by one on first use)."""
+    from envs.synthetic import list_sequences
+
+    spec = Campaign(args.name, args.campaigns_dir, args.runs).spec()
+    for data in _data_of(spec.train):
+        try:
+            list_sequences(data)
+        except (ValueError, KeyError):
+            print(f"{data}: not a synthetic split, nothing to simulate")
+            continue
+        subprocess.run([PYTHON, str(ROOT / "scripts" / "generate_synthetic.py"), "--split", data, "--cache",
+                        "--workers", str(args.workers)], check=True)
+    return 0
+
+
+def cmd_stop(args) -> int:
+    campaign = Campaign(args.name, args.campaigns_dir, args.runs)
+    pid_file = campaign.work / "campaign.pid"
+    if not pid_file.exists():
+        print(f"campaign {args.name!r} is not running here ({pid_file} missing)")
+        return 0
+    pid = int(pid_file.read_text())
+    if not _pid_alive(pid):
+        pid_file.unlink(missing_ok=True)
+        print(f"campaign {args.name!r}: pid {pid} is gone (a stale pid file, removed)")
+        return 0
+    os.kill(pid, signal.SIGTERM)
+    deadline = time.time() + args.timeout
+    while _pid_alive(pid) and time.time() < deadline:
+        time.sleep(1)
+    if _pid_alive(pid):
+        raise SystemExit(f"campaign {args.name!r} (pid {pid}) still runs after {args.timeout} s")
+    print(f"campaign {args.name!r} stopped; state at step {campaign.state_step()} in {campaign.state_path}")
+    return 0
+
+
+def cmd_status(args) -> int:
+    campaign = Campaign(args.name, args.campaigns_dir, args.runs)
+    spec = campaign.spec()
+    progress = campaign.progress()
+    best = campaign.best()
+    size = campaign.state_path.stat().st_size / 2**20 if campaign.state_path.exists() else 0.0
+    pid_file = campaign.work / "campaign.pid"
+    running = pid_file.exists() and _pid_alive(int(pid_file.read_text() or 0))
+    print(f"campaign {campaign.name}: exports {spec.export}; state step {campaign.state_step()} ({size:.1f} MB); "
+          f"{progress.get('wall_s', 0) / 3600:.2f} training hours over {progress.get('stretches', 0)} stretches; "
+          f"{'running here' if running else 'not running here'}")
+    for row in campaign.curve():
+        print(f"  step {row['step']:>7}  score {row['score']:.4f}  " + "  ".join(
+            f"{k} {v:.3f}" for k, v in row["aee"].items()) + f"  {row.get('wall_h', 0):.2f} h  {row.get('machine', '')}")
+    if best:
+        print(f"best: step {best['step']}, score {best['score']:.4f}")
+    return 0
+
+
+def cmd_plot(args) -> int:
+    campaign = Campaign(args.name, args.campaigns_dir, args.runs)
+    path = plot_curve(campaign.curve(), campaign.dir / "curve.png", f"campaign {campaign.name}")
+    print(path or "matplotlib is missing: pip install -e '.[plots]'")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(q):
+        q.add_argument("name", help="the campaign (a folder of --campaigns-dir)")
+        q.add_argument("--campaigns-dir", type=Path, default=CAMPAIGNS_DIR,
+                       help="where campaigns live (default: agents/campaigns of this checkout)")
+        q.add_argument("--runs", type=Path, default=Path("runs") / "campaigns",
+                       help="working folder of the runs (default runs/campaigns)")
+        return q
+
+    q = common(sub.add_parser("new", help="describe a campaign: NAME, options, then -- and train.py's options"))
+    q.add_argument("--export", required=True, help="shipped model name its improved weights are exported to")
+    q.add_argument("--init", default=None, help="weights the first stretch starts from (shipped name or checkpoint)")
+    q.add_argument("--val-data", nargs="*", default=["../shared/devval/*.h5"],
+                   help="validation data (split names or file patterns relative to the checkout; none: no validation)")
+    q.add_argument("--val-dt", nargs="+", type=int, default=[1, 4])
+    q.add_argument("--val-windows", type=int, default=None, help="windows per validation sequence (default: all)")
+    q.add_argument("--reference", choices=("cmax", "zero"), default="cmax", help="the score's reference row")
+    q.add_argument("--interval-minutes", type=float, default=20.0, help="training between state writes")
+    q.add_argument("--state-budget-mb", type=float, default=STATE_BUDGET / 2**20,
+                   help="the most the committed resume state may weigh (Adam's moments are dropped to fit)")
+    q.add_argument("--note", default="")
+    q.add_argument("--force", action="store_true", help="replace an existing description")
+
+    q = common(sub.add_parser("resume", help="continue (or start) a campaign"))
+    q.add_argument("--hours", type=float, default=None, help="stop after this long (default: until its steps)")
+    q.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
+    q.add_argument("--device", default="cpu", help="torch device (cuda on a GPU machine)")
+    q.add_argument("--threads", type=int, default=None, help="CPU threads of the training process")
+    q.add_argument("--weights-dir", default=None, help="where improved weights go (default agents/weights)")
+    q.add_argument("--background", action="store_true", help="detach; progress in runs/campaigns/NAME/campaign.log")
+    q.add_argument("--quiet", action="store_true", help="no per-step progress bar (the background's log)")
+
+    q = common(sub.add_parser("stop", help="SIGTERM a running campaign and wait until its state is written"))
+    q.add_argument("--timeout", type=float, default=900.0)
+    q = common(sub.add_parser("prepare", help="simulate the recipe's synthetic training data ahead, in parallel"))
+    q.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    common(sub.add_parser("status", help="step, training hours and the validation curve"))
+    common(sub.add_parser("plot", help="draw curve.png from curve.jsonl"))
+    return p
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    cut = argv.index("--") if "--" in argv else len(argv)
+    args = build_parser().parse_args(argv[:cut])
+    if args.command != "new" and cut < len(argv):
+        raise SystemExit("only 'new' takes train.py options after --")
+    if args.command == "new":
+        return cmd_new(args, argv[cut + 1 :])
+    return {"resume": cmd_resume, "prepare": cmd_prepare, "stop": cmd_stop, "status": cmd_status, "plot": cmd_plot}[args.command](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

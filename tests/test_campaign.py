@@ -1,0 +1,180 @@
+"""Campaigns: a run stopped by SIGTERM continues on a fresh clone from the committed state alone,
+with the uninterrupted run's losses; the slim state drops Adam's moments only when over budget,
+and then the step size warms up again; validation, export and the curve accumulate."""
+
+import copy
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from agents.campaign import Campaign, slim_state
+from agents.checkpoint import load_checkpoint
+from agents.commands import campaign as campaign_script
+from agents.learner import Learner, TrainConfig
+from tests.recordings import write_translating_recording
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    path = tmp_path_factory.mktemp("data") / "dots.h5"
+    return write_translating_recording(path, np.random.default_rng(3), sensor_size=(32, 32))
+
+
+def _recipe(recording, steps: int) -> list[str]:
+    return ["--data", str(recording), "--model", "convgru-ev-flownet", "--width", "4", "--num-envs", "2",
+            "--unroll", "3", "--lr", "1e-3", "--ckpt-every", "1000", "--steps", str(steps)]
+
+
+def _new(root: Path, recording, steps: int, *extra: str) -> None:
+    campaign_script.main(["new", "c", "--campaigns-dir", str(root), "--export", "c-model", "--val-data",
+                          "--interval-minutes", "10", *extra, "--", *_recipe(recording, steps)])
+
+
+def _resume(root: Path, runs: Path, *extra: str) -> int:
+    return campaign_script.main(["resume", "c", "--campaigns-dir", str(root), "--runs", str(runs), "--quiet", "--threads", "1",
+                                 "--weights-dir", str(root / "weights"), *extra])
+
+
+def _losses(runs: Path) -> dict[int, float]:
+    rows = [json.loads(line) for line in (runs / "c" / "train" / "metrics.jsonl").read_text().splitlines()]
+    return {row["step"]: row["loss"] for row in rows if "loss" in row}
+
+
+def test_sigterm_then_a_fresh_clone_continues_with_the_uninterrupted_losses(recording, tmp_path):
+    steps = 8
+    _new(tmp_path / "whole", recording, steps)
+    assert _resume(tmp_path / "whole", tmp_path / "runs-whole") == 0
+    whole = _losses(tmp_path / "runs-whole")
+    assert sorted(whole) == list(range(1, steps + 1))
+
+    # the same campaign, stopped by SIGTERM mid-run ...
+    _new(tmp_path / "clone1", recording, steps)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, str(ROOT / "scripts" / "campaign.py"), "resume", "c", "--campaigns-dir",
+                             str(tmp_path / "clone1"), "--runs", str(tmp_path / "runs1"), "--quiet", "--threads", "1"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    metrics = tmp_path / "runs1" / "c" / "train" / "metrics.jsonl"
+    deadline = time.time() + 240
+    while proc.poll() is None and time.time() < deadline:
+        if metrics.exists() and len(metrics.read_text().splitlines()) >= 2:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=240)
+    assert proc.returncode == 0 and "SIGTERM: stopped; state saved" in out, out[-3000:]
+    stopped = Campaign("c", tmp_path / "clone1").state_step()
+    assert 2 <= stopped < steps, out[-3000:]
+
+    # ... and continued on a "fresh clone": only the committed folder travels, no runs/ folder
+    shutil.copytree(tmp_path / "clone1" / "c", tmp_path / "clone2" / "c")
+    assert _resume(tmp_path / "clone2", tmp_path / "runs2") == 0
+    resumed = _losses(tmp_path / "runs2")
+    assert sorted(resumed) == list(range(stopped + 1, steps + 1))
+    for step, loss in resumed.items():  # moments kept (a tiny network): bitwise on CPU
+        assert loss == whole[step], (step, loss, whole[step])
+    progress = Campaign("c", tmp_path / "clone2").progress()
+    assert progress["stretches"] == 2 and progress["wall_s"] > 0
+
+
+def _learner(recording, steps: int = 6) -> Learner:
+    return Learner(TrainConfig(data=str(recording), model="convgru-ev-flownet", width=4, num_envs=2, unroll=3,
+                               lr=1e-3, steps=steps, moment_warmup=4))
+
+
+def test_slim_state_keeps_moments_under_budget_and_restarts_them_with_a_warmup(recording):
+    torch.manual_seed(0)
+    learner = _learner(recording)
+    for _ in range(3):
+        learner.update()
+    payload = copy.deepcopy(learner.state_dict())  # the live tensors move on with the next updates
+    kept, with_moments = slim_state(payload, budget=2**30)
+    assert with_moments and kept["optimizer"]["state"]
+    weights = sum(v.numel() * 4 for v in payload["model"].values())
+    slim, with_moments = slim_state(payload, budget=int(weights * 1.5) + 2**20)  # room for weights, not moments
+    assert not with_moments and slim["optimizer"]["state"] == {}
+    with pytest.raises(ValueError, match="without Adam's moments"):
+        slim_state(payload, budget=weights // 2)
+
+    reference = [learner.update()["loss"] for _ in range(3)]  # the uninterrupted steps 4-6
+    resumed = _learner(recording)
+    resumed.load_state_dict(slim)
+    assert resumed.rewarm_from == 3
+    assert resumed.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3 / 4)  # step 1 of 4 of the warm-up
+    rows = [resumed.update() for _ in range(3)]
+    assert rows[0]["loss"] == reference[0]  # same weights, same windows: the first loss is the same
+    np.testing.assert_allclose([r["loss"] for r in rows], reference, rtol=0.05)
+    assert [r["lr"] for r in rows] == pytest.approx([2e-3 / 4, 3e-3 / 4, 1e-3])
+    again = _learner(recording)
+    again.load_state_dict(resumed.state_dict())  # the warm-up's origin survives a full checkpoint
+    assert again.rewarm_from == 3
+
+
+def test_validation_exports_the_best_and_the_curve_accumulates(recording, tmp_path):
+    root, runs = tmp_path / "campaigns", tmp_path / "runs"
+    campaign_script.main(["new", "c", "--campaigns-dir", str(root), "--export", "c-model", "--val-data",
+                          str(recording), "--val-dt", "1", "--reference", "zero", "--interval-minutes", "10", "--",
+                          *_recipe(recording, 2)])
+    assert _resume(root, runs) == 0
+    campaign = Campaign("c", root, runs)
+    rows = campaign.curve()
+    assert [r["step"] for r in rows] == [2] and rows[0]["exported"]
+    reference = json.loads(campaign.reference_path.read_text())
+    assert rows[0]["score"] == pytest.approx(rows[0]["aee"]["dt1"] / reference["aee"]["dt1"], rel=1e-4)
+    record = json.loads((root / "weights" / "c-model.json").read_text())
+    assert record["validation"]["score"] == rows[0]["score"] and record["campaign"] == "c"
+    exported = load_checkpoint(root / "weights" / "c-model.pt")["model"]
+    assert all(v.dtype == torch.float16 for v in exported.values() if v.is_floating_point())
+    # a longer recipe continues the same curve (a later stretch), the reference is not recomputed
+    spec = json.loads(campaign.spec_path.read_text())
+    spec["train"][spec["train"].index("--steps") + 1] = "4"
+    campaign.spec_path.write_text(json.dumps(spec))
+    stamp = campaign.reference_path.stat().st_mtime_ns
+    assert campaign_script.main(["resume", "c", "--campaigns-dir", str(root), "--runs", str(tmp_path / "fresh"),
+                                 "--quiet", "--weights-dir", str(root / "weights")]) == 0
+    rows = Campaign("c", root).curve()
+    assert [r["step"] for r in rows] == [2, 4] and [r["stretch"] for r in rows] == [1, 2]
+    assert campaign.reference_path.stat().st_mtime_ns == stamp
+
+
+def test_refusals(recording, tmp_path):
+    with pytest.raises(SystemExit, match="--out"):
+        campaign_script.main(["new", "c", "--campaigns-dir", str(tmp_path), "--export", "x", "--", "--out", "elsewhere"])
+    with pytest.raises(FileNotFoundError, match="no campaign 'nope'"):
+        campaign_script.main(["resume", "nope", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")])
+    _new(tmp_path, recording, 2)
+    pid_file = tmp_path / "r" / "c" / "campaign.pid"
+    pid_file.parent.mkdir(parents=True)
+    pid_file.write_text(str(os.getppid()))  # a live process holds the campaign
+    with pytest.raises(SystemExit, match="already running"):
+        campaign_script.main(["resume", "c", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")])
+
+
+def test_device_leg_on_cpu_writes_state_and_weights_to_its_output(recording, tmp_path):
+    """scripts/device_train.sh as a GPU machine runs it, here with --device cpu and a short budget."""
+    root = tmp_path / "campaigns"
+    campaign_script.main(["new", "c", "--campaigns-dir", str(root), "--export", "c-model", "--val-data",
+                          str(recording), "--val-dt", "1", "--reference", "zero", "--interval-minutes", "10", "--",
+                          *_recipe(recording, 100000)])
+    out = tmp_path / "out"
+    env = {**os.environ, "CAMPAIGNS": str(root), "RUNS": str(tmp_path / "runs"), "PYTHON": sys.executable,
+           "OMP_NUM_THREADS": "1"}
+    done = subprocess.run(["bash", str(ROOT / "scripts" / "device_train.sh"), "c", "0.1", str(out), "--device", "cpu",
+                           "--workers", "1"], env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert Campaign("c", out / "campaigns").state_step() > 0
+    assert Campaign("c", root).state_step() is None  # the home copy is untouched until it is taken in
+    assert (out / "weights" / "c-model.pt").exists() and "campaign_commit.py c --from" in done.stdout
+    bad = subprocess.run(["bash", str(ROOT / "scripts" / "device_train.sh"), "nope", "1", str(out)], env=env,
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "no campaign" in bad.stderr
