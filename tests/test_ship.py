@@ -17,7 +17,7 @@ RECIPE = ["--model", "ev-mgrflownet", "--width", "4", "--data", "synthetic-mini"
 
 def _ship(tmp_path, out, *extra):
     cmd = [sys.executable, str(ROOT / "scripts" / "ship.py"), "--name", "tiny", "--out", str(out), "--hours", "0.0005",
-           "--chunk-minutes", "0.01", "--val-data", "synthetic-mini", "--val-windows", "1", "--no-commit",
+           "--chunk-minutes", "0.01", "--val-data", "synthetic-mini", "--val-windows", "1",
            "--weights-dir", str(tmp_path / "weights"), *extra, "--", *RECIPE]
     printed = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     return [json.loads(line) for line in (out / "ship.jsonl").read_text().splitlines()], printed

@@ -12,10 +12,11 @@ agents/ablations.py; this is the command line.
   python scripts/ablations.py --tables-only         # regenerate the tables from the rows so far
 
 Writes RECORD/rows.jsonl (a row per finished configuration and seed, at once), RECORD/tables.md,
-RECORD/curves/<configuration>.png (validation AEE against step) and the tables into --report, and
-commits them with git after every row (--no-commit to skip): RECORD (docs/ablations) is in the
-repository, so finished rows survive a new machine. The teacher targets, once solved, are kept
-there too (RECORD/targets/<loss>.h5, committed): a new machine starts training at once.
+RECORD/curves/<configuration>.png (validation AEE against step) and the tables into --report.
+RECORD (docs/ablations) is in the repository: commit it after rows finish (this command never
+writes to git; ``python tools/campaign_commit.py --ablations`` does) and finished rows survive a
+new machine. The teacher targets, once solved, are kept there too (RECORD/targets/<loss>.h5): a
+new machine starts training at once.
 Checkpoints and evaluations stay in --out.
 Resumable: rerun the same command; finished configurations are skipped, a killed one continues
 from its checkpoint (SIGTERM / Ctrl-C stop a stage cleanly).
@@ -42,8 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="runs/ablations", help="run folder (targets, checkpoints, evaluations)")
     p.add_argument("--record", default="docs/ablations",
-                   help="folder of the rows, budget, tables and curves, committed after every row")
-    p.add_argument("--no-commit", action="store_true", help="do not git-commit the record after each row")
+                   help="folder of the rows, budget, tables and curves (in the repository: commit it)")
     p.add_argument("--report", default="docs/results.md", help="file whose ablation markers get the tables ('' for none)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
                    help="the full model's seeds; the first is every configuration's, the second the adaptive one's")
@@ -67,19 +67,9 @@ def main(argv=None) -> int:
                                  eval_windows=args.eval_windows)
     targets = {loss: path for loss, path in (("hmc", args.targets_hmc), ("at", args.targets_at)) if path}
 
-    def commit(files: list[Path], message: str | None = None) -> None:
-        if args.no_commit:
-            return
-        paths = [str(f) for f in files if f.exists()]
-        subprocess.run(["git", "add", *paths], cwd=ROOT, check=True)
-        if message is None:
-            rows = len(Path(args.record, "rows.jsonl").read_text().splitlines())
-            message = f"Ablations: {rows} finished runs (rows, tables, curves)"
-        subprocess.run(["git", "commit", "-q", "-m", message, "--", *paths], cwd=ROOT, check=False)
-
-    def commit_targets(files: list[Path]) -> None:
-        commit(files, f"Ablations: the teacher targets {', '.join(f.name for f in files)} of "
-                      f"{budget.train_data} kept in the record (a new machine does not solve them again)")
+    def written(files: list[Path]) -> None:
+        print(f"[ablations] written: {', '.join(str(f) for f in files if f.exists())} "
+              f"(commit them: python tools/campaign_commit.py --ablations)", flush=True)
 
     def train(argv: list[str]) -> None:
         # each stage in its own process (as ship.py does): a stage run inside the runner's process
@@ -88,8 +78,8 @@ def main(argv=None) -> int:
         subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), *argv], check=True, env=env)
 
     runner = AblationRunner(args.out, budget, train, seeds=tuple(args.seeds), only=args.only,
-                            device=args.device, targets=targets, record=args.record, on_row=commit,
-                            on_targets=commit_targets)
+                            device=args.device, targets=targets, record=args.record, on_row=written,
+                            on_targets=written)
     report = Path(args.report) if args.report else None
     if args.tables_only:
         print(runner.write_outputs(report))

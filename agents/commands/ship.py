@@ -1,6 +1,7 @@
 """A long training run that survives sessions: train in chunks, validate after each, and ship
-(export float16 weights + provenance to agents/weights/NAME and commit them) whenever the
-validation improves.
+(export float16 weights + provenance to agents/weights/NAME) whenever the validation improves.
+Nothing here writes to git; ``scripts/campaign.py`` keeps a run's whole state resumable in the
+repository.
 
     python scripts/ship.py --name ev-mgrflownet-cpu-dr --out runs/ship-dr --hours 2 \\
         --init ev-mgrflownet-cpu-synthetic -- <scripts/train.py options of the recipe>
@@ -9,8 +10,8 @@ Each chunk is ``scripts/train.py`` for --chunk-minutes (a fresh run the first ti
 afterwards). After each chunk the checkpoint is evaluated on --val-data (first --val-windows
 windows of every sequence, dt = 1 and 4; the score is the mean over both of the model's AEE as
 a ratio to zero flow's); a lower score than the one recorded in agents/weights/NAME.json is
-exported there and committed with git (``--no-commit`` to skip), so a restart on a new machine
-(no runs/ folder) continues from the committed model (``--init NAME``).
+exported there, so a restart on a new machine (no runs/ folder) continues from that model once it
+is committed (``--init NAME``).
 
 The validation data must be held out from training and from every test split (the default
 ``synthetic-dr-val`` is): it picks the model, so it is not a test.
@@ -69,7 +70,6 @@ def main(argv=None) -> int:
     p.add_argument("--val-split", default=None, metavar="N|dt",
                    help="validate the model stepped through sub-windows (scripts/evaluate.py --split), e.g. dt")
     p.add_argument("--note", default="", help="what the run is, for the provenance")
-    p.add_argument("--no-commit", action="store_true", help="export improved weights but do not commit them")
     p.add_argument("--weights-dir", default=None, help="where to ship (default: agents/weights of this checkout)")
     p.add_argument("--code", default=None,
                    help="run training and validation from this checkout (e.g. a git worktree of a fixed commit, so "
@@ -124,12 +124,6 @@ def main(argv=None) -> int:
             }
             export_pretrained(checkpoint, args.name, provenance, directory=weights_dir)
             record["shipped"] = True
-            if not args.no_commit:
-                files = [f"agents/weights/{args.name}.pt", f"agents/weights/{args.name}.json"]
-                subprocess.run(["git", "add", *files], cwd=ROOT, check=True)
-                subprocess.run(["git", "commit", "-q", "-m",
-                                f"{args.name}: step {steps}, validation {score:.4f} x zero flow's AEE on {args.val_data}",
-                                "--", *files], cwd=ROOT, check=False)
         with log.open("a") as f:
             f.write(json.dumps(record) + "\n")
         chunk += 1
