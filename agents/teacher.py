@@ -45,7 +45,7 @@ from envs.windows import window_bounds
 from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
 
 __all__ = ["TeacherSettings", "TeacherTargets", "compute_teacher_targets", "count_windows", "TeacherCacheError",
-           "score_targets", "derive_targets", "copy_targets"]
+           "score_targets", "derive_targets", "copy_targets", "merge_targets"]
 
 FORMAT = "evflow-teacher-targets"
 
@@ -202,6 +202,61 @@ def copy_targets(source: str | os.PathLike, out: str | os.PathLike, dtype=None) 
                         values = values.astype(dtype)
                     copy.create_dataset(key, data=values, compression="gzip", compression_opts=9, shuffle=True)
 
+    _replace_with(out, write)
+    return out
+
+
+def merge_targets(parts: Sequence[tuple[str | os.PathLike, Sequence[int]]], out: str | os.PathLike,
+                  dtype=None) -> Path:
+    """One target file from several complete ones: from each ``(path, sizes)`` the windows whose
+    length is one of ``sizes`` frames (a window's length in frames is its duration over the
+    frame interval, the shortest window of that recording and file divided by the file's
+    smallest window size). E.g. 1-frame targets of one solver with 2- and 4-frame targets of a
+    stronger one. The sources must share their recordings, grid and sensor sizes; a window given
+    by two parts raises ValueError. dtype as :func:`copy_targets` (stored grids; None: as read)."""
+    grids: dict[str, list] = {}
+    bounds: dict[str, list] = {}
+    sizes_of: dict[str, tuple] = {}
+    configs = []
+    for path, sizes in parts:
+        TeacherTargets(path)  # refuses an incomplete or foreign file, naming it
+        with h5py.File(path, "r") as f:
+            config = json.loads(f.attrs["config"])
+            configs.append({"source": Path(path).name, "window_sizes": sorted(int(k) for k in sizes),
+                            "settings": config.get("settings"), "solved_sizes": config.get("window_sizes")})
+            smallest = min(config["window_sizes"])
+            for name, group in f.items():
+                b, g = group["bounds"][()], group["grid"][()].astype(np.float32)
+                frame = (b[:, 1] - b[:, 0]).min() / smallest
+                length = np.rint((b[:, 1] - b[:, 0]) / frame).astype(int)
+                keep = np.isin(length, list(sizes))
+                if name in sizes_of and tuple(sizes_of[name]) != tuple(group.attrs["sensor_size"]):
+                    raise ValueError(f"{path}: recording {name} at another sensor size than in the other parts")
+                if grids.get(name) and grids[name][0].shape[1:] != g.shape[1:]:
+                    raise ValueError(f"{path}: recording {name} with {g.shape[2:]} grids, the other parts "
+                                     f"{grids[name][0].shape[2:]}")
+                sizes_of[name] = tuple(int(v) for v in group.attrs["sensor_size"])
+                bounds.setdefault(name, []).append(b[keep])
+                grids.setdefault(name, []).append(g[keep])
+            first = config
+    merged = {**first, "window_sizes": sorted({int(k) for _, sizes in parts for k in sizes}), "merged_from": configs}
+
+    def write(tmp: Path) -> None:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["config"] = json.dumps(merged)
+            for name in bounds:
+                b, g = np.concatenate(bounds[name]), np.concatenate(grids[name])
+                if len({tuple(row) for row in b.tolist()}) != len(b):
+                    raise ValueError(f"recording {name}: a window is given by more than one part")
+                group = f.create_group(name)
+                group.attrs["sensor_size"] = sizes_of[name]
+                group.create_dataset("bounds", data=b, compression="gzip", compression_opts=9, shuffle=True)
+                group.create_dataset("grid", data=g if dtype is None else g.astype(dtype), compression="gzip",
+                                     compression_opts=9, shuffle=True)
+            f.attrs["complete"] = True
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     _replace_with(out, write)
     return out
 

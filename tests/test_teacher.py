@@ -2,6 +2,7 @@
 env's own ground truth does (crop, flips), they are the solver's output, an interrupted run
 resumes, bad files are named, and a teacher run trains on them."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from agents.teacher import (
     compute_teacher_targets,
     count_windows,
     derive_targets,
+    merge_targets,
     score_targets,
 )
 from envs.env import EventFlowEnv
@@ -204,3 +206,22 @@ def test_targets_of_the_first_windows_only_derive_and_score_on_their_span(tmp_pa
     assert len(derived) == 3 + 6  # the 3 solved 2-frame windows and the 6 1-frame windows inside them
     scores = score_targets(tmp_path / "d.h5", max_windows=3, window_sizes=(1,))
     assert list(scores) == ["1"] and scores["1"]["windows"] == 3 and scores["1"]["aee"] < scores["1"]["aee_zero"]
+
+
+def test_merged_targets_take_each_window_length_from_its_part(tmp_path):
+    rec = write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(5), sensor_size=(24, 32))
+    a = compute_teacher_targets([rec], tmp_path / "a.h5", window_sizes=(1, 2), settings=TINY, max_windows=3)
+    strong = dataclasses.replace(TINY, steps=TINY.steps + 5 if isinstance(TINY.steps, int) else TINY.steps)
+    b = compute_teacher_targets([rec], tmp_path / "b.h5", window_sizes=(2, 4), settings=strong, max_windows=3)
+    one, two = _windows(a, "dots"), _windows(b, "dots")
+    merged = _windows(merge_targets([(a, [1]), (b, [2, 4])], tmp_path / "m.h5", dtype=np.float16), "dots")
+    frame = min(t1 - t0 for t0, t1 in one)
+    expected = {w: g for w, g in one.items() if w[1] - w[0] == frame}
+    expected.update(two)
+    assert set(merged) == set(expected) and len(merged) == 3 + len(two)
+    for w, g in expected.items():  # float16: within its rounding
+        np.testing.assert_allclose(merged[w], g, rtol=1e-3, atol=1e-3)
+    assert TeacherTargets(tmp_path / "m.h5").config["window_sizes"] == [1, 2, 4]
+    with pytest.raises(ValueError, match="more than one part"):
+        merge_targets([(a, [2]), (b, [2])], tmp_path / "x.h5")
+    assert not (tmp_path / "x.h5").exists()

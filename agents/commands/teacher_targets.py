@@ -4,6 +4,7 @@ on full frames) for ``scripts/train.py --loss teacher --teacher-cache FILE``.
     python scripts/teacher_targets.py --data synthetic-train --out runs/teacher-targets/train.h5
     python scripts/teacher_targets.py --data synthetic-dr-train:32 --out runs/teacher-targets/dr32.h5 \
         --sensor-scales 4 2 1 --steps 40 30 30 --lr-per-frame 0.3 --lr-decay 10     # coarse sensor grid
+    python scripts/teacher_targets.py --merge old.h5:1 strong.h5:2,4 --out merged.h5    # windows from several files
     python scripts/teacher_targets.py --derive-from runs/teacher-targets/dr32.h5 --from-size 2 --smooth 1 \
         --out runs/teacher-targets/dr32-from2-smooth1.h5      # 1-4 frame targets from the 2-frame ones
     python scripts/train.py --loss teacher --teacher-cache runs/teacher-targets/train.h5 --window-size 1 2 3 4 ...
@@ -21,10 +22,11 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
-from agents.teacher import TeacherSettings, compute_teacher_targets, count_windows
+from agents.teacher import TeacherSettings, TeacherTargets, compute_teacher_targets, count_windows
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,6 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--from-size", type=int, default=2, help="with --derive-from: the window length solved (frames)")
     p.add_argument("--smooth", type=int, default=0,
                    help="with --derive-from: average each long window's velocity with this many neighbours a side")
+    p.add_argument("--merge", nargs="+", default=None, metavar="FILE:SIZES",
+                   help="do not solve: --out takes the windows of each FILE whose length is one of SIZES frames "
+                        "(comma-separated), e.g. old.h5:1 strong.h5:2,4 (float16 grids, compressed)")
     p.add_argument("--window-size", type=int, nargs="+", default=None,
                    help="window lengths in frames (default 1 2 3 4; with --score, the file's)")
     p.add_argument("--grids", type=int, nargs="+", default=list(d.grids),
@@ -78,6 +83,18 @@ def main(argv=None) -> int:
     if args.out.exists():
         print(f"{args.out} exists; delete it to recompute", file=sys.stderr)
         return 1
+    if args.merge:
+        from agents.teacher import merge_targets
+
+        parts = []
+        for item in args.merge:
+            path, sep, sizes = item.rpartition(":")
+            if not sep or not all(k.strip().isdigit() for k in sizes.split(",")):
+                raise SystemExit(f"--merge {item!r}: expected FILE:SIZES, e.g. strong.h5:2,4")
+            parts.append((Path(path), [int(k) for k in sizes.split(",")]))
+        merge_targets(parts, args.out, dtype=np.float16)
+        print(f"{args.out}: {len(TeacherTargets(args.out))} windows merged from {', '.join(args.merge)}")
+        return 0
     if args.derive_from is not None:
         from agents.teacher import derive_targets
 
