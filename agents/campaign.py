@@ -30,13 +30,15 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from envs.atomic import remove_stale_temporaries, temporary_path
 
 from .checkpoint import load_checkpoint, save_checkpoint
 
-__all__ = ["CAMPAIGNS_DIR", "STATE_BUDGET", "CampaignSpec", "Campaign", "slim_state", "machine", "plot_curve"]
+__all__ = ["CAMPAIGNS_DIR", "STATE_BUDGET", "CampaignSpec", "Campaign", "slim_state", "unslim_state", "machine",
+           "plot_curve"]
 
 CAMPAIGNS_DIR = Path(__file__).resolve().parent / "campaigns"
 #: the most a campaign's resume state may weigh (bytes): it is committed at every stretch
@@ -99,21 +101,75 @@ def _size(payload: dict[str, Any]) -> int:
     return buffer.tell()
 
 
-def slim_state(payload: dict[str, Any], budget: int = STATE_BUDGET) -> tuple[dict[str, Any], bool]:
-    """The resume state of a training checkpoint within ``budget`` bytes, and whether Adam's
-    moments are kept. Everything is kept when it fits; else the moments are dropped (the resumed
-    run restarts them and warms its step size up again over ``moment_warmup`` steps, see
-    agents.learner). ValueError when even the slim state is over budget."""
+#: the parts of a training checkpoint that hold the episodes in progress (the current windows'
+#: observations and events, and the recurrent state carried into the next unroll)
+EPISODE_KEYS = ("policy_state", "obs", "info")
+
+
+def _halve(value: Any) -> Any:
+    """float32 arrays and tensors in ``value`` as float16 (other types unchanged)."""
+    if isinstance(value, torch.Tensor) and value.dtype == torch.float32:
+        return value.half()
+    if isinstance(value, np.ndarray) and value.dtype == np.float32:
+        return value.astype(np.float16)
+    if isinstance(value, dict):
+        return {k: _halve(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_halve(v) for v in value)
+    return value
+
+
+def _widen(value: Any) -> Any:
+    """Inverse of :func:`_halve`: float16 back to float32."""
+    if isinstance(value, torch.Tensor) and value.dtype == torch.float16:
+        return value.float()
+    if isinstance(value, np.ndarray) and value.dtype == np.float16:
+        return value.astype(np.float32)
+    if isinstance(value, dict):
+        return {k: _widen(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_widen(v) for v in value)
+    return value
+
+
+def slim_state(payload: dict[str, Any], budget: int = STATE_BUDGET) -> tuple[dict[str, Any], str]:
+    """The resume state of a training checkpoint within ``budget`` bytes, and what it gave up,
+    one step at a time until it fits:
+
+    - "nothing": the whole checkpoint (a resume continues bitwise);
+    - "moments": Adam's moments dropped (the resumed run restarts them and warms its step size up
+      again over ``moment_warmup`` steps, see agents.learner);
+    - "moments, half episodes": also the episodes in progress (recurrent state, current
+      observations and windows) stored as float16, read back as float32;
+    - "moments, episodes": the episodes in progress dropped: the resumed run starts fresh episodes
+      (the weights, step, schedule and RNG continue).
+
+    The weights stay float32. ValueError when even the last is over budget."""
     if _size(payload) <= budget:
-        return payload, True
+        return payload, "nothing"
     optimizer = dict(payload["optimizer"])
     optimizer["state"] = {}
     slim = {**payload, "optimizer": optimizer}
+    if _size(slim) <= budget:
+        return slim, "moments"
+    slim = {**slim, **{k: _halve(slim.get(k)) for k in EPISODE_KEYS}, "episodes_halved": True}
+    if _size(slim) <= budget:
+        return slim, "moments, half episodes"
+    slim = {k: v for k, v in slim.items() if k not in (*EPISODE_KEYS, "env_states", "episodes_halved")}
     size = _size(slim)
     if size > budget:
-        raise ValueError(f"the campaign's resume state weighs {size / 2**20:.1f} MB without Adam's moments, over the "
-                         f"budget of {budget / 2**20:.0f} MB: a smaller network or fewer envs (--num-envs)")
-    return slim, False
+        raise ValueError(f"the campaign's resume state weighs {size / 2**20:.1f} MB without Adam's moments and "
+                         f"episodes, over the budget of {budget / 2**20:.0f} MB: a smaller network, or a larger "
+                         "budget (campaign.py new --state-budget-mb)")
+    return slim, "moments, episodes"
+
+
+def unslim_state(payload: dict[str, Any]) -> dict[str, Any]:
+    """A training checkpoint from a slim state: the halved episodes widened back to float32."""
+    payload = {k: v for k, v in payload.items() if k != "campaign"}
+    if payload.pop("episodes_halved", False):
+        payload.update({k: _widen(payload.get(k)) for k in EPISODE_KEYS})
+    return payload
 
 
 def machine(device: str) -> str:
@@ -181,13 +237,13 @@ class Campaign:
         """The step of the committed state (None: the campaign has not started)."""
         return int(load_checkpoint(self.state_path)["step"]) if self.state_path.exists() else None
 
-    def write_state(self, checkpoint: Path, progress: dict, budget: int = STATE_BUDGET) -> tuple[int, bool]:
+    def write_state(self, checkpoint: Path, progress: dict, budget: int = STATE_BUDGET) -> tuple[int, str]:
         """The working checkpoint, slimmed to ``budget`` bytes, as the committed state (atomic);
-        ``progress`` (the campaign's wall time, stretches) travels with it. Returns (bytes,
-        whether Adam's moments were kept)."""
-        slim, kept = slim_state({**load_checkpoint(checkpoint), "campaign": progress}, budget)
+        ``progress`` (the campaign's wall time, stretches) travels with it. Returns (bytes, what
+        the slim state gave up: see :func:`slim_state`)."""
+        slim, dropped = slim_state({**load_checkpoint(checkpoint), "campaign": progress}, budget)
         save_checkpoint(self.state_path, slim)
-        return self.state_path.stat().st_size, kept
+        return self.state_path.stat().st_size, dropped
 
     def progress(self) -> dict:
         """The campaign's own counters from its state: training hours and stretches so far."""
@@ -205,9 +261,7 @@ class Campaign:
                 return "working"
         if state_step is None:
             return "fresh"
-        payload = load_checkpoint(self.state_path)
-        payload.pop("campaign", None)
-        save_checkpoint(self.checkpoint, payload)
+        save_checkpoint(self.checkpoint, unslim_state(load_checkpoint(self.state_path)))
         return "state"
 
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from agents.campaign import Campaign, slim_state
+from agents.campaign import Campaign, _size, slim_state, unslim_state
 from agents.checkpoint import load_checkpoint
 from agents.commands import campaign as campaign_script
 from agents.learner import Learner, TrainConfig
@@ -98,12 +98,12 @@ def test_slim_state_keeps_moments_under_budget_and_restarts_them_with_a_warmup(r
     for _ in range(3):
         learner.update()
     payload = copy.deepcopy(learner.state_dict())  # the live tensors move on with the next updates
-    kept, with_moments = slim_state(payload, budget=2**30)
-    assert with_moments and kept["optimizer"]["state"]
+    kept, dropped = slim_state(payload, budget=2**30)
+    assert dropped == "nothing" and kept["optimizer"]["state"]
     weights = sum(v.numel() * 4 for v in payload["model"].values())
-    slim, with_moments = slim_state(payload, budget=int(weights * 1.5) + 2**20)  # room for weights, not moments
-    assert not with_moments and slim["optimizer"]["state"] == {}
-    with pytest.raises(ValueError, match="without Adam's moments"):
+    slim, dropped = slim_state(payload, budget=int(weights * 1.5) + 2**20)  # room for weights, not moments
+    assert dropped == "moments" and slim["optimizer"]["state"] == {}
+    with pytest.raises(ValueError, match="without Adam's moments and episodes"):
         slim_state(payload, budget=weights // 2)
 
     reference = [learner.update()["loss"] for _ in range(3)]  # the uninterrupted steps 4-6
@@ -118,6 +118,32 @@ def test_slim_state_keeps_moments_under_budget_and_restarts_them_with_a_warmup(r
     again = _learner(recording)
     again.load_state_dict(resumed.state_dict())  # the warm-up's origin survives a full checkpoint
     assert again.rewarm_from == 3
+
+
+def test_a_tight_budget_halves_then_drops_the_episodes_in_progress(recording):
+    torch.manual_seed(0)
+    learner = _learner(recording)
+    learner.update()
+    payload = copy.deepcopy(learner.state_dict())
+    no_moments = _size(slim_state(payload, budget=2**30)[0]) - _size(payload["optimizer"])
+    half, dropped = slim_state(payload, budget=no_moments - 1)  # just too big without the moments
+    assert dropped == "moments, half episodes"
+    assert all(v.dtype == torch.float16 for v in half["policy_state"].values())
+    restored = unslim_state(half)
+    for key, value in payload["policy_state"].items():  # float32 again, within float16's rounding
+        assert restored["policy_state"][key].dtype == torch.float32
+        torch.testing.assert_close(restored["policy_state"][key], value, rtol=1e-3, atol=1e-4)
+    np.testing.assert_allclose(restored["obs"]["voxel_grid" if "voxel_grid" in payload["obs"] else "count_image"],
+                               payload["obs"]["voxel_grid" if "voxel_grid" in payload["obs"] else "count_image"],
+                               rtol=1e-3, atol=1e-3)
+    resumed = _learner(recording)
+    resumed.load_state_dict(restored)  # continues from the stored windows
+    assert resumed.step == 1 and resumed.update()["step"] == 2
+    bare, dropped = slim_state(payload, budget=_size(half) - 1)
+    assert dropped == "moments, episodes" and "obs" not in bare and "env_states" not in bare
+    fresh = _learner(recording)
+    fresh.load_state_dict(unslim_state(bare))  # fresh episodes, the weights and step continue
+    assert fresh.step == 1 and fresh.update()["step"] == 2
 
 
 def test_validation_exports_the_best_and_the_curve_accumulates(recording, tmp_path):

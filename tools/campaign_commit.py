@@ -7,8 +7,8 @@
 
 A campaign commit holds its folder (campaign.json, state.pt, curve.jsonl, curve.png,
 reference.json) and agents/weights/EXPORT.pt/.json when they changed. It refuses a state over the
-campaign's budget, and a fourth state commit within one stretch of training (--force to override),
-so the repository grows by at most three states per stretch.
+campaign's budget, and more state commits within one stretch of training than fit 30 MB of
+repository growth (at most three; --force to override).
 --from OUT: OUT is what scripts/device_train.sh wrote (OUT/campaigns/NAME, OUT/weights); it is
 copied in only when its state is further along than the local one.
 """
@@ -19,6 +19,7 @@ import argparse
 import shutil
 import subprocess
 import sys
+import zlib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,6 +28,13 @@ sys.path.insert(0, str(ROOT))
 from agents.campaign import Campaign  # noqa: E402
 
 MAX_STATE_COMMITS = 3
+#: the most a stretch of training may add to the repository (bytes, as git packs them)
+GROWTH_BUDGET = 30 * 2**20
+
+
+def _packed(path: Path) -> int:
+    """About what git adds for the file: its zlib-compressed size."""
+    return len(zlib.compress(path.read_bytes(), 6))
 
 
 def git(*args: str, check: bool = True) -> str:
@@ -60,9 +68,13 @@ def commit_campaign(name: str, force: bool) -> None:
     stretch = progress.get("stretches", 0)
     done = [s for s in git("log", "--format=%s", "--", str(campaign.state_path.relative_to(ROOT))).splitlines()
             if s.startswith(f"campaign {name}: stretch {stretch},")]
-    if len(done) >= MAX_STATE_COMMITS and not force:
-        raise SystemExit(f"campaign {name}: already {len(done)} state commits in stretch {stretch} "
-                         f"(at most {MAX_STATE_COMMITS}; --force to commit anyway)")
+    weights = ROOT / "agents" / "weights" / f"{spec.export}.pt"
+    per_commit = _packed(campaign.state_path) + (_packed(weights) if weights.exists() else 0)
+    allowed = max(1, min(MAX_STATE_COMMITS, int(GROWTH_BUDGET // per_commit)))
+    if len(done) >= allowed and not force:
+        raise SystemExit(f"campaign {name}: already {len(done)} state commits in stretch {stretch} (at most "
+                         f"{allowed}: each adds about {per_commit / 2**20:.1f} MB packed, {GROWTH_BUDGET / 2**20:.0f} MB "
+                         "per stretch; --force to commit anyway)")
     paths = [str(p.relative_to(ROOT)) for p in campaign.dir.iterdir() if p.is_file()]
     paths += [f"agents/weights/{spec.export}{s}" for s in (".pt", ".json") if (ROOT / "agents" / "weights" /
                                                                              f"{spec.export}{s}").exists()]

@@ -24,6 +24,7 @@ import datetime
 import glob
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -52,7 +53,9 @@ def _expand(patterns: list[str]) -> list[str]:
 
 
 def _evaluate(args: list[str], out: Path, device: str) -> dict:
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists():  # the campaign's own folder of an earlier try of this validation: replaced
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
     cmd = [PYTHON, str(ROOT / "scripts" / "evaluate.py"), *args, "--pictures", "0", "--no-progress",
            "--out", str(out), "--device", device]
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
@@ -231,9 +234,9 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
                 if improved:
                     export(campaign, spec, row, step, here, weights_dir)
                     log(f"[campaign] exported to {weights_dir / spec.export}.pt")
-            size, kept = campaign.write_state(campaign.checkpoint, progress, int(spec.state_budget_mb * 2**20))
-            log(f"[campaign] state at step {step}: {campaign.state_path} ({size / 2**20:.1f} MB, Adam's moments "
-                f"{'kept' if kept else 'restart on resume'})")
+            size, dropped = campaign.write_state(campaign.checkpoint, progress, int(spec.state_budget_mb * 2**20))
+            log(f"[campaign] state at step {step}: {campaign.state_path} ({size / 2**20:.1f} MB; left out to fit "
+                f"{spec.state_budget_mb:g} MB: {dropped})")
             if step >= total:
                 log(f"[campaign] reached the recipe's {total} steps")
                 break
