@@ -19,7 +19,7 @@ when saving. A file written before (version 1, pickled numpy objects) raises
 :class:`CheckpointError` telling to convert it once with :func:`upgrade_checkpoint`
 (``python scripts/export_model.py --upgrade FILE``), which must unpickle it: only for files you trust.
 
-Writes go to ``<name>.tmp-<pid>`` and are renamed over the target when complete; temporaries of
+Writes go to ``<name>.tmp-<host>-<pid>`` and are renamed over the target when complete; temporaries of
 killed writers are removed by the next save to that name (:mod:`envs.atomic`).
 """
 

@@ -29,7 +29,8 @@ from envs.visualize import count_image_to_rgb, flow_legend, flow_to_rgb, panel, 
 from envs.windows import FALLBACK_INTERVAL_US, window_grid
 from losses import EventBatch, flow_error, fwl, hmc_loss, rsat, sample_flow, warped_event_images
 
-__all__ = ["SequenceResult", "evaluate", "results_table", "results_json", "window_panel", "windowing_of"]
+__all__ = ["SequenceResult", "evaluate", "results_table", "results_json", "window_panel", "first_window_panel",
+           "windowing_of"]
 
 METRICS = ("aee", "outlier_pct", "cosine", "hmc", "hmc_zero", "fwl", "rsat", "ms")
 
@@ -123,6 +124,7 @@ def evaluate(
     windows_fn: Callable | None = None,
     scorer_fn: Callable | None = None,
     flow_sink: Callable | None = None,
+    shard: tuple[int, int] = (0, 1),
 ) -> list[SequenceResult]:
     """Roll ``policy`` through every sequence of ``data``, each at its own sensor size.
 
@@ -152,11 +154,16 @@ def evaluate(
     window's predicted flow (window: t_start, t_end and the events), e.g. a benchmark submission
     writer.
     Per window the time the policy takes to produce its flow is measured (``ms``).
+    shard: (rank, world): only sequences rank, rank + world, rank + 2 world, ... (the share of one
+    process of a distributed run, which adds the results of all).
     """
+    rank, world = shard
+    if not 0 <= rank < world:
+        raise ValueError(f"shard must be (rank, world) with 0 <= rank < world, got {shard}")
     sources = resolve_data(data, format=data_format, options=data_options)
     results = []
     total = len(sources)
-    for index in range(total):
+    for index in range(rank, total, world):
         # one env per recording: each in its own frame, nothing cropped unless asked
         env = EventFlowEnv(data, window=window, window_size=window_size, crop=crop, compute_reward=False,
                            flow_scaling=flow_scaling, data_format=data_format, data_options=data_options,
@@ -261,6 +268,35 @@ def window_panel(count: np.ndarray, flow: np.ndarray, window: dict, flow_gt: np.
     return panel(tiles, caption)
 
 
+def first_window_panel(policy, data, *, crop=None, flow_scaling: float | None = None, data_format: str | None = None,
+                       data_options: dict | None = None, max_windows: int = 50) -> np.ndarray | None:
+    """:func:`window_panel` of the first window with events of the first sequence of ``data``
+    (``frames`` windows, the policy rolled from a fresh state): events, predicted flow with the
+    colour wheel, ground truth where present. None when none of its first ``max_windows``
+    windows holds events. Returns (H, W, 3) uint8."""
+    env = EventFlowEnv(data, window="frames", crop=crop, compute_reward=False, flow_scaling=flow_scaling,
+                       data_format=data_format, data_options=data_options, observations=_input_parts(policy),
+                       sequences=[0], voxel_bins=getattr(policy, "voxel_bins", 5) if policy is not None else 5)
+    try:
+        obs, info = env.reset(options={"sequence": 0})
+        if policy is not None:
+            policy.reset()
+        size = (env.height, env.width)
+        for _ in range(max_windows):
+            win = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+            flow = _act(policy, obs, win, size)
+            if len(win["t"]):
+                return window_panel(obs["count_image"], flow, win, info.get("flow_gt"))
+            obs, _, _, truncated, info = env.step(flow)
+            if truncated:
+                break
+    except NoWindowsError:
+        pass
+    finally:
+        env.close()
+    return None
+
+
 def _fmt(value: float, digits: int = 3) -> str:
     return "-" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
@@ -272,28 +308,38 @@ def results_table(named_results: dict[str, list[SequenceResult]], title: str = "
     sequences), then the mean of the
     sequences' AEE, the cosine, L_HMC and zero flow's over all windows, in how many sequences
     the method's L_HMC is below zero flow's, FWL, RSAT and the milliseconds per window (each
-    sequence's first window, which pays for warm-up, not counted)."""
+    sequence's first window, which pays for warm-up, not counted). Only the columns that hold a
+    value are shown: without ground truth, no AEE, % outliers or cosine columns."""
     methods = list(named_results)
     sequences = [r.name for r in named_results[methods[0]]]
     per_sequence = len(sequences) <= 6 if per_sequence is None else per_sequence
     head = ["method"] + ([f"{s} AEE / %Out (windows)" for s in sequences] if per_sequence else [])
     head += ["mean AEE", "cos", "L_HMC", "L_HMC zero", "seq. L_HMC < zero", "FWL", "RSAT", "ms/win"]
-    lines = ([f"**{title}**", ""] if title else []) + ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    body = []  # a row's cells; None: no value
     for method in methods:
         rows = named_results[method]
-        cells = [method]
+        cells: list[str | None] = [method]
         if per_sequence:
-            cells += [f"{_fmt(r.mean('aee'), 2)} / {_fmt(r.mean('outlier_pct'), 2)} ({r.counts.get('aee', 0)})"
-                      for r in rows]
+            cells += [f"{_fmt(r.mean('aee'), 2)} / {_fmt(r.mean('outlier_pct'), 2)} ({r.counts['aee']})"
+                      if r.counts.get("aee") else None for r in rows]
         pooled = {k: _pooled(rows, k) for k in METRICS}
         aees = [r.mean("aee") for r in rows if math.isfinite(r.mean("aee"))]
         scored = [r for r in rows if r.counts["hmc"]]
         below = sum(r.mean("hmc") < r.mean("hmc_zero") for r in scored)
-        cells += [_fmt(float(np.mean(aees)) if aees else float("nan"), 3), _fmt(pooled["cosine"], 3)]
-        cells += [_fmt(pooled["hmc"], 4), _fmt(pooled["hmc_zero"], 4), f"{below}/{len(scored)}",
-                  _fmt(pooled["fwl"], 4), _fmt(pooled["rsat"], 4), _fmt(pooled["ms"], 1)]
-        lines.append("| " + " | ".join(cells) + " |")
+        cells += [_cell(float(np.mean(aees)) if aees else float("nan"), 3), _cell(pooled["cosine"], 3)]
+        cells += [_cell(pooled["hmc"], 4), _cell(pooled["hmc_zero"], 4), f"{below}/{len(scored)}" if scored else None,
+                  _cell(pooled["fwl"], 4), _cell(pooled["rsat"], 4), _cell(pooled["ms"], 1)]
+        body.append(cells)
+    shown = [i for i in range(len(head)) if i == 0 or any(cells[i] is not None for cells in body)]
+    lines = ([f"**{title}**", ""] if title else []) + ["| " + " | ".join(head[i] for i in shown) + " |",
+                                                       "|" + "---|" * len(shown)]
+    lines += ["| " + " | ".join("-" if cells[i] is None else cells[i] for i in shown) + " |" for cells in body]
     return "\n".join(lines)
+
+
+def _cell(value: float, digits: int) -> str | None:
+    """A table cell: the value, or None where there is none (NaN)."""
+    return None if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
 def windowing_of(named_results: dict[str, list[SequenceResult]]) -> str:
@@ -337,7 +383,8 @@ def results_json(per_dt: dict[str, dict[str, list[SequenceResult]]]) -> str:
          "overall": {"dt1": {...}, "dt4": {...}, "fwl": .., "rsat": ..},
          "baselines": {name: {"sequences": ..., "overall": ...}}}
 
-    Metrics without data (AEE where there is no ground truth) are null.
+    A metric without data in every entry (AEE, % outliers and cosine without ground truth) is
+    left out, as the table leaves out its column; one without data in some entries is null there.
     """
     keys = list(per_dt)
     methods = list(per_dt[keys[0]])
@@ -357,4 +404,17 @@ def results_json(per_dt: dict[str, dict[str, list[SequenceResult]]]) -> str:
 
     out = {"method": methods[0], **block(methods[0])}
     out["baselines"] = {m: block(m) for m in methods[1:]}
+    _drop_empty_metrics([out] + list(out["baselines"].values()), keys)
     return json.dumps(out, indent=2)
+
+
+def _drop_empty_metrics(blocks: list[dict], keys: list[str]) -> None:
+    """Remove, from every metrics dict of ``blocks`` (and the fwl / rsat beside them), the
+    metrics that are null in all of them."""
+    entries = [entry for b in blocks for entry in list(b["sequences"].values()) + [b["overall"]]]
+    metrics = [entry[key] for entry in entries for key in keys if key in entry] + entries
+    names = {name for m in metrics for name in m if name != "windows" and not isinstance(m[name], dict)}
+    for name in names:
+        if all(m.get(name) is None for m in metrics if name in m):
+            for m in metrics:
+                m.pop(name, None)

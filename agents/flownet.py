@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from losses import forward_warp_flow
+from losses import cpu_kernels_enabled, forward_warp_flow
 
 from .layers import ConvGRU, ConvUp, ResidualBlock, is_channels_last, refine_flow
 
@@ -131,7 +131,9 @@ class FlowNetBase(nn.Module):
     1.4-2.2x at CPU width, README benchmarks) and the recurrent layers' gate arithmetic runs in
     compiled kernels (``agents/_kernels.py``); the returned flows are always contiguous NCHW. ``channels_last = False`` keeps NCHW inside (the
     torch reference path); ``True`` forces channels-last on any device; ``None`` (default) means
-    channels-last on CPU only. Values do not depend on it beyond float rounding.
+    channels-last on CPU only, unless the compiled CPU kernels are switched off
+    (``losses.cpu_kernels(False)``, ``EVFLOW_CPU_KERNELS=0``): then NCHW, the path CUDA takes.
+    Values do not depend on it beyond float rounding.
     """
 
     channels_last: bool | None = None
@@ -159,8 +161,8 @@ class FlowNetBase(nn.Module):
         self.config: dict = {}
 
     def _use_channels_last(self, x: Tensor) -> bool:
-        if self.channels_last is None:
-            return x.device.type == "cpu"
+        if self.channels_last is None:  # CUDA's path (NCHW) when the CPU kernels are switched off
+            return x.device.type == "cpu" and cpu_kernels_enabled()
         return bool(self.channels_last)
 
     def encode(self, x: Tensor, state: State, new_state: State) -> list[Tensor]:

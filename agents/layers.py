@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from losses.kernel_switch import use_cpu_kernels
+
 from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 
 _CHANNELS_LAST = torch.channels_last
@@ -55,15 +57,10 @@ def _new_channels_last(like: Tensor, channels: int) -> Tensor:
 
 def use_gate_kernels(tensor: Tensor) -> bool:
     """Whether the gate arithmetic on ``tensor`` (a convolution's output) runs in the compiled
-    kernels: CPU, float32/float64, channels-last layout (what the networks use on CPU). Anything
-    else takes the torch expressions, which are the reference."""
-    return (
-        _kernels is not None
-        and tensor.device.type == "cpu"
-        and tensor.dtype in (torch.float32, torch.float64)
-        and tensor.dim() == 4
-        and is_channels_last(tensor)
-    )
+    kernels: CPU, float32/float64, channels-last layout (what the networks use on CPU), and the
+    kernels not switched off (``losses.cpu_kernels``). Anything else takes the torch expressions,
+    which are the reference and what CUDA runs."""
+    return _kernels is not None and use_cpu_kernels(tensor) and tensor.dim() == 4 and is_channels_last(tensor)
 
 
 class _GRUUpdates(torch.autograd.Function):

@@ -16,11 +16,15 @@ gradients (including the env's border rule: ``border_penalty`` x the window's ze
 the share of events pushed out of the image, ramped over ``border_ramp`` pixels), so the env
 need not compute it twice.
 
+Mixed precision (``amp``): the network's forward runs under autocast (bfloat16 by default on a
+CUDA device that supports it; float16 on CUDA with loss scaling), the losses in float32.
+
 Distributed: when ``torch.distributed`` is initialised (``torchrun``), each rank rolls out its
-own shard of sequences, gradients are averaged across ranks with an all-reduce after each
-backward (the recurrent policy runs L forwards per backward, so the averaging is done
-explicitly rather than through DistributedDataParallel's per-forward hooks), and every rank
-takes the same number of optimizer steps whatever the length of its shard.
+own shard of sequences, gradients are averaged across ranks after each backward in bucketed
+all-reduces (``agents/distributed.py`` says why not DistributedDataParallel), and every rank
+takes the same number of optimizer steps whatever the length of its shard. A checkpoint holds
+every rank's episodes (gathered to rank 0) and each rank continues its own on a resume, which
+therefore needs the same number of processes (``Learner.load_state_dict``).
 """
 
 from __future__ import annotations
@@ -46,9 +50,19 @@ from losses import (
 )
 
 from .checkpoint import rng_state, set_rng_state
+from .distributed import average_gradients, gather_to_first
 from .objectives import RolloutWindow, make_objective, window_loss, windows_from_info
-from .options import check_choices, option, to_argv
-from .policy import RecurrentPolicy
+from .options import (
+    check_choices,
+    non_negative_float,
+    non_negative_int,
+    option,
+    positive_float,
+    positive_int,
+    sensor_size_option,
+    to_argv,
+)
+from .policy import RecurrentPolicy, autocast_dtype
 from .registry import make_model, width_kwargs
 from .teacher import TeacherTargets
 
@@ -96,37 +110,39 @@ class TrainConfig:
     """extra model argument, e.g. use_st_convgru=false (repeatable)"""
     input: Literal["count_image", "voxel_grid", "count_time_image"] = "count_image"
     """the paper's count image (eq. 2), a voxel grid (--voxel-bins), or EV-FlowNet's counts and timestamps"""
-    voxel_bins: int = 5
+    voxel_bins: int = option(5, type=positive_int)
     """time bins of the voxel-grid input"""
     data: Any = option("synthetic-train", nargs="+", convert=_one_or_list)
     """synthetic split name, recording files or directories"""
+    sensor_size: tuple[int, int] | Literal["auto"] | None = sensor_size_option()
+    """H W (pixels, height first) or auto: the sensor size of recordings whose header gives none (Prophesee RAW / DAT, text); auto: the smallest known sensor holding every event, with a warning; files that store their geometry keep it"""
     window: Literal["frames", "time", "count"] = "frames"
     """how a window is cut: ground-truth frames, a time span or an event count"""
-    window_size: int | list[int] | None = option(None, nargs="+", type=int, convert=_one_or_list)
+    window_size: int | list[int] | None = option(None, nargs="+", type=positive_int, convert=_one_or_list)
     """frames: grid steps (1); time: us (10000); count: events (15000); several values: one drawn per episode"""
-    crop: tuple[int, ...] | None = None
+    crop: tuple[int, ...] | None = option(None, type=non_negative_int)
     """H W (centred) or TOP LEFT H W"""
     random_crop: bool = False
     """place the --crop H W window at a random position in each episode (validation uses whole frames)"""
     flips: bool = True
     """Hagenaars' random h/v/polarity flips, once per sequence (--no-flips: off)"""
-    num_envs: int = 4
+    num_envs: int = option(4, type=positive_int)
     """B, sequences rolled out in parallel"""
     vector: Literal["sync", "async"] = "sync"
     """gymnasium vector env: in this process or in worker processes"""
-    unroll: int = 10
+    unroll: int = option(10, type=positive_int)
     """L, windows per truncated-BPTT update (paper: 10)"""
-    steps: int = 1000
-    """total optimizer steps"""
-    lr: float = 1e-4
+    steps: int = option(1000, type=non_negative_int)
+    """total optimizer steps (0: save the starting weights, e.g. of --init, as a new run)"""
+    lr: float = option(1e-4, type=non_negative_float)
     """Adam step size (paper)"""
-    warmup_steps: int = 0
+    warmup_steps: int = option(0, type=non_negative_int)
     """steps of linear warm-up of the step size"""
     decay: Literal["none", "cosine"] = "none"
     """step-size decay over --steps"""
-    grad_clip: float = 100.0
+    grad_clip: float = option(100.0, type=positive_float)
     """gradient norm clip (Hagenaars)"""
-    moment_warmup: int = 50
+    moment_warmup: int = option(50, type=non_negative_int)
     """steps of linear warm-up after a resume whose state holds no Adam moments (a campaign's slim state)"""
     loss: Literal["hmc", "at", "teacher", "supervised"] = "hmc"
     """hmc (paper), at (baseline), teacher (regress per-window contrast maximisation), supervised (a reference)"""
@@ -141,38 +157,40 @@ class TrainConfig:
     """window: references at the window bounds; events: at the first and last event"""
     at_normalisation: Literal["event_pixels", "sum"] = "event_pixels"
     """L_AT over the pixels holding events, or sum: eq. 14's bare sum"""
-    lambda_1: float = 1.0
+    lambda_1: float = option(1.0, type=non_negative_float)
     """weight of the event-count term in L_HMC (eq. 17)"""
-    lambda_2: float = 1e-3
+    lambda_2: float = option(1e-3, type=non_negative_float)
     """weight of the smoothness term (eq. 17)"""
-    alpha: float = 0.6
+    alpha: float = option(0.6, type=positive_float)
     """Charbonnier exponent of the smoothness term (eq. 16)"""
     border_penalty: float = 1.0
     """border rule weight: x zero-flow loss x share of events pushed out of the image (0: the paper's loss)"""
     border_ramp: float = BORDER_RAMP
     """border rule ramp: an event d px beyond the image pays min(1, d / ramp) of its share (0: all of it)"""
-    flow_scaling: float | None = None
+    flow_scaling: float | None = option(None, type=positive_float)
     """pixels per network unit (default max(H, W))"""
-    teacher_grids: tuple[int, ...] = (4, 8)
+    teacher_grids: tuple[int, ...] = option((4, 8), type=positive_int)
     """teacher: coarse-to-fine grid cells along the longer side"""
-    teacher_steps: int = 40
+    teacher_steps: int = option(40, type=positive_int)
     """teacher: Adam steps per level"""
-    teacher_lr: float = 0.05
+    teacher_lr: float = option(0.05, type=positive_float)
     """teacher: Adam step size (pixels)"""
-    teacher_lambda_2: float = 1e-2
+    teacher_lambda_2: float = option(1e-2, type=non_negative_float)
     """teacher: smoothness weight"""
     teacher_pixels: Literal["events", "all"] = "events"
     """teacher: regress on pixels holding events, or on every pixel"""
-    teacher_max_events: int | None = None
+    teacher_max_events: int | None = option(None, type=positive_int)
     """teacher: solve on at most this many events per window, evenly subsampled (default: all)"""
     teacher_cache: str | None = None
     """teacher: precomputed targets (scripts/teacher_targets.py) instead of solving every update"""
-    head_init: float | None = option(None, metavar="A")
+    head_init: float | None = option(None, metavar="A", type=non_negative_float)
     """re-draw the flow heads' weights from U(-A, A), biases 0 (start near zero flow)"""
-    seed: int = 0
+    seed: int = option(0, type=non_negative_int)
     """seeds the initial weights, the episodes and the flips"""
     device: str = "cpu"
     """torch device"""
+    amp: Literal["auto", "bf16", "fp16", "off"] = "auto"
+    """mixed precision of the network's forward (losses stay float32): auto = bf16 on a CUDA device that supports it, else off; fp16: CUDA only"""
 
     def __post_init__(self) -> None:
         check_choices(self)
@@ -227,19 +245,25 @@ def preset_options(name: str) -> list[str]:
     return to_argv(TrainConfig, PRESETS[name])
 
 
+def data_options(cfg: TrainConfig) -> dict:
+    """The reader options of the run's recordings (``sensor_size``, for files without geometry)."""
+    return {} if cfg.sensor_size is None else {"sensor_size": cfg.sensor_size}
+
+
 def make_vector_env(cfg: TrainConfig, *, rank: int = 0, world: int = 1, data=None, flips=None):
     """B EventFlow envs over this rank's shard of the recordings, autoresetting in the same
     step (the observation returned with ``truncated=True`` already opens the next sequence)."""
     data = cfg.data if data is None else data
+    options = data_options(cfg)
     probe = EventFlowEnv(data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop,
-                         random_crop=cfg.random_crop)
+                         random_crop=cfg.random_crop, data_options=options)
     n_seq = len(probe.sources)
     probe.close()
     shard = list(range(rank, n_seq, world)) if world > 1 and n_seq >= world else None
     kwargs = dict(
         data=data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop, random_crop=cfg.random_crop,
         flips=cfg.flips if flips is None else flips, compute_reward=False, sequences=shard,
-        flow_scaling=cfg.flow_scaling, observations=(cfg.input,), voxel_bins=cfg.voxel_bins,
+        flow_scaling=cfg.flow_scaling, observations=(cfg.input,), voxel_bins=cfg.voxel_bins, data_options=options,
     )
     fns = [lambda i=i: EventFlowEnv(**kwargs, env_index=i) for i in range(cfg.num_envs)]
     cls = gymnasium.vector.SyncVectorEnv if cfg.vector == "sync" else gymnasium.vector.AsyncVectorEnv
@@ -289,7 +313,11 @@ class Learner:
         if cfg.head_init is not None:
             init_flow_heads(model, cfg.head_init)
         self.model_config = dict(getattr(model, "config", self.model_config))
-        self.policy = RecurrentPolicy(model, device=self.device, input_key=cfg.input, voxel_bins=cfg.voxel_bins)
+        self.autocast = autocast_dtype(cfg.amp, self.device)  # None: float32
+        self.policy = RecurrentPolicy(model, device=self.device, input_key=cfg.input, voxel_bins=cfg.voxel_bins,
+                                      autocast=self.autocast)
+        # float16's narrow range: the loss is scaled up for the backward, the gradients unscaled before the clip
+        self.scaler = torch.amp.GradScaler("cuda") if self.autocast == torch.float16 else None
         if self.world > 1:
             for p in self.policy.parameters():
                 dist.broadcast(p.data, src=0)
@@ -334,15 +362,17 @@ class Learner:
                 self.policy.reset(mask=done)  # new sequences start from a fresh state
         loss, extra = self.objective(rollout)  # 2. the loss of the rollout
         self.optimizer.zero_grad(set_to_none=True)  # 3. backward, average across ranks, clip, step
-        loss.backward()
+        (loss if self.scaler is None else self.scaler.scale(loss)).backward()
         if self.world > 1:
-            for p in self.policy.parameters():
-                if p.grad is None:
-                    p.grad = torch.zeros_like(p)
-                dist.all_reduce(p.grad)
-                p.grad /= self.world
+            average_gradients(self.policy.parameters(), self.world)
+        if self.scaler is not None:
+            self.scaler.unscale_(self.optimizer)
         grad_norm = torch.nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.grad_clip)
-        self.optimizer.step()
+        if self.scaler is None:
+            self.optimizer.step()
+        else:  # skips the step when a gradient overflowed, and adapts the scale
+            self.scaler.step(self.optimizer)
+            self.scaler.update()
         self.scheduler.step()
         self.policy.detach()  # 4. truncated BPTT: the next update continues, without the graph
         self.step += 1
@@ -360,28 +390,64 @@ class Learner:
         }
 
     # -- checkpoints -------------------------------------------------------------------------
-    def state_dict(self) -> dict[str, Any]:
+    def episode_state(self) -> dict[str, Any]:
+        """This process's place in its episodes: its random generators, the recurrent state, every
+        env's episode position and the observation and info the next update starts from."""
         state = self.policy.state
         return {
-            "model_name": self.cfg.model,
-            "model_config": self.model_config,
-            "model": self.policy.model.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "scheduler": self.scheduler.state_dict(),
-            "step": self.step,
-            "config": self.cfg.to_dict(),
             "rng": rng_state(self.device),
-            "rewarm_from": self.rewarm_from,
             "policy_state": None if state is None else {k: v.detach().cpu() for k, v in state.items()},
             "env_states": list(self.envs.call("episode_state")),
             "obs": {k: np.array(v) for k, v in self.obs.items()},
             "info": self.info,
         }
 
+    def state_dict(self) -> dict[str, Any]:
+        """The training checkpoint: weights, optimizer, scheduler, step, config, and the episodes.
+
+        Rank 0's episode state (:meth:`episode_state`) sits at the top level, as in a
+        single-process checkpoint; under ``torch.distributed`` this is a collective (every rank
+        calls it) that gathers the other ranks' to rank 0, into ``rank_episodes[r - 1]`` for rank
+        r, and ``world_size`` records how many there were. Only rank 0's dict is complete."""
+        episode = self.episode_state()
+        others = gather_to_first(episode) if self.world > 1 else None
+        return {
+            "model_name": self.cfg.model,
+            "model_config": self.model_config,
+            "model": self.policy.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "scaler": None if self.scaler is None else self.scaler.state_dict(),
+            "step": self.step,
+            "config": self.cfg.to_dict(),
+            "rewarm_from": self.rewarm_from,
+            **episode,
+            "world_size": self.world,
+            "rank_episodes": [] if others is None else others[1:],
+        }
+
+    def stored_episode(self, payload: dict[str, Any]) -> dict[str, Any] | None:
+        """This rank's episode state in a checkpoint, or None when the checkpoint was written by
+        another number of processes (rank r's episodes belong to rank r's shard of sequences)."""
+        if int(payload.get("world_size", 1)) != self.world:
+            return None
+        return payload if self.rank == 0 else payload["rank_episodes"][self.rank - 1]
+
     def load_state_dict(self, payload: dict[str, Any], *, restore_episodes: bool = True) -> None:
         """Continue the run of a training checkpoint. The step size follows ``cfg.lr`` (the
         stored one unless a resume was allowed to change it). restore_episodes: False starts
-        fresh episodes (when the data or the windows changed) instead of the stored ones."""
+        fresh episodes (when the data or the windows changed) instead of the stored ones.
+
+        Each rank takes back its own episodes and random generators (:meth:`stored_episode`); a
+        checkpoint of another number of processes raises ValueError unless restore_episodes is
+        False (then the ranks start fresh episodes from their own seeds)."""
+        episode = self.stored_episode(payload)
+        if restore_episodes and episode is None:
+            stored = int(payload.get("world_size", 1))
+            raise ValueError(
+                f"the checkpoint holds the episodes of {stored} process(es), this run has {self.world}: each process "
+                f"continues its own shard's episodes, so resume with {stored} process(es), or start fresh episodes "
+                "(restore_episodes=False; scripts/train.py: --allow-changes world_size)")
         self.policy.model.load_state_dict(payload["model"])
         self.optimizer.load_state_dict(payload["optimizer"])
         self.scheduler.load_state_dict(payload["scheduler"])
@@ -395,12 +461,15 @@ class Learner:
         for group in self.optimizer.param_groups:
             group["initial_lr"] = self.cfg.lr
             group["lr"] = self.cfg.lr * self._lr_factor(self.scheduler.last_epoch)
-        set_rng_state(payload["rng"], self.device)
-        state = payload.get("policy_state") if restore_episodes else None
+        if self.scaler is not None and payload.get("scaler"):
+            self.scaler.load_state_dict(payload["scaler"])
+        if episode is not None:
+            set_rng_state(episode["rng"], self.device)
+        state = episode.get("policy_state") if restore_episodes else None
         self.policy.state = None if state is None else {k: v.to(self.device) for k, v in state.items()}
-        if restore_episodes and payload.get("env_states") is not None:
-            self.envs.call("restore_episode_state", payload["env_states"])
-            self.obs, self.info = payload["obs"], payload["info"]
+        if restore_episodes and episode.get("env_states") is not None:
+            self.envs.call("restore_episode_state", episode["env_states"])
+            self.obs, self.info = episode["obs"], episode["info"]
 
     def close(self) -> None:
         self.envs.close()

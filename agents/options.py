@@ -12,12 +12,84 @@ import ast
 import dataclasses
 import inspect
 import json
+import math
 import textwrap
 import types
 import typing
 from typing import Any, Literal
 
-__all__ = ["option", "field_docs", "choices_of", "check_choices", "add_options", "options_from_args", "to_argv"]
+__all__ = ["option", "field_docs", "choices_of", "check_choices", "add_options", "options_from_args", "to_argv",
+           "number", "positive_int", "non_negative_int", "positive_float", "non_negative_float", "fraction",
+           "SensorSize", "sensor_size_option", "SENSOR_SIZE_HELP"]
+
+
+def number(kind: type, low: float | None = None, high: float | None = None, *, low_open: bool = False,
+           high_open: bool = False, name: str | None = None):
+    """An argparse ``type=``: parses ``kind`` (int or float) and refuses NaN, infinity and values
+    outside [low, high] (an open end with ``low_open`` / ``high_open``; None: unbounded). argparse
+    names the option: ``argument --dt-ratio: expected a finite number > 0, got nan``.
+
+    name: how the accepted values read in the message (default: built from the range)."""
+    noun = "an integer" if kind is int else "a finite number"
+    bounds = [f"{'>' if low_open else '>='} {low:g}" if low is not None else "",
+              f"{'<' if high_open else '<='} {high:g}" if high is not None else ""]
+    if name is None:
+        name = f"{noun} {' and '.join(b for b in bounds if b)}".strip()
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"expected {name}, got {text!r}") from None
+        inside = (math.isfinite(value) and (low is None or (value > low if low_open else value >= low))
+                  and (high is None or (value < high if high_open else value <= high)))
+        if not inside:
+            raise argparse.ArgumentTypeError(f"expected {name}, got {value!r}")
+        return value
+
+    parse.__name__ = name  # argparse's own messages name the type
+    return parse
+
+
+#: the numeric option types of the commands (agents/commands), each naming its accepted range
+positive_int = number(int, 1, name="a positive integer")
+non_negative_int = number(int, 0, name="an integer >= 0")
+positive_float = number(float, 0, low_open=True, name="a finite number > 0")
+non_negative_float = number(float, 0, name="a finite number >= 0")
+fraction = number(float, 0, 1, high_open=True, name="a fraction in [0, 1)")
+
+
+class SensorSize(argparse.Action):
+    """``--sensor-size H W`` (pixels, stored as the tuple (H, W)) or ``--sensor-size auto`` (stored
+    as "auto": the readers pick the smallest known sensor holding every event, and warn); anything
+    else is refused by argparse, naming the option."""
+
+    def __init__(self, option_strings, dest, nargs=None, **kwargs) -> None:
+        kwargs.setdefault("metavar", "SIZE")  # argparse shows "SIZE [SIZE ...]": the help says "H W or auto"
+        super().__init__(option_strings, dest, nargs="+", **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        from envs.events import MAX_SENSOR_SIDE
+
+        if list(values) == ["auto"]:
+            setattr(namespace, self.dest, "auto")
+            return
+        if len(values) != 2 or not all(v.isdigit() and 0 < int(v) <= MAX_SENSOR_SIDE for v in values):
+            raise argparse.ArgumentError(self, f"expected H W (whole pixels in [1, {MAX_SENSOR_SIDE}], height "
+                                               f"first) or 'auto', got {' '.join(values)!r}")
+        setattr(namespace, self.dest, (int(values[0]), int(values[1])))
+
+
+def sensor_size_option() -> Any:
+    """The ``sensor_size`` field of a command's options (:class:`SensorSize`): None (the files'
+    own geometry), (H, W) or "auto"; handed to the readers as ``data_options``."""
+    return option(None, action=SensorSize)
+
+
+#: the help of every command's --sensor-size
+SENSOR_SIZE_HELP = ("H W (pixels, height first) or auto: the sensor size of recordings whose header gives none "
+                    "(Prophesee RAW / DAT, text); auto: the smallest known sensor holding every event, with a "
+                    "warning; files that store their geometry keep it")
 
 
 def option(default: Any = dataclasses.MISSING, *, default_factory: Any = dataclasses.MISSING, **cli) -> Any:

@@ -9,6 +9,10 @@ wrapper holds the state between windows and offers what rollouts and truncated B
     flows = policy(count_images)         # training: differentiable, updates the state
     policy.detach()                      # truncated BPTT: cut the graph to earlier windows
     policy.reset(mask=done)              # vector env: new sequences where an episode ended
+
+Mixed precision (``autocast``): the network's forward runs under ``torch.autocast`` in bfloat16
+or float16, and what leaves it (the flows, the recurrent state) is float32 again, so the losses
+and the state carried between windows stay float32 (:func:`autocast_dtype` reads ``--amp``).
 """
 
 from __future__ import annotations
@@ -19,6 +23,34 @@ from torch import Tensor, nn
 
 State = dict[str, Tensor]
 
+#: ``--amp`` values: auto (bf16 on a CUDA device that supports it, else off), bf16, fp16 (CUDA only), off
+AMP_CHOICES = ("auto", "bf16", "fp16", "off")
+
+
+def autocast_dtype(amp: str, device: torch.device | str) -> torch.dtype | None:
+    """The dtype the network's forward autocasts to for ``--amp`` on ``device`` (None: float32).
+
+    auto: bfloat16 on a CUDA device that supports it, else float32 (on CPU the measured speed-up
+    of bf16 does not pay for its rounding, docs/training.md); bf16: bfloat16 (ValueError on a CUDA
+    device without it); fp16: float16, CUDA only (its gradients need loss scaling, which the
+    learner does there); off: float32."""
+    if amp not in AMP_CHOICES:
+        raise ValueError(f"amp must be one of {AMP_CHOICES}, got {amp!r}")
+    device = torch.device(device)
+    cuda = device.type == "cuda"
+    if amp == "auto":
+        return torch.bfloat16 if cuda and torch.cuda.is_bf16_supported() else None
+    if amp == "bf16":
+        if cuda and not torch.cuda.is_bf16_supported():
+            raise ValueError(f"amp bf16: {torch.cuda.get_device_name(device)} does not support bfloat16; "
+                             "use --amp fp16 or off")
+        return torch.bfloat16
+    if amp == "fp16":
+        if not cuda:
+            raise ValueError(f"amp fp16 needs a CUDA device (this run: {device}); on CPU use --amp bf16 or off")
+        return torch.float16
+    return None
+
 
 class RecurrentPolicy(nn.Module):
     """Holds a flow model's recurrent state across windows.
@@ -28,6 +60,8 @@ class RecurrentPolicy(nn.Module):
         device: where to run it; None keeps the device of the model's parameters (CPU if none).
         input_key: the observation part fed to the model: "count_image" (paper, 2 channels),
             "voxel_grid" (voxel_bins channels) or "count_time_image" (EV-FlowNet's 4 channels).
+        autocast: torch.bfloat16 or torch.float16 to run the network's forward in mixed precision
+            (flows and state leave it as float32); None: float32 throughout.
     """
 
     def __init__(
@@ -37,8 +71,10 @@ class RecurrentPolicy(nn.Module):
         *,
         input_key: str = "count_image",
         voxel_bins: int = 5,
+        autocast: torch.dtype | None = None,
     ):
         super().__init__()
+        self.autocast = autocast  # the forward's reduced precision (None: float32)
         self.input_key = input_key  # which observation part the model reads
         self.voxel_bins = int(voxel_bins)  # its size, when the input is "voxel_grid"
         if device is None:
@@ -101,8 +137,14 @@ class RecurrentPolicy(nn.Module):
                 raise ValueError(
                     f"batch size changed from {batch} to {x.shape[0]} mid-sequence; call reset() first"
                 )
-        flows, self._state = self.model(x, self._state)
-        return flows
+        if self.autocast is None:
+            flows, self._state = self.model(x, self._state)
+            return flows
+        with torch.autocast(self.device.type, dtype=self.autocast):
+            flows, state = self.model(x, self._state)
+        # the recurrence carried in float32
+        self._state = {key: value.float() if value.is_floating_point() else value for key, value in state.items()}
+        return [flow.float() for flow in flows]
 
     @torch.no_grad()
     def act(self, obs: dict | np.ndarray | Tensor) -> np.ndarray:

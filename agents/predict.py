@@ -27,6 +27,7 @@ interrupted run leaves nothing under the final name):
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -40,10 +41,18 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from envs.atomic import remove_stale_temporaries, same_file, temporary_path
 from envs.env import EventFlowEnv
+from envs.outputs import Output
 from envs.representations import EventView, event_mask
-from envs.visualize import count_image_to_rgb, flow_to_rgb, panel, save_animation
+from envs.visualize import (
+    animation_path,
+    count_image_to_rgb,
+    flow_arrows,
+    flow_legend,
+    flow_to_rgb,
+    panel,
+    save_animation,
+)
 from envs.windows import WINDOW_MODES, window_bounds
 from losses import EventBatch, flow_error, fwl, hmc_loss, rsat
 
@@ -96,6 +105,11 @@ def load_policy(model: str | None = None, *, device: str = "cpu", width: str | i
         name = model or DEFAULT_PRETRAINED
         info = pretrained_info(name)
         provenance = {"kind": "pretrained", "name": name, **{k: info[k] for k in ("command", "date", "data") if k in info}}
+        if model is None:  # the default: say how it was chosen
+            from .pretrained import default_choice
+
+            choice = default_choice()
+            provenance["default"] = {k: choice[k] for k in ("mode", "chosen_on", "date") if k in choice}
         return RecurrentPolicy.from_pretrained(name, device=device), provenance
     if os.path.isfile(model):
         net, payload = load_model(model, map_location=device)
@@ -121,14 +135,30 @@ def _windows(env: EventFlowEnv, reader, window: str, start_us, end_us, no_gt_win
     return bounds, mode, size
 
 
-def _preview(count: np.ndarray, flow: np.ndarray, t_start: int, t_end: int, max_width: int) -> np.ndarray:
-    """Count image and colour-coded flow side by side, nearest-subsampled to ``max_width`` per tile."""
+def _preview(count: np.ndarray, flow: np.ndarray, t_start: int, t_end: int, max_width: int,
+             arrows: bool = False) -> np.ndarray:
+    """One preview frame: the events, the colour-coded flow, the same flow on the pixels with
+    events only (where it can be read), and the colour wheel whose rim gives the scale; with
+    ``arrows``, sparse arrows over the flow at the events. Tiles nearest-subsampled to at most
+    ``max_width`` pixels wide (a subsampled pixel holds events when any pixel it stands for does).
+
+    count: (2, H, W) ON / OFF counts; flow: (2, H, W) pixels over the window [t_start, t_end) µs."""
     step = max(1, math.ceil(count.shape[-1] / max_width))
+    h, w = count.shape[-2:]
+    padded = np.zeros((-(-h // step) * step, -(-w // step) * step), bool)
+    padded[:h, :w] = count.sum(axis=0) > 0
+    events = padded.reshape(padded.shape[0] // step, step, padded.shape[1] // step, step).any(axis=(1, 3))
     count, flow = count[:, ::step, ::step], flow[:, ::step, ::step]
-    magnitude = np.hypot(flow[0], flow[1])
-    scale = float(np.percentile(magnitude, 99)) if magnitude.size else 1.0
-    caption = f"{t_start / 1e6:.3f}-{t_end / 1e6:.3f} s, flow colour saturates at {scale:.2f} px"
-    return panel([("events", count_image_to_rgb(count)), ("flow", flow_to_rgb(flow, max(scale, 1e-3)))], caption)
+    magnitude = np.hypot(flow[0], flow[1])[events]  # the scale of the flow people read: at the events
+    scale = max(float(np.percentile(magnitude, 99)) if magnitude.size else 1.0, 1e-3)
+    colours = flow_to_rgb(flow, scale)
+    at_events = np.where(events[..., None], colours, np.uint8(255))
+    if arrows:
+        at_events = flow_arrows(at_events, flow, events, spacing=max(8, at_events.shape[1] // 16))
+    legend = flow_legend(min(64, max(count.shape[-2:])))
+    caption = f"{t_start / 1e6:.3f}-{t_end / 1e6:.3f} s, flow in pixels over the window"
+    return panel([("events", count_image_to_rgb(count)), ("flow", colours), ("flow at events", at_events),
+                  (f"colours: rim {scale:.2f} px", legend)], caption)
 
 
 def predict(
@@ -149,6 +179,7 @@ def predict(
     video_fps: float = 10.0,
     video_frames: int = 150,
     video_width: int = 320,
+    video_arrows: bool = False,
     provenance: dict | None = None,
     no_gt_window_us: int = 33_333,
     progress: bool = True,
@@ -162,7 +193,9 @@ def predict(
     count: events, default 15 000). start_s, end_s: only windows inside [start_s, end_s), in
     seconds from the recording's start (None: its start / end). crop: as in the env. video: path of the preview
     (``.gif``, or ``.mp4`` where a codec is installed), None for none; at most ``video_frames``
-    windows spread evenly over the run, each tile at most ``video_width`` pixels wide.
+    windows spread evenly over the run, each tile at most ``video_width`` pixels wide: events,
+    flow, flow at the events and the colour wheel with its scale (``video_arrows``: sparse
+    arrows over the flow at the events).
     sequence: which recording when ``recording`` names several (a folder, a synthetic split).
     overwrite: replace an existing ``out_path`` (refused otherwise, and always when it is the
     recording itself), as ``scripts/convert.py`` does.
@@ -174,13 +207,26 @@ def predict(
     if int(split) < 1:
         raise ValueError(f"split must be a number of sub-windows >= 1, got {split}")
     stepper = SubWindowPolicy(policy, int(split))
-    out_path = Path(out_path)
-    if Path(recording).exists() and same_file(out_path, recording):
-        raise FileExistsError(f"{out_path}: is the input recording; write the flow to another file")
-    if out_path.is_dir():
-        raise IsADirectoryError(f"{out_path}: is a folder; the output must be a file path (e.g. {out_path / 'flow.h5'})")
-    if out_path.exists() and not overwrite:
-        raise FileExistsError(f"{out_path}: exists; pass overwrite=True (--overwrite) to replace it")
+    inputs = [("recording", recording)]
+    with contextlib.ExitStack() as claims:  # every output claimed before any work (envs.outputs)
+        flow_out = claims.enter_context(Output(out_path, inputs=inputs, overwrite=overwrite))
+        video_out = None
+        if video:
+            video_out = claims.enter_context(Output(animation_path(video), inputs=inputs, overwrite=overwrite))
+        return _predict(policy, stepper, recording, flow_out, video_out, window=window, window_size=window_size,
+                        start_s=start_s, end_s=end_s, crop=crop, sequence=sequence, data_format=data_format,
+                        data_options=data_options, per_event=per_event, video_fps=video_fps, video_frames=video_frames,
+                        video_width=video_width, video_arrows=video_arrows, provenance=provenance,
+                        no_gt_window_us=no_gt_window_us,
+                        progress=progress, compression=compression, split=split)
+
+
+def _predict(policy, stepper, recording, flow_out: Output, video_out: Output | None, *, window, window_size, start_s,
+             end_s, crop, sequence, data_format, data_options, per_event, video_fps, video_frames, video_width,
+             video_arrows, provenance, no_gt_window_us, progress, compression, split) -> PredictResult:
+    """:func:`predict` once its outputs are claimed: the flows go to ``flow_out``'s temporary,
+    committed when complete; the preview to ``video_out``'s path."""
+    out_path = flow_out.path
     parts = ("count_image",) if policy.input_key == "count_image" else ("count_image", policy.input_key)
     env = EventFlowEnv(str(recording), data_format=data_format, data_options=data_options, window=window,
                        window_size=window_size, crop=crop, compute_reward=False, observations=parts,
@@ -202,17 +248,14 @@ def predict(
         raise ValueError(f"{recording}: no {window} window of size {env.window_size} inside the span "
                          f"[{start_s or 0}, {end_s if end_s is not None else 'end'}) s from the recording's start")
     k_total, (h, w) = len(bounds), (env.height, env.width)
-    video_at = set(np.linspace(0, k_total - 1, min(video_frames, k_total)).astype(int).tolist()) if video else set()
+    video_at = set(np.linspace(0, k_total - 1, min(video_frames, k_total)).astype(int).tolist()) if video_out else set()
     frames: list[np.ndarray] = []
     per_window = {key: np.full(k_total, np.nan) for key in PER_WINDOW}
 
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(out_path)
-    tmp = temporary_path(out_path)
     bar = tqdm(total=k_total, desc=f"predict {reader.name}", unit="win", disable=not progress)
     events_total, t0 = 0, time.perf_counter()
     try:
-        with h5py.File(tmp, "w") as f:
+        with h5py.File(flow_out.temporary, "w") as f:
             f.attrs.update(format=FLOW_FORMAT, version=1, sensor_size=(h, w),
                            recording=str(Path(recording).resolve()) if Path(recording).exists() else str(recording),
                            reader=type(reader).__name__, window=mode, window_size=size,
@@ -242,7 +285,8 @@ def predict(
                 events_total += n
                 _score_window(per_window, k, flow, win, info, (h, w), env.flow_scaling)
                 if k in video_at:
-                    frames.append(_preview(obs["count_image"], flow, info["t_start"], info["t_end"], video_width))
+                    frames.append(_preview(obs["count_image"], flow, info["t_start"], info["t_end"], video_width,
+                                           arrows=video_arrows))
                 bar.update(1)
                 obs, _, _, _, info = env.step(flow)
             f.create_dataset("num_events", data=counts)
@@ -251,14 +295,11 @@ def predict(
             for key, values in per_window.items():
                 f.create_dataset(f"metrics/{key}", data=values.astype(np.float32))
         seconds = time.perf_counter() - t0
-        os.replace(tmp, out_path)
-    except BaseException:  # KeyboardInterrupt included: nothing under the final name
-        tmp.unlink(missing_ok=True)
-        raise
-    finally:
+    finally:  # an exception (KeyboardInterrupt included) discards the temporary: nothing under the final name
         bar.close()
         env.close()
-    video_path = save_animation(video, frames, video_fps) if video and frames else None
+    video_path = save_animation(video_out.path, frames, video_fps) if video_out and frames else None
+    flow_out.commit()
     return PredictResult(out_path, video_path, k_total, events_total, seconds, per_window)
 
 
@@ -287,13 +328,17 @@ def _fmt(value: float, digits: int = 4) -> str:
 
 def summary_table(result: PredictResult, name: str = "model") -> str:
     """Markdown: the model against zero flow, means over the windows with events (AEE over
-    those with ground truth). FWL and RSAT are ratios to zero flow, which scores 1 on both."""
+    those with ground truth; its columns only where there is some). FWL and RSAT are ratios to
+    zero flow, which scores 1 on both."""
     m = result.mean
+    truth = math.isfinite(m("aee"))
     lines = [
-        "| | windows | L_HMC | FWL (higher better) | RSAT (lower better) | AEE | % outliers |",
-        "|---|---|---|---|---|---|---|",
-        f"| {name} | {result.windows} | {_fmt(m('hmc'))} | {_fmt(m('fwl'))} | {_fmt(m('rsat'))} | {_fmt(m('aee'), 3)} | {_fmt(m('outlier_pct'), 2)} |",
-        f"| zero flow | {result.windows} | {_fmt(m('hmc_zero'))} | 1.0000 | 1.0000 | {_fmt(m('aee_zero'), 3)} | - |",
+        "| | windows | L_HMC | FWL (higher better) | RSAT (lower better) |" + (" AEE | % outliers |" if truth else ""),
+        "|---|---|---|---|---|" + ("---|---|" if truth else ""),
+        f"| {name} | {result.windows} | {_fmt(m('hmc'))} | {_fmt(m('fwl'))} | {_fmt(m('rsat'))} |"
+        + (f" {_fmt(m('aee'), 3)} | {_fmt(m('outlier_pct'), 2)} |" if truth else ""),
+        f"| zero flow | {result.windows} | {_fmt(m('hmc_zero'))} | 1.0000 | 1.0000 |"
+        + (f" {_fmt(m('aee_zero'), 3)} | - |" if truth else ""),
     ]
     return "\n".join(lines)
 

@@ -25,10 +25,20 @@ from envs.atomic import remove_stale_temporaries, temporary_path
 
 from .checkpoint import CheckpointError, load_checkpoint, load_model, save_checkpoint
 
-__all__ = ["WEIGHTS_DIR", "DEFAULT_PRETRAINED", "list_pretrained", "pretrained_info", "load_pretrained", "export_pretrained"]
+__all__ = ["WEIGHTS_DIR", "DEFAULT_PRETRAINED", "default_choice", "list_pretrained", "pretrained_info", "load_pretrained", "export_pretrained"]
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-DEFAULT_PRETRAINED = "ev-mgrflownet-cpu-synthetic"
+
+
+def default_choice(directory: str | os.PathLike | None = None) -> dict[str, Any]:
+    """The shipped model and mode that a command without a model name uses, and why:
+    ``agents/weights/default.json`` (``model``, ``mode``, ``chosen_on``, ``scores``, ``date``),
+    chosen on the independent validation set (docs/results.md)."""
+    path = Path(WEIGHTS_DIR if directory is None else directory) / "default.json"
+    return json.loads(path.read_text())
+
+
+DEFAULT_PRETRAINED = default_choice()["model"]
 
 
 def list_pretrained(directory: str | os.PathLike | None = None) -> list[str]:

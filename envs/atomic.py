@@ -1,23 +1,45 @@
-"""Files that appear whole or not at all: ``<name>.tmp-<pid>`` beside the target, renamed over it
-when complete.
+"""Files that appear whole or not at all: ``<name>.tmp-<host>-<pid>`` beside the target, renamed
+over it when complete.
 
 A write killed before the rename leaves its temporary behind; :func:`remove_stale_temporaries`
 deletes those of processes that no longer run, and every writer calls it before it starts, so a
-stale temporary never outlives the next run's start.
+stale temporary never outlives the next run's start. The name carries the writer's host as well
+as its process id because a folder may be shared by several machines (a cluster's network file
+system): a process id means something only on its own host, so a temporary of another host is
+never judged stale here (it may be a live write there); only that host's next writer, or a
+person, removes it. Temporaries named ``<name>.tmp-<pid>`` (written before the host was part of
+the name) are judged by the process id on this host, as they always were.
 """
 
 from __future__ import annotations
 
 import os
+import re
+import socket
 from pathlib import Path
 
-__all__ = ["temporary_path", "remove_stale_temporaries", "same_file"]
+__all__ = ["temporary_path", "remove_stale_temporaries", "same_file", "host_name"]
+
+
+def host_name() -> str:
+    """This machine's name as it appears in temporary names: characters other than letters,
+    digits, ``.``, ``_`` and ``-`` become ``_`` (the pid follows the last ``-``)."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", socket.gethostname()) or "host"
 
 
 def temporary_path(path: str | os.PathLike) -> Path:
-    """``<path>.tmp-<this pid>``: where a writer puts the file until it is complete."""
+    """``<path>.tmp-<this host>-<this pid>``: where a writer puts the file until it is complete."""
     path = Path(path)
-    return path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    return path.with_name(f"{path.name}.tmp-{host_name()}-{os.getpid()}")
+
+
+def _writer(suffix: str) -> tuple[str | None, int] | None:
+    """(host, pid) of the writer named by a temporary's suffix (after ``.tmp-``): ``HOST-PID``,
+    or the older ``PID`` (host None); None for any other name."""
+    host, sep, pid = suffix.rpartition("-")
+    if not pid.isdigit():
+        return None
+    return (host if sep else None), int(pid)
 
 
 def _running(pid: int) -> bool:
@@ -33,16 +55,21 @@ def _running(pid: int) -> bool:
 
 
 def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
-    """Delete ``<path>.tmp-<pid>`` files left by processes that are no longer running (a killed
-    write); returns the files removed. Temporaries of live processes (a concurrent writer) stay."""
+    """Delete the temporaries of ``path`` left by writers of this host that no longer run (a
+    killed write); returns the files removed. Temporaries of live processes (a concurrent writer)
+    and of other hosts stay."""
     path = Path(path)
     if not path.parent.is_dir():
         return []
     removed = []
     prefix = f"{path.name}.tmp-"
+    here = host_name()
     for candidate in path.parent.glob(f"{path.name}.tmp-*"):
-        pid = candidate.name[len(prefix):]
-        if not pid.isdigit() or _running(int(pid)) or not candidate.is_file():
+        writer = _writer(candidate.name[len(prefix):])
+        if writer is None or not candidate.is_file():
+            continue
+        host, pid = writer
+        if (host is not None and host != here) or _running(pid):
             continue
         candidate.unlink(missing_ok=True)
         removed.append(candidate)

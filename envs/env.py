@@ -13,7 +13,7 @@ from gymnasium import spaces
 
 from envs.dataset import resolve_data
 from envs.events import Events
-from envs.readers._common import resolve_crop
+from envs.readers._common import check_flow_gt, resolve_crop
 from envs.representations import IMAGE_INPUTS, EventView, count_image, image_input
 from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import WINDOW_MODES, window_bounds, window_grid
@@ -119,7 +119,8 @@ class EventFlowEnv(gym.Env):
       sensor frame, and ``"flips"``: bool ``(h, v, p)``, the flips applied this episode (with
       them, anything computed on the whole sensor frame maps into the env's frame);
     - ``"flow_gt"`` (2, H, W) float32 pixels over the window and ``"flow_gt_valid"`` (H, W)
-      bool, when the recording has ground truth for this window;
+      bool, when the recording has ground truth for this window (checked: every valid pixel
+      finite and within 4 x the sensor's longer side, else a FormatError naming the file);
     - after ``step`` only: ``"reward_components"``: dict of ``at``, ``ec``, ``smooth`` (floats,
       the scored window's loss terms; ``ec`` is reported with ``loss="at"`` too).
 
@@ -143,7 +144,9 @@ class EventFlowEnv(gym.Env):
             recording to score each whole).
         data_format (or ``format``): force a reader (``"evflow-h5"``, ``"mvsec"``, ``"dsec"``,
             ``"hagenaars"``, ``"ecd-text"``, ``"aedat4"``); default: detected from the file.
-        data_options: keyword arguments for the reader, e.g. ``{"crop": "center256"}`` (MVSEC).
+        data_options: keyword arguments for the reader, e.g. ``{"crop": "center256"}`` (MVSEC), or
+            ``{"sensor_size": (height, width)}`` (or ``"auto"``) for Prophesee RAW / DAT and text
+            files whose header gives no geometry (``envs.readers.detect``).
         window: ``"frames"`` (on the ground-truth grid where the recording has one, else on
             its APS frame times, else on fixed 30 Hz intervals; ``info["windowing"]`` says
             which), ``"time"`` or ``"count"``.
@@ -455,6 +458,8 @@ class EventFlowEnv(gym.Env):
         gt = reader.flow_between(t_start, t_end)
         if gt is not None:
             flow, valid = gt
+            check_flow_gt(flow, valid, reader.sensor_size,
+                          f"{getattr(reader, 'path', reader.name)} (window [{t_start}, {t_end}) us)")
             flow = np.array(flow[:, top : top + ch, left : left + cw], np.float32)
             valid = np.array(valid[top : top + ch, left : left + cw], bool)
             if self._flips.get("h"):

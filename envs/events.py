@@ -13,7 +13,14 @@ from typing import Iterable
 
 import numpy as np
 
-__all__ = ["Events", "EventError", "normalize_polarity"]
+__all__ = ["Events", "EventError", "normalize_polarity", "MAX_SENSOR_SIDE", "MAX_SPAN_US"]
+
+#: the largest sensor side (pixels) a recording may have: DAT's 14-bit coordinates (today's
+#: largest event sensors are 1280 wide); a larger coordinate in a file is corruption, not a sensor
+MAX_SENSOR_SIDE = 1 << 14
+#: the longest time span (µs) a recording may cover, 24 h: a file whose times span more is
+#: corrupt, and the project h5's millisecond index (8 bytes per ms) stays under 0.7 GB
+MAX_SPAN_US = 24 * 3600 * 1_000_000
 
 
 class EventError(ValueError):

@@ -20,7 +20,7 @@ Event datasets are chunked (64 Ki events) and gzip-compressed with the shuffle f
 maps and frames are chunked one map per chunk. A window is read through ``ms_to_idx`` plus a
 binary search inside one millisecond, so neither the file nor the time column is loaded.
 
-The writer writes ``<name>.tmp-<pid>`` next to the target and renames it over the target only
+The writer writes ``<name>.tmp-<host>-<pid>`` next to the target and renames it over the target only
 after a successful close, so a crash or an exception never leaves a half-written file under
 the final name; temporaries of killed writers are removed when the next writer of that name
 starts (:mod:`envs.atomic`).
@@ -36,12 +36,13 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import Iterable
 
 import h5py
 import numpy as np
 
-from envs.atomic import remove_stale_temporaries, temporary_path
-from envs.events import EventError, Events
+from envs.events import MAX_SENSOR_SIDE, MAX_SPAN_US, EventError, Events
+from envs.outputs import Output
 from envs.readers.base import EventReader, FlowGT
 
 __all__ = ["H5Writer", "H5Reader", "FormatError", "write_h5", "FORMAT_NAME"]
@@ -63,11 +64,14 @@ class H5Writer:
     sensor_size: (height, width). name: stored as the recording's name. provenance: any
     JSON-serialisable dict (simulator seed, source file, converter version...).
     t_start_us / t_end_us: the recording's time span; default first event / last event + 1.
+    path: the file, or an :class:`envs.outputs.Output` the caller claimed before its work.
+    overwrite, inputs, exclusive: as for :class:`envs.outputs.Output`, which claims the path
+    (never an input, an existing file only with overwrite; exclusive: one writer at a time).
     """
 
     def __init__(
         self,
-        path: str | os.PathLike,
+        path: str | os.PathLike | Output,
         sensor_size: tuple[int, int],
         *,
         name: str | None = None,
@@ -75,22 +79,31 @@ class H5Writer:
         t_start_us: int | None = None,
         t_end_us: int | None = None,
         overwrite: bool = True,
+        inputs: Iterable[tuple[str, str | os.PathLike | None]] = (),
+        exclusive: bool = False,
     ) -> None:
-        self.path = Path(path)
-        if self.path.is_dir():
-            raise IsADirectoryError(f"{self.path}: is a folder; the output must be a file path (e.g. {self.path / 'recording.h5'})")
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path} exists (pass overwrite=True to replace it)")
+        self.path = path.path if isinstance(path, Output) else Path(path)
         self.sensor_size = (int(sensor_size[0]), int(sensor_size[1]))
+        if not all(0 < side <= MAX_SENSOR_SIDE for side in self.sensor_size):
+            raise ValueError(f"{self.path}: sensor_size {self.sensor_size} (height, width) must be positive and at most "
+                             f"{MAX_SENSOR_SIDE} pixels a side")
         self.name = name if name is not None else self.path.stem
         self.provenance = provenance or {}
         json.dumps(self.provenance)  # fail now, not at close
         self._t_start = t_start_us
         self._t_end = t_end_us
-        self._tmp = temporary_path(self.path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        remove_stale_temporaries(self.path)
-        self._file = h5py.File(self._tmp, "w")
+        # the checks, the temporary and the rename of every written file (envs.outputs)
+        if isinstance(path, Output):  # claimed by the caller already (before its work)
+            path.check_inputs(inputs)
+            self._output = path
+        else:
+            self._output = Output(self.path, inputs=inputs, overwrite=overwrite, exclusive=exclusive)
+        self._tmp = self._output.temporary
+        try:
+            self._file = h5py.File(self._tmp, "w")
+        except BaseException:
+            self._output.discard()
+            raise
         group = self._file.create_group("events")
         self._events = {
             field: group.create_dataset(
@@ -119,6 +132,12 @@ class H5Writer:
             return
         if np.issubdtype(events.x.dtype, np.floating):
             raise EventError(f"{self.path}: the project h5 stores integer pixel coordinates; got float x/y")
+        h, w = self.sensor_size
+        for field, values, size in (("x", events.x, w), ("y", events.y, h)):
+            if values.min() < 0 or values.max() >= size:  # a reader that skipped validation
+                i = int(np.flatnonzero((values < 0) | (values >= size))[0])
+                raise EventError(f"{self.path}: field '{field}' must lie in [0, {size}) for sensor {h}x{w} (height x "
+                                 f"width); event {self._n + i} of the stream holds {values[i]}")
         if self._last_t is not None and events.t[0] < self._last_t:
             raise EventError(
                 f"{self.path}: field 't' must be non-decreasing across appends: "
@@ -144,6 +163,9 @@ class H5Writer:
             raise ValueError(f"{self.path}: flow valid mask must be ({h}, {w}), got {valid.shape}")
         if not t_to_us > t_from_us:
             raise ValueError(f"{self.path}: flow interval must have t_to > t_from, got [{t_from_us}, {t_to_us})")
+        from envs.readers._common import check_flow_gt  # (that module imports this one)
+
+        check_flow_gt(flow, valid, self.sensor_size, f"{self.path} (flow over [{t_from_us}, {t_to_us}) us)")
         if self._flow_group is None:
             g = self._file.create_group("flow")
             g.create_dataset("flow", (0, 2, h, w), np.float32, maxshape=(None, 2, h, w), chunks=(1, 2, h, w), **_COMPRESSION)
@@ -212,6 +234,9 @@ class H5Writer:
                 f"{self.path}: events span [{self._first_t}, {self._last_t}] us, outside the "
                 f"declared recording span [{t_start}, {t_end})"
             )
+        if t_end - t_start > MAX_SPAN_US:
+            raise EventError(f"{self.path}: the recording spans [{t_start}, {t_end}) us, more than {MAX_SPAN_US // 3_600_000_000} h: "
+                             "corrupt times? (its millisecond index would not fit in memory)")
         index = self._build_index(t_start, t_end)
         self._file.create_dataset("ms_to_idx", data=index, chunks=(min(len(index), 1 << 14),), **_COMPRESSION)
         attrs = self._file.attrs
@@ -224,7 +249,7 @@ class H5Writer:
         attrs["name"] = self.name
         attrs["provenance"] = json.dumps(self.provenance)
         self._file.close()
-        os.replace(self._tmp, self.path)
+        self._output.commit()
 
     def abort(self) -> None:
         """Discard everything written (the final path is left untouched)."""
@@ -234,7 +259,7 @@ class H5Writer:
             if self._file.id.valid:
                 self._file.close()
         finally:
-            self._tmp.unlink(missing_ok=True)
+            self._output.discard()
             self._closed = True
 
     def __enter__(self) -> "H5Writer":

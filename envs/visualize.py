@@ -4,6 +4,7 @@
   hue = direction, saturation = magnitude relative to ``max_magnitude``; zero flow is white.
 - :func:`count_image_to_rgb`: ON events red, OFF events blue, on white.
 - :func:`flow_legend`: the colour wheel itself, a disc whose rim is ``max_magnitude``.
+- :func:`flow_arrows`: sparse arrows along the flow drawn over a picture.
 - :func:`panel`: labelled tiles side by side with a caption underneath (one picture per window).
 - :func:`save_png`: writes a picture atomically (Pillow, the ``plots``/``test`` extra).
 - :func:`save_animation`: frames to an animated GIF (Pillow), or MP4 where ``imageio`` with an
@@ -12,12 +13,14 @@
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["color_wheel", "flow_to_rgb", "flow_legend", "count_image_to_rgb", "panel", "save_png", "save_animation"]
+__all__ = ["color_wheel", "flow_to_rgb", "flow_legend", "flow_arrows", "count_image_to_rgb", "panel", "save_png",
+           "save_animation", "animation_path"]
 
 # Hue segments of the Middlebury wheel: red-yellow, yellow-green, green-cyan, cyan-blue,
 # blue-magenta, magenta-red, with these many steps each.
@@ -101,6 +104,39 @@ def flow_legend(size: int = 64) -> np.ndarray:
     return rgb
 
 
+def flow_arrows(rgb: np.ndarray, flow: np.ndarray, mask: np.ndarray | None = None, spacing: int = 12,
+                colour: tuple[int, int, int] = (0, 0, 0)) -> np.ndarray:
+    """``rgb`` with an arrow along the flow from every ``spacing``-th pixel (where ``mask`` holds),
+    scaled so that the longest is ``spacing`` pixels long; zero flow draws nothing.
+
+    rgb: (H, W, 3) uint8; flow: (2, H, W) pixels (x then y); mask: (H, W) bool or None (every
+    pixel). Returns a new (H, W, 3) uint8 picture."""
+    from PIL import Image, ImageDraw
+
+    h, w = rgb.shape[:2]
+    ys, xs = np.mgrid[spacing // 2 : h : spacing, spacing // 2 : w : spacing]
+    ys, xs = ys.ravel(), xs.ravel()
+    if mask is not None:
+        keep = np.asarray(mask, bool)[ys, xs]
+        ys, xs = ys[keep], xs[keep]
+    u, v = np.nan_to_num(flow[0][ys, xs]), np.nan_to_num(flow[1][ys, xs])
+    longest = float(np.hypot(u, v).max()) if len(u) else 0.0
+    canvas = Image.fromarray(np.ascontiguousarray(rgb[..., :3]))
+    if longest <= 1e-9:
+        return np.asarray(canvas, np.uint8)
+    draw = ImageDraw.Draw(canvas)
+    scale = spacing / longest
+    for x0, y0, du, dv in zip(xs.tolist(), ys.tolist(), (u * scale).tolist(), (v * scale).tolist()):
+        x1, y1 = x0 + du, y0 + dv
+        draw.line([(x0, y0), (x1, y1)], fill=colour)
+        length = math.hypot(du, dv)
+        if length >= 3:  # the head: two strokes back from the tip at +-30 degrees
+            bx, by = -du / length * 3, -dv / length * 3
+            for c, s_ in ((0.866, 0.5), (0.866, -0.5)):
+                draw.line([(x1, y1), (x1 + c * bx - s_ * by, y1 + s_ * bx + c * by)], fill=colour)
+    return np.asarray(canvas, np.uint8)
+
+
 def _text_height() -> int:
     return 12
 
@@ -134,6 +170,20 @@ def panel(tiles: list[tuple[str, np.ndarray]], caption: str = "", gap: int = 4, 
     return np.asarray(canvas, np.uint8)
 
 
+def animation_path(path: str | os.PathLike) -> Path:
+    """The file :func:`save_animation` writes for ``path``: itself, or for an ``.mp4`` without
+    ``imageio`` and its ffmpeg plugin the GIF beside it (same stem). A command claims this path
+    (``envs.outputs.Output``) before its work."""
+    path = Path(path)
+    if path.suffix.lower() == ".mp4":
+        try:
+            import imageio.v3  # noqa: F401
+            import imageio_ffmpeg  # noqa: F401  (the codec imageio needs for MP4)
+        except ImportError:
+            return path.with_suffix(".gif")
+    return path
+
+
 def save_animation(path: str | os.PathLike, frames: list[np.ndarray], fps: float = 10.0) -> Path:
     """Write (H, W, 3) uint8 frames as an animation through a temporary file.
 
@@ -154,24 +204,20 @@ def save_animation(path: str | os.PathLike, frames: list[np.ndarray], fps: float
         canvas = np.full((h, w, 3), 255, np.uint8)
         canvas[: f.shape[0], : f.shape[1]] = f[..., :3]
         padded.append(canvas)
-    if path.suffix.lower() == ".mp4":
-        try:
-            import imageio.v3 as iio
-            import imageio_ffmpeg  # noqa: F401  (the codec imageio needs for MP4)
-        except ImportError:
-            path = path.with_suffix(".gif")
-        else:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f"{path.stem}.tmp-{os.getpid()}{path.suffix}")
-            try:
-                # even sizes for yuv420p
-                even = [f[: h - h % 2, : w - w % 2] for f in padded]
-                iio.imwrite(tmp, np.stack(even), fps=fps, codec="libx264")
-                os.replace(tmp, path)
-            finally:
-                tmp.unlink(missing_ok=True)
-            return path
+    path = animation_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".mp4":
+        import imageio.v3 as iio
+
+        tmp = path.with_name(f"{path.stem}.tmp-{os.getpid()}{path.suffix}")
+        try:
+            # even sizes for yuv420p
+            even = [f[: h - h % 2, : w - w % 2] for f in padded]
+            iio.imwrite(tmp, np.stack(even), fps=fps, codec="libx264")
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return path
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
     try:
         images = [Image.fromarray(f) for f in padded]

@@ -26,6 +26,7 @@ from .hmc import (
 )
 from .image_terms import event_image_terms
 from .iwe import average_timestamp_images, warped_corners, warped_event_images
+from .kernel_switch import cpu_kernels, cpu_kernels_enabled, set_cpu_kernels
 from .metrics import (
     dense_flow_error,
     dense_flow_error_torch,
@@ -43,6 +44,9 @@ from .warp import forward_warp_flow, warp_events
 
 __all__ = [
     "contrast_maximisation_flow",
+    "cpu_kernels",
+    "cpu_kernels_enabled",
+    "set_cpu_kernels",
     "EventBatch",
     "LossOutput",
     "LossWeights",

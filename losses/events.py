@@ -40,6 +40,14 @@ class EventBatch(NamedTuple):
         """N, the padded length (not the number of valid events)."""
         return int(self.x.shape[1])
 
+    def zero_padding(self) -> "EventBatch":
+        """The batch with zeros in the padding slots' x, y and tau (mask False), whatever they held:
+        the torch path computes every slot (the compiled kernels skip padding), and a NaN there
+        would become an out-of-range splat index (a device-side assert on CUDA)."""
+        padding = ~self.mask
+        return self._replace(x=self.x.masked_fill(padding, 0), y=self.y.masked_fill(padding, 0),
+                             tau=self.tau.masked_fill(padding, 0))
+
     def to(self, device=None, dtype: torch.dtype | None = None) -> "EventBatch":
         """Move to ``device``; cast the float fields (not ``mask``) to ``dtype`` if given."""
         f = lambda a: a.to(device=device, dtype=dtype)  # noqa: E731

@@ -223,6 +223,7 @@ def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_pe
     flows = to_full_resolution(flow, upsampling)
     B, _, H, W = flows[0].shape
     check_events(events, batch_size=B)
+    events = events.zero_padding()  # padding may hold anything; the torch path reads every slot
     scaling = float(max(H, W)) if flow_scaling is None else float(flow_scaling)
     ramp = check_border_ramp(border_ramp)
     ev_mask = event_pixel_mask(events.x, events.y, events.mask, H, W)
@@ -357,6 +358,7 @@ def accumulated_hmc_loss(
     B, _, H, W = scales[0][0].shape
     for k, ev in enumerate(events_list):
         check_events(ev, batch_size=B, name=f"events_list[{k}]")
+    events_list = [ev.zero_padding() for ev in events_list]  # as in _per_window
     K = len(scales)
     scaling = float(max(H, W)) if flow_scaling is None else float(flow_scaling)
     ramp = check_border_ramp(border_ramp)

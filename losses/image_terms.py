@@ -26,6 +26,7 @@ import torch
 from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 from .events import EventBatch
 from .iwe import warped_corners
+from .kernel_switch import use_cpu_kernels
 from .splat import crop_padding
 
 __all__ = ["event_image_terms", "AtNormalisation", "AT_NORMALISATIONS"]
@@ -181,7 +182,7 @@ def event_image_terms(
     """
     if at_normalisation not in AT_NORMALISATIONS:
         raise ValueError(f"at_normalisation must be one of {AT_NORMALISATIONS}, got {at_normalisation!r}")
-    if _kernels is not None and u.device.type == "cpu" and u.dtype in (torch.float32, torch.float64):
+    if _kernels is not None and use_cpu_kernels(u):
         fn = _EventImageTermsCompiled
     else:
         fn = _EventImageTerms

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
+from .kernel_switch import use_cpu_kernels
 
 __all__ = ["event_pixel_mask", "charbonnier_smoothness"]
 
@@ -27,7 +28,7 @@ def event_pixel_mask(
     identity for raw integer events and nearest-pixel for rectified float ones; events that
     round outside the image are ignored.
     """
-    if _kernels is not None and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64):
+    if _kernels is not None and use_cpu_kernels(x):
         out = np.zeros((x.shape[0], height, width), np.bool_)
         _kernels.event_mask_kernel(_kernels.use_threads())(
             np.ascontiguousarray(x.numpy()), np.ascontiguousarray(y.numpy(), dtype=x.numpy().dtype),
@@ -133,7 +134,7 @@ def charbonnier_smoothness(
     averaged over the 4 directions. Differentiable in flow (fused backward, d rho/d d = d/rho).
     Cost is proportional to the number of counted pairs, not to the image size.
     """
-    if _kernels is not None and flow.device.type == "cpu" and flow.dtype in (torch.float32, torch.float64):
+    if _kernels is not None and use_cpu_kernels(flow):
         return _CharbonnierCompiled.apply(flow, event_mask, float(eps), float(flow_scaling)) / 4
     first, second, batch = neighbour_pairs(event_mask)
     return _Charbonnier.apply(flow / flow_scaling, first, second, batch, float(eps)) / 4

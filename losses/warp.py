@@ -7,6 +7,7 @@ import torch
 
 from . import _kernels  # compiled CPU kernels; set to None (tests do) for the torch reference path
 from .events import EventBatch
+from .kernel_switch import use_cpu_kernels
 from .splat import bilinear_splat
 
 __all__ = ["warp_events", "forward_warp_flow", "outside_distance", "beyond_image", "HOLE_WEIGHT"]
@@ -107,7 +108,7 @@ def forward_warp_flow(flow: torch.Tensor, min_weight: float = HOLE_WEIGHT) -> to
     min_weight = float(min_weight)
     if not min_weight >= 0:
         raise ValueError(f"forward_warp_flow: min_weight must be >= 0, got {min_weight!r}")
-    if _kernels is not None and flow.device.type == "cpu" and flow.dtype in (torch.float32, torch.float64):
+    if _kernels is not None and use_cpu_kernels(flow):
         return _ForwardWarpCompiled.apply(flow, min_weight)
     B, _, H, W = flow.shape
     rows, cols = torch.meshgrid(

@@ -5,6 +5,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from agents.commands.benchmark import main  # noqa: E402
+from agents.commands.cli import run  # noqa: E402  (a user error: one line, exit 2)
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run(main))

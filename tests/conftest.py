@@ -18,6 +18,19 @@ def random_events(rng: np.random.Generator, n: int, sensor_size=(20, 30), t_span
     return Events.create(rng.integers(0, w, n), rng.integers(0, h, n), t, rng.integers(0, 2, n), sensor_size)
 
 
+def pytest_collection_modifyitems(config, items):
+    """With the compiled CPU kernels switched off (EVFLOW_CPU_KERNELS=0: the suite on the path CUDA
+    takes), the tests of the kernels themselves are skipped, saying why."""
+    from losses import cpu_kernels_enabled
+
+    if cpu_kernels_enabled():
+        return
+    skip = pytest.mark.skip(reason="tests the compiled CPU kernels, switched off here (EVFLOW_CPU_KERNELS=0)")
+    for item in items:
+        if "cpu_kernels" in item.keywords:
+            item.add_marker(skip)
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)

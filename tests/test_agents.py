@@ -485,6 +485,7 @@ def _count_gate_kernel_calls(monkeypatch) -> dict:
     return calls
 
 
+@pytest.mark.cpu_kernels  # the compiled kernels themselves (skipped with EVFLOW_CPU_KERNELS=0)
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("fresh", [False, True])
 @pytest.mark.parametrize("hidden", [2, 5, 16])
@@ -514,6 +515,7 @@ def test_compiled_convgru_matches_equation_4(monkeypatch, hidden, fresh, threads
         torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.cpu_kernels  # the compiled kernels themselves (skipped with EVFLOW_CPU_KERNELS=0)
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("memories", ["both", "none", "own only"])
 @pytest.mark.parametrize("channels", [3, 8])
@@ -549,6 +551,7 @@ def test_compiled_st_convgru_matches_equations_5_and_6(monkeypatch, channels, me
             torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.cpu_kernels  # the compiled kernels themselves (skipped with EVFLOW_CPU_KERNELS=0)
 @pytest.mark.parametrize("threads", [1, 2])
 @pytest.mark.parametrize("fresh", [False, True])
 def test_compiled_flow_refiner_matches_equations_10_and_11(monkeypatch, fresh, threads):
@@ -657,6 +660,7 @@ def test_inference_path_matches_training_path():
         torch.testing.assert_close(state_a[key], state_b[key], rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.cpu_kernels  # the compiled kernels themselves (skipped with EVFLOW_CPU_KERNELS=0)
 def test_cpu_default_is_channels_last_with_compiled_gates(monkeypatch):
     calls = _count_gate_kernel_calls(monkeypatch)
     model = build("ev-mgrflownet")
@@ -671,6 +675,7 @@ def test_cpu_default_is_channels_last_with_compiled_gates(monkeypatch):
     assert calls == {"gru": 3 * 4, "gate": 3, "refiner": 3 * 4}
 
 
+@pytest.mark.cpu_kernels  # the compiled kernels themselves (skipped with EVFLOW_CPU_KERNELS=0)
 def test_bench_agents_parts_rows():
     """``scripts/bench_agents.py --parts`` runs against the current layers and reports every
     piece at both inputs (one timed repetition each)."""

@@ -6,8 +6,10 @@ tests after the table check what must survive (the user's files, no temporaries)
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import pickle
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,6 +20,7 @@ import pytest
 import torch
 
 from agents.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, upgrade_checkpoint
+from envs.atomic import host_name
 from envs.env import EventFlowEnv
 from envs.h5format import FormatError, H5Reader, write_h5
 from envs.readers import open_recording
@@ -33,7 +36,11 @@ from tests.test_readers import write_dsec, write_hagenaars, write_mvsec
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))  # export_model is tested as a script
 from agents.commands import convert as convert_script  # noqa: E402
+from agents.commands import evaluate as evaluate_script  # noqa: E402
+from agents.commands import predict as predict_script  # noqa: E402
 from agents.commands import train as train_script  # noqa: E402
+from envs.readers.prophesee import PropheseeDatReader  # noqa: E402
+from tests.test_prophesee import dat_bytes, evt2_words, raw_header, sorted_events  # noqa: E402
 
 
 def _stream(n=2_000, sensor_size=(20, 30), span_us=200_000, seed=0):
@@ -140,6 +147,70 @@ def _old_format(tmp: Path) -> Path:
     return path
 
 
+def _recording(tmp: Path) -> Path:
+    """A small project h5 recording with ground truth every 30 ms (32 x 32 pixels, 300 ms)."""
+    return write_translating_recording(tmp / "rec.h5", np.random.default_rng(3), sensor_size=(32, 32))
+
+
+def _predict_call(tmp: Path, *extra: str, rec: Path | None = None):
+    """scripts/predict.py on :func:`_recording` with a small untrained network, writing q.h5;
+    ``extra`` may name the recording as ``{rec}``."""
+    rec = rec or _recording(tmp)
+    argv = [str(rec), "--model", "ev-mgrflownet", "--width", "4", "--out", str(tmp / "q.h5"), "--no-progress",
+            "--window", "time", "--window-size", "30000", *(a.format(rec=rec) for a in extra)]
+    return lambda: predict_script.main(argv)
+
+
+def _evaluate_call(tmp: Path, *extra: str, rec: Path | None = None):
+    rec = rec or _recording(tmp)
+    argv = ["--model", "ev-mgrflownet", "--width", "4", "--data", str(rec), "--dt", "1", "--max-windows", "2",
+            "--pictures", "0", "--no-progress", "--out", str(tmp / "ev"), *(a.format(rec=rec) for a in extra)]
+    return lambda: evaluate_script.main(argv)
+
+
+def _kept(path: Path, text: str = "keep me") -> Path:
+    path.write_text(text)
+    return path
+
+
+def _raw(tmp: Path, header: bytes | None = None, name: str = "cam.raw") -> Path:
+    """An EVT 2.0 file of a 260 x 346 camera (DAVIS346 geometry) whose events reach x = 345."""
+    x, y, t, p = sorted_events(np.random.default_rng(2), 2_000, (260, 346), 0, 100_000)
+    x[-1], y[-1] = 345, 259
+    path = tmp / name
+    path.write_bytes((header or raw_header("EVT2", (260, 346))) + evt2_words(x, y, t, p).astype("<u4").tobytes())
+    return path
+
+
+def _cached_raw(tmp: Path) -> Path:
+    """:func:`_raw`, opened once at its header's geometry, so its time index is cached."""
+    path = _raw(tmp)
+    open_recording(path).close()
+    return path
+
+
+def _dat(tmp: Path, t: np.ndarray, name: str = "rec.dat") -> Path:
+    n = len(t)
+    x, y = np.arange(n) % 640, np.arange(n) % 480
+    path = tmp / name
+    path.write_bytes(dat_bytes(x, y, np.asarray(t, np.int64), np.arange(n) % 2))
+    return path
+
+
+def _spiked_dat_times(n: int = 1_000, at: int = 500) -> np.ndarray:
+    """Sorted times with one record stamped 0xFFFFFFF0 (a corrupt record, not a wrap)."""
+    t = 10_000 + 100 * np.arange(n, dtype=np.int64)
+    t[at] = 0xFFFFFFF0
+    return t
+
+
+def _with_ground_truth_1e30(tmp: Path) -> Path:
+    path = _recording(tmp)
+    with h5py.File(path, "a") as f:
+        f["flow/flow"][0, 0, 5, 7] = 1e30
+    return path
+
+
 # (build(tmp_path) -> the call that must fail, exception, message pattern)
 HOSTILE = [
     # -- data destroyed ------------------------------------------------------------------------
@@ -235,6 +306,77 @@ HOSTILE = [
                  CheckpointError, r"evil.pt: holds pickled Python objects", id="checkpoint-runs-code"),
     pytest.param(lambda tmp: lambda: load_checkpoint(_old_format(tmp)),
                  CheckpointError, r"old.pt: holds pickled Python objects.*export_model.py --upgrade .*old.pt", id="checkpoint-old-format"),
+    # -- issue 41 (1): every output guarded, the input above all ---------------------------------
+    pytest.param(lambda tmp: _predict_call(tmp, "--video", "{rec}"),
+                 FileExistsError, r"rec.h5: is the input recording", id="predict-video-is-input"),
+    pytest.param(lambda tmp: _predict_call(tmp, "--json", "{rec}"),
+                 FileExistsError, r"--json .*rec.h5: is the input recording", id="predict-json-is-input"),
+    pytest.param(lambda tmp: _evaluate_call(tmp, "--json", "{rec}"),
+                 FileExistsError, r"--json .*rec.h5: is the input recording", id="evaluate-json-is-input"),
+    pytest.param(lambda tmp: _predict_call(tmp, "--video", str(_kept(tmp / "notes.gif"))),
+                 FileExistsError, r"notes.gif: exists; pass overwrite=True \(--overwrite\)", id="predict-existing-video"),
+    pytest.param(lambda tmp: _predict_call(tmp, "--json", str(_kept(tmp / "res.json"))),
+                 FileExistsError, r"--json .*res.json: exists; pass overwrite=True", id="predict-existing-json"),
+    pytest.param(lambda tmp: _evaluate_call(tmp, "--json", str(_kept(tmp / "res.json"))),
+                 FileExistsError, r"--json .*res.json: exists; pass overwrite=True", id="evaluate-existing-json"),
+    pytest.param(lambda tmp: _predict_call(tmp, "--json", str(tmp / "q.h5")),
+                 FileExistsError, r"q.h5: is also --json .*q.h5 of this command", id="predict-json-is-out"),
+    # -- (2) a new training run in a used run folder ------------------------------------------------
+    pytest.param(lambda tmp: (lambda run: lambda: train_script.main(
+        ["--data", str(tmp / "dots.h5"), "--width", "4", "--num-envs", "1", "--unroll", "1", "--steps", "1",
+         "--out", str(run), "--val-data", "", "--no-progress"]))(_training_run(tmp)),
+                 FileExistsError, r"--out .*run: holds an earlier run \(checkpoint.pt, metrics.jsonl\); continue it with "
+                                  r"--resume, start afresh with --overwrite", id="train-used-run-folder"),
+    # -- (4) a cached Prophesee time index still checks the geometry -----------------------------------
+    pytest.param(lambda tmp: (lambda path: lambda: open_recording(path, sensor_size=(346, 260)))(_cached_raw(tmp)),
+                 FormatError, r"cam.raw: event x=345 outside the 346x260 sensor", id="prophesee-cached-index-transposed"),
+    pytest.param(lambda tmp: (lambda path: lambda: open_recording(path, sensor_size=(100, 100)))(_cached_raw(tmp)),
+                 FormatError, r"cam.raw: event x=\d+ outside the 100x100 sensor", id="prophesee-cached-index-100x100"),
+    pytest.param(lambda tmp: (lambda path: lambda: convert_script.main([str(path), str(tmp / "o.h5"), "--sensor-size", "346",
+                                                                         "260"]))(_cached_raw(tmp)),
+                 FormatError, r"cam.raw: event x=345 outside the 346x260 sensor", id="convert-prophesee-transposed"),
+    # -- (5) DAT times going backwards are no wraps ----------------------------------------------------------
+    pytest.param(lambda tmp: lambda: PropheseeDatReader(_dat(tmp, 1_000_000 - 100 * np.arange(1_000))),
+                 FormatError, r"rec.dat: the event at byte \d+ is stamped \d+ us \(0x[0-9A-F]{8}\), \d+ us before an event ahead of it",
+                 id="dat-reversed-records"),
+    pytest.param(lambda tmp: lambda: PropheseeDatReader(_dat(tmp, _spiked_dat_times())),
+                 FormatError, r"rec.dat: the event at byte \d+ is stamped 4294967280 us \(0xFFFFFFF0\), 59916 us before an event ahead",
+                 id="dat-one-record-at-0xFFFFFFF0"),
+    pytest.param(lambda tmp: lambda: convert_script.main([str(_dat(tmp, 1_000_000 - 100 * np.arange(1_000))),
+                                                          str(tmp / "o.h5")]),
+                 FormatError, r"rec.dat: the event at byte \d+ is stamped", id="convert-dat-reversed-records"),
+    # -- (6) ECD text values checked ------------------------------------------------------------------------
+    pytest.param(lambda tmp: lambda: TextReader(_text(tmp, "0.000300 70000 2 1")),
+                 FormatError, r"events.txt: line 3 \(event 2\): x = 70000 is beyond the largest sensor side, 16384",
+                 id="text-x-70000"),
+    pytest.param(lambda tmp: lambda: TextReader(_text(tmp, "0.000300 1e10 2 1")),
+                 FormatError, r"events.txt: line 3 \(event 2\): x = 10000000000 is beyond the largest sensor side",
+                 id="text-x-1e10"),
+    pytest.param(lambda tmp: lambda: TextReader(_text(tmp, "1e12 1 2 1")),
+                 FormatError, r"events.txt: line 3 \(event 2\): t = 1000000000000.0 s is more than 86400 s \(24 h\) after "
+                              r"the first event's", id="text-t-1e12"),
+    pytest.param(lambda tmp: lambda: TextReader(_text(tmp, "1e300 1 2 1")),
+                 FormatError, r"events.txt: line 3 \(event 2\): t = 1e\+300 s is more than", id="text-t-1e300"),
+    pytest.param(lambda tmp: lambda: TextReader(_text(tmp, "0.000300 1 2 0.5")),
+                 FormatError, r"events.txt: line 3 \(event 2\): polarity p = 0.5; expected 0 or 1", id="text-p-0.5"),
+    # -- (7) header values that do not parse name the file ------------------------------------------------------
+    pytest.param(lambda tmp: lambda: open_recording(_raw(tmp, b"% evt 2.0\n% format EVT2;height=abc;width=346\n% end\n")),
+                 FormatError, r"cam.raw: the header's '% format EVT2;height=abc;width=346' gives height 'abc'",
+                 id="raw-header-height-abc"),
+    pytest.param(lambda tmp: (lambda path: (path.write_bytes(dat_bytes(np.arange(3), np.arange(3), np.arange(3), np.ones(3))
+                                                             .replace(b"% Width 640", b"% Width abc")),
+                                            lambda: PropheseeDatReader(path))[1])(tmp / "w.dat"),
+                 FormatError, r"w.dat: the header's '% Height' / '% Width' lines gives height '480' and width 'abc'",
+                 id="dat-header-width-abc"),
+    # -- (8) ground truth bounded by the sensor ------------------------------------------------------------------
+    pytest.param(lambda tmp: (lambda path: lambda: EventFlowEnv(str(path)).reset())(_with_ground_truth_1e30(tmp)),
+                 FormatError, r"rec.h5 \(window \[0, 30000\) us\): ground-truth flow at pixel \(x=7, y=5\) is "
+                              r"\(1e\+30, -3\) px; a valid pixel must hold a finite displacement of at most 128 px",
+                 id="ground-truth-1e30"),
+    pytest.param(lambda tmp: lambda: write_h5(tmp / "gt.h5", random_events(np.random.default_rng(0), 100, (8, 8)),
+                                              flows=[(0, 1000, np.full((2, 8, 8), np.nan, np.float32), None)]),
+                 FormatError, r"gt.h5 \(flow over \[0, 1000\) us\): ground-truth flow at pixel \(x=0, y=0\) is \(nan",
+                 id="ground-truth-nan-written"),
 ]
 
 
@@ -380,3 +522,173 @@ def test_resume_with_allowed_changes_uses_the_new_values(tmp_path):
     payload = load_checkpoint(run / "checkpoint.pt")
     assert payload["step"] == 2 and payload["config"]["lr"] == 0.002
     assert payload["optimizer"]["param_groups"][0]["lr"] == pytest.approx(0.002)
+
+
+# -- issue 41: what must survive, and how the commands answer ------------------------------------
+
+
+def test_outputs_never_replace_the_input_and_replace_a_file_only_when_asked(tmp_path):
+    """(1) predict and evaluate: the recording survives every output option aimed at it, an
+    existing video or JSON survives unless --overwrite, and nothing is left half-written."""
+    rec = _recording(tmp_path)
+    before = _digest(rec)
+    for extra in (["--video", str(rec)], ["--json", str(rec)], ["--out", str(rec)]):
+        for overwrite in ([], ["--overwrite"]):
+            with pytest.raises(FileExistsError, match="is the input recording"):
+                _predict_call(tmp_path, *extra, *overwrite, rec=rec)()
+    with pytest.raises(FileExistsError, match="is the input recording"):
+        _evaluate_call(tmp_path, "--json", str(rec), "--overwrite", rec=rec)()
+    assert _digest(rec) == before
+    notes, res = _kept(tmp_path / "notes.gif"), _kept(tmp_path / "res.json")
+    for extra in (["--video", str(notes)], ["--json", str(res)]):
+        with pytest.raises(FileExistsError, match="exists; pass overwrite=True"):
+            _predict_call(tmp_path, *extra, rec=rec)()
+    assert notes.read_text() == res.read_text() == "keep me" and not (tmp_path / "q.h5").exists()
+    _predict_call(tmp_path, "--video", str(notes), "--json", str(res), "--overwrite", rec=rec)()  # asked for: replaced
+    assert notes.read_bytes()[:3] == b"GIF" and json.loads(res.read_text())["windows"] == 10
+    assert not list(tmp_path.glob("*.tmp-*")) and not list(tmp_path.glob("*.lock"))
+
+
+def test_a_new_run_in_a_used_folder_starts_afresh_only_when_asked(tmp_path):
+    """(2) the refused run leaves the earlier run as it was; --overwrite logs steps 1, 2 once."""
+    run = _training_run(tmp_path)
+    before = (_digest(run / "checkpoint.pt"), (run / "metrics.jsonl").read_text())
+    common = ["--data", str(tmp_path / "dots.h5"), "--width", "4", "--num-envs", "1", "--unroll", "1", "--out", str(run),
+              "--val-data", "", "--no-progress"]
+    with pytest.raises(FileExistsError, match="holds an earlier run"):
+        train_script.main([*common, "--steps", "2"])
+    assert (_digest(run / "checkpoint.pt"), (run / "metrics.jsonl").read_text()) == before
+    train_script.main([*common, "--steps", "2", "--overwrite"])
+    steps = [json.loads(line)["step"] for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert steps == [1, 2]
+
+
+def _holder(path: Path) -> subprocess.Popen:
+    """Another process that claims ``path`` as its output and holds it until its stdin closes."""
+    code = ("import sys; from envs.outputs import Output; o = Output(sys.argv[1]); print('ready', flush=True); "
+            "sys.stdin.read()")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(path)], cwd=ROOT, stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    return proc
+
+
+def test_a_second_writer_fails_naming_the_first(tmp_path):
+    """(3) while one process writes out.h5 another fails naming it; once it is done (or killed:
+    the kernel drops its lock) the next writer goes ahead."""
+    src, rec = _mvsec(tmp_path), _recording(tmp_path)
+    out = tmp_path / "out.h5"
+    first = _holder(out)
+    try:
+        with pytest.raises(FileExistsError, match=rf"out.h5: another process \(pid {first.pid}\) is writing it now, "
+                                                  rf"to out.h5.tmp-{re.escape(host_name())}-{first.pid}"):
+            convert_script.main([str(src), str(out)])
+        with pytest.raises(FileExistsError, match=rf"another process \(pid {first.pid}\)"):
+            predict_script.main([str(rec), "--model", "ev-mgrflownet", "--width", "4", "--out", str(out), "--no-video",
+                                 "--no-progress"])
+    finally:
+        first.kill()
+        first.wait()
+    assert not out.exists()
+    convert_script.main([str(src), str(out)])  # the killed holder's lock is no obstacle
+    with H5Reader(out) as r:
+        assert r.num_events == 2_000
+    assert not list(tmp_path.glob("out.h5.*"))
+
+
+def test_dat_backward_time_names_the_byte_offset_and_real_wraps_still_read(tmp_path):
+    """(5) the corrupt record's own offset, not a 2^32 us shift of every later event."""
+    path = _dat(tmp_path, _spiked_dat_times(at=500))
+    header = path.read_bytes().index(bytes([0x0C, 8])) + 2
+    with pytest.raises(FormatError, match=rf"rec.dat: the event at byte {header + 500 * 8} is stamped 4294967280 us"):
+        PropheseeDatReader(path, chunk_words=97, index_dir=tmp_path / "index")
+    late = 10_000 + 100 * np.arange(50, dtype=np.int64)
+    late[20] -= 150  # a few hundred us early: a late-stamped event, given the time before it
+    with pytest.warns(UserWarning, match="1 events were stamped earlier"):
+        r = PropheseeDatReader(_dat(tmp_path, late, "late.dat"), index_dir=tmp_path / "index")
+    with r:
+        assert r.reordered_events == 1 and r.t_end == late[-1] + 1
+    wrap = (1 << 32) - 5_000 + 100 * np.arange(100, dtype=np.int64)  # crosses 2^32 once
+    with PropheseeDatReader(_dat(tmp_path, wrap, "wrap.dat"), chunk_words=7, index_dir=tmp_path / "index") as r:
+        np.testing.assert_array_equal(r.events_range(0, 100).t, wrap)
+
+
+def test_text_with_a_byte_order_mark_keeps_its_first_event(tmp_path):
+    """(6) a UTF-8 BOM before the first event line (Windows editors) is skipped, not the event."""
+    path = tmp_path / "events.txt"
+    path.write_bytes(b"\xef\xbb\xbf0.000100 3 4 1\n0.000200 5 6 0\n0.000300 7 8 1\n")
+    with TextReader(path) as r:
+        ev = r.events_range(0, r.num_events)
+        assert r.num_events == 3 and ev.t.tolist() == [100, 200, 300] and ev.x.tolist() == [3, 5, 7]
+    path.write_bytes(b"\xef\xbb\xbf# a header\n0.000100 3 4 1\n0.000200 5 6 0\n")
+    with TextReader(path) as r:
+        assert r.num_events == 2 and r.time_of(0) == 100
+
+
+@pytest.mark.parametrize("command, argv, message", [
+    ("evaluate", ["--dt-ratio", "0"], "argument --dt-ratio: expected a finite number > 0, got 0.0"),
+    ("evaluate", ["--dt-ratio", "-1"], "argument --dt-ratio: expected a finite number > 0, got -1.0"),
+    ("evaluate", ["--dt-ratio", "nan"], "argument --dt-ratio: expected a finite number > 0, got nan"),
+    ("evaluate", ["--max-windows", "0"], "argument --max-windows: expected a positive integer, got 0"),
+    ("evaluate", ["--max-windows", "-2"], "argument --max-windows: expected a positive integer, got -2"),
+    ("train", ["--steps", "-3"], "argument --steps: expected an integer >= 0, got -3"),
+    ("train", ["--lr", "inf"], "argument --lr: expected a finite number >= 0, got inf"),
+    ("predict", ["--start", "nan"], "argument --start: expected a finite number >= 0, got nan"),
+    ("predict", ["--fps", "0"], "argument --fps: expected a finite number > 0, got 0.0"),
+    ("convert", ["--flow-dt", "0"], "argument --flow-dt: expected a positive integer, got 0"),
+])
+def test_numeric_options_are_checked_when_parsed(tmp_path, capsys, command, argv, message):
+    """(7) a bad number stops the command before it reads or writes anything, naming the option
+    and the accepted range."""
+    rec = _recording(tmp_path)
+    out = tmp_path / "out"
+    full = {
+        "evaluate": lambda: _evaluate_call(tmp_path, *argv, rec=rec),
+        "train": lambda: lambda: train_script.main(["--data", str(rec), "--width", "4", "--num-envs", "1", "--unroll", "1",
+                                                    "--out", str(out), "--val-data", "", "--no-progress", *argv]),
+        "predict": lambda: _predict_call(tmp_path, *argv, rec=rec),
+        "convert": lambda: lambda: convert_script.main([str(rec), str(out / "c.h5"), *argv]),
+    }[command]()
+    with pytest.raises(SystemExit) as stop:
+        full()
+    assert stop.value.code == 2 and message in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.h5"]  # nothing written
+
+
+def test_unwritable_outputs_are_found_before_any_work(tmp_path):
+    """(7) a --video or --json that cannot be written fails before the run: no flow file, no
+    summary lost after an hour of work."""
+    rec = _recording(tmp_path)
+    blocker = _kept(tmp_path / "file.txt")
+    for option in ("--video", "--json"):
+        with pytest.raises(NotADirectoryError, match=r"file.txt/x/v.gif: cannot create its folder .*file.txt/x: Not a dir"):
+            _predict_call(tmp_path, option, str(blocker / "x" / "v.gif"), rec=rec)()
+        assert not (tmp_path / "q.h5").exists()
+    with pytest.raises(NotADirectoryError, match=r"--out .*file.txt/ev/table.md: cannot create its folder"):
+        evaluate_script.main(["--zero", "--data", str(rec), "--out", str(blocker / "ev"), "--no-progress"])
+
+
+def test_user_errors_print_one_line_and_exit_2(tmp_path):
+    """(9) scripts/*.py: ``error: <message>`` and status 2 for a user error, the traceback with
+    EVFLOW_DEBUG=1; an unexpected exception keeps its traceback."""
+    from agents.commands.cli import run
+
+    missing = tmp_path / "missing.h5"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, str(ROOT / "scripts" / "convert.py"), str(missing), str(tmp_path / "o.h5")],
+                          capture_output=True, text=True, env={**env, "EVFLOW_DEBUG": "0"})
+    assert done.returncode == 2 and done.stderr == f"error: {missing}: no such file or folder\n"
+    done = subprocess.run([sys.executable, str(ROOT / "scripts" / "convert.py"), str(missing), str(tmp_path / "o.h5")],
+                          capture_output=True, text=True, env={**env, "EVFLOW_DEBUG": "1"})
+    assert done.returncode == 1 and "Traceback" in done.stderr and "no such file or folder" in done.stderr
+    # in process: the same for every command, argparse's own errors untouched
+    rec = _recording(tmp_path)
+    _kept(tmp_path / "res.json")
+    assert run(evaluate_script.main, ["--zero", "--data", str(rec), "--json", str(tmp_path / "res.json"),
+                                      "--out", str(tmp_path / "ev")]) == 2
+
+    def numpy_fails(argv):  # a bug, not a user error: raised inside numpy, not by a raise of ours
+        return np.zeros(3).reshape(2, 2)
+
+    with pytest.raises(ValueError, match="cannot reshape"):
+        run(numpy_fails)

@@ -92,7 +92,7 @@ def test_evaluate_mirror_rows_by_number_of_copies(tmp_path, rng):
     assert "| unet-feedforward + mirror 2 |" in table and "+ mirror |" not in table
     evaluate_script.main(["--model", "unet-feedforward", "--width", "4", "--mirror", "--dt", "1",
                           "--data", str(path), "--out", str(out), "--no-progress", "--pictures", "0",
-                          "--max-windows", "2"])
+                          "--max-windows", "2", "--overwrite"])  # the same --out again: replaced when asked
     assert "| unet-feedforward + mirror |" in (out / "table.md").read_text()
     with pytest.raises(SystemExit, match="--mirror"):
         evaluate_script.main(["--zero", "--mirror", "3", "--data", str(path), "--out", str(out)])

@@ -164,3 +164,16 @@ def test_predict_refuses_to_overwrite(tmp_path, plugin_path):
     with pytest.raises(FileExistsError, match="exists; pass overwrite=True"):
         predict(policy, recording, out, window="time", window_size=20_000, progress=False)
     assert predict(policy, recording, out, window="time", window_size=20_000, progress=False, overwrite=True).windows == 5
+
+
+def test_the_default_model_and_mode_are_the_recorded_choice_named_in_the_provenance():
+    from agents.predict import load_policy
+    from agents.pretrained import DEFAULT_PRETRAINED, default_choice, list_pretrained
+
+    choice = default_choice()
+    assert choice["model"] == DEFAULT_PRETRAINED and DEFAULT_PRETRAINED in list_pretrained()
+    assert "devval" in choice["chosen_on"] and choice["mode"]
+    _, provenance = load_policy(None)
+    assert provenance["name"] == choice["model"] and provenance["default"]["mode"] == choice["mode"]
+    _, named = load_policy(DEFAULT_PRETRAINED)  # named explicitly: no claim about a choice
+    assert "default" not in named

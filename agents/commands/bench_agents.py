@@ -45,11 +45,12 @@ VARIANTS = [
 NCHW = " (NCHW)"
 WIDTHS_CPU = WIDTHS["cpu"]
 INPUTS = [("256x256 B=1", 1, 256, 256), ("128x128 B=8", 8, 128, 128)]
+TINY_INPUTS = [("32x32 B=1", 1, 32, 32)]  # benchmark.py --tiny: checks that the section runs
 
 
-def _count_images(batch: int, height: int, width: int, seed: int) -> torch.Tensor:
+def _count_images(batch: int, height: int, width: int, seed: int, channels: int = 2) -> torch.Tensor:
     generator = torch.Generator().manual_seed(seed)
-    counts = torch.randint(0, 4, (batch, 2, height, width), generator=generator).float()
+    counts = torch.randint(0, 4, (batch, channels, height, width), generator=generator).float()
     return counts * (torch.rand(batch, 1, height, width, generator=generator) < 0.3)
 
 
@@ -71,14 +72,18 @@ def time_models(entries, width: str, batch: int, height: int, size_w: int, reps:
         torch.manual_seed(0)
         models[label] = make_model(name, width=width, **kwargs).to(device)
         models[label].channels_last = channels_last
-    inputs = [_count_images(batch, height, size_w, seed).to(device) for seed in range(reps + 1)]
+    # EV-FlowNet reads 4 channels (counts and timestamps), the others the 2-channel count image
+    channels = {label: getattr(model, "in_channels", 2) for label, model in models.items()}
+    inputs = {c: [_count_images(batch, height, size_w, seed, c).to(device) for seed in range(reps + 1)]
+              for c in set(channels.values())}
     forward = {name: [] for name in names}
     backward = {name: [] for name in names}
 
     with torch.no_grad():
         states = {name: None for name in names}
-        for i, x in enumerate(inputs):
+        for i in range(reps + 1):
             for name, model in models.items():
+                x = inputs[channels[name]][i]
                 _sync(device)
                 start = time.perf_counter()
                 _, states[name] = model(x, states[name])
@@ -87,8 +92,9 @@ def time_models(entries, width: str, batch: int, height: int, size_w: int, reps:
                     forward[name].append(time.perf_counter() - start)
 
     states = {name: None for name in names}
-    for i, x in enumerate(inputs):
+    for i in range(reps + 1):
         for name, model in models.items():
+            x = inputs[channels[name]][i]
             model.zero_grad(set_to_none=True)
             _sync(device)
             start = time.perf_counter()
@@ -110,8 +116,9 @@ def turn_ratio(times: list[float], base: list[float]) -> float:
 
 
 def run(report, reps: int = 2, widths=("paper", "cpu"), device: str = "cpu", variants: bool = False,
-        nchw: bool = False) -> dict:
-    """Report every row; return {(width, input, model label): (forward ms, fwd+bwd ms)}."""
+        nchw: bool = False, inputs=None) -> dict:
+    """Report every row; return {(width, input, model label): (forward ms, fwd+bwd ms)}.
+    inputs: [(label, batch, height, width)] (default INPUTS)."""
     results = {}
     where = f"{device}, {torch.get_num_threads()} threads" if device == "cpu" else device
     entries = [(label, name, kwargs, None) for label, name, kwargs in MODELS + (VARIANTS if variants else [])]
@@ -122,7 +129,7 @@ def run(report, reps: int = 2, widths=("paper", "cpu"), device: str = "cpu", var
             make_model("convgru-ev-flownet", width=width), 1, 128, 128
         )
         report(SECTION, f"EV-MGRFlowNet / ConvGRU-EV-FlowNet {width} arithmetic (GFLOP)", arithmetic, "x")
-        for input_label, batch, height, size_w in INPUTS:
+        for input_label, batch, height, size_w in inputs or INPUTS:
             timings = time_models(entries, width, batch, height, size_w, reps, device)
             for label, (fwd, fwd_bwd, _, _) in timings.items():
                 results[(width, input_label, label)] = (fwd, fwd_bwd)

@@ -143,26 +143,28 @@ def bench_reading(report, num_events: int, rate: float, max_windows: int, workdi
     return results
 
 
-def bench_predict(report, workdir: str | None, windows_full: int = 10) -> None:
+def bench_predict(report, workdir: str | None, windows_full: int = 10, tiny: bool = False) -> None:
+    """tiny: a fifth of synthetic-mini and 2 windows of a small RAW file (checks the section runs)."""
     from agents.predict import load_policy, predict
 
     policy, _ = load_policy(None, device="cpu")
     with tempfile.TemporaryDirectory(dir=workdir, prefix="bench_predict-") as tmp:
         predict(policy, "synthetic-mini", Path(tmp) / "warm.h5", end_s=0.2, progress=False)  # compile kernels
-        res = predict(policy, "synthetic-mini", Path(tmp) / "mini.h5", progress=False)
+        res = predict(policy, "synthetic-mini", Path(tmp) / "mini.h5", progress=False, end_s=0.2 if tiny else None)
         report("predict", f"synthetic-mini 64x64, {res.windows} GT windows (CPU)", res.windows_per_second, "windows/s")
-        raw = write_raw(Path(tmp) / "cam.raw", "EVT3", 1_000_000, DEFAULT_RATE)
+        windows_full = 2 if tiny else windows_full
+        raw = write_raw(Path(tmp) / "cam.raw", "EVT3", 100_000 if tiny else 1_000_000, DEFAULT_RATE)
         res = predict(policy, raw, Path(tmp) / "cam.h5", end_s=windows_full * 0.033334, progress=False,
                       data_options={"index_dir": tmp})
         report("predict", f"EVT3 1280x720, {res.windows} windows of 33 ms (CPU)", res.windows_per_second, "windows/s")
 
 
 def run(report, num_events: int = DEFAULT_EVENTS, rate: float = DEFAULT_RATE, max_windows: int = 2000,
-        sections=("prophesee", "predict"), workdir: str | None = None) -> None:
+        sections=("prophesee", "predict"), workdir: str | None = None, tiny: bool = False) -> None:
     if "prophesee" in sections:
         bench_reading(report, num_events, rate, max_windows, workdir)
     if "predict" in sections:
-        bench_predict(report, workdir)
+        bench_predict(report, workdir, tiny=tiny)
 
 
 def _print_row(section: str, row: str, value: float, unit: str) -> None:

@@ -27,23 +27,25 @@ from envs.simulator.randomize import TRAIN_FACTORS, draw_scene
 SECTION = "simulator"
 
 
-def run(report, quick: bool = False) -> None:
-    duration_s = 1.0
-    for max_flow_px in (1.0, 5.0, 10.0):
-        config = SceneConfig.random(42, 128, 128, speed_px_s=30.0 * max_flow_px, num_objects=2)
+def run(report, quick: bool = False, tiny: bool = False) -> None:
+    """Every row; ``tiny``: one 0.1 s scene at 64x64 and one training size (checks the section runs)."""
+    duration_s, side = (0.1, 64) if tiny else (1.0, 128)
+    for max_flow_px in (5.0,) if tiny else (1.0, 5.0, 10.0):
+        config = SceneConfig.random(42, side, side, speed_px_s=30.0 * max_flow_px, num_objects=2)
         start, cpu_start = time.perf_counter(), time.process_time()
         sequence = simulate(config, duration_s)
         wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
-        label = f"128x128, max {max_flow_px:g} px/frame"
+        label = f"{side}x{side}, max {max_flow_px:g} px/frame"
         report(SECTION, f"{label}: throughput", duration_s / wall, "sim s / wall s")
         # CPU time: the same figure, less sensitive to other processes sharing the cores
         report(SECTION, f"{label}: throughput (CPU time)", duration_s / cpu, "sim s / CPU s")
         report(SECTION, f"{label}: events", len(sequence.events) / wall / 1e6, "Mev / wall s")
         report(SECTION, f"{label}: sub-steps", sequence.num_substeps / duration_s, "per sim s")
-    run_dr(report, per_size=1 if quick else 3)
+    run_dr(report, per_size=1 if quick or tiny else 3, sizes=TRAIN_FACTORS.sizes[:1] if tiny else None,
+           duration_s=duration_s)
 
 
-def run_dr(report, per_size: int = 3, sizes=None) -> None:
+def run_dr(report, per_size: int = 3, sizes=None, duration_s: float = 1.0) -> None:
     """synthetic-dr-train generation speed per sensor size (module docstring)."""
     for height, width in sizes or TRAIN_FACTORS.sizes:
         factors = dataclasses.replace(TRAIN_FACTORS, sizes=((height, width),))
@@ -51,14 +53,14 @@ def run_dr(report, per_size: int = 3, sizes=None) -> None:
         for k in range(per_size):
             config = draw_scene(50_000_000 + k, factors)
             start, cpu_start = time.perf_counter(), time.process_time()
-            sequence = simulate(config, 1.0)
+            sequence = simulate(config, duration_s)
             wall += time.perf_counter() - start
             cpu += time.process_time() - cpu_start
             events += len(sequence.events)
-        label = f"dr-train {width}x{height} ({per_size} scenes, 1 s each)"
-        report(SECTION, f"{label}: generation", per_size / wall, "sim s / wall s")
-        report(SECTION, f"{label}: generation (CPU time)", per_size / cpu, "sim s / CPU s")
-        report(SECTION, f"{label}: events", events / per_size / 1e6, "Mev per sim s")
+        label = f"dr-train {width}x{height} ({per_size} scenes, {duration_s:g} s each)"
+        report(SECTION, f"{label}: generation", per_size * duration_s / wall, "sim s / wall s")
+        report(SECTION, f"{label}: generation (CPU time)", per_size * duration_s / cpu, "sim s / CPU s")
+        report(SECTION, f"{label}: events", events / (per_size * duration_s) / 1e6, "Mev per sim s")
 
 
 def _print_row(section: str, row_name: str, value: float, unit: str) -> None:

@@ -3,11 +3,15 @@
   python scripts/benchmark.py                      # every section
   python scripts/benchmark.py --only foundation env
   python scripts/benchmark.py --quick              # fewer repetitions
+  python scripts/benchmark.py --only training precision --device cuda   # on a GPU
+  python scripts/benchmark.py --tiny               # every section at the smallest sizes (a check, not a measurement)
 
 Sections: foundation (project h5 windows + count images), simulator (with synthetic-dr-train
-generation per sensor size), losses, agents, env,
-training, readers, prophesee (RAW reading at 1280x720), predict (agents/predict.py end to end).
-Timings are wall-clock on whatever machine runs them; compare rows of one run.
+generation per sensor size), losses, agents, env, training (windows/s per model; on CPU also
+2-process torchrun rows), precision (bf16 autocast against float32, interleaved A/B:
+agents/commands/bench_precision.py), readers, prophesee (RAW reading at 1280x720), predict
+(agents/predict.py end to end). Timings are wall-clock on whatever machine runs them; compare
+rows of one run. --device applies to the losses, agents, training and precision sections.
 """
 
 from __future__ import annotations
@@ -18,12 +22,16 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 import numpy as np
 import torch
 
-SECTIONS = ("foundation", "simulator", "losses", "agents", "env", "training", "readers", "prophesee", "predict")
+#: the repository (scripts/, tests/ for the recordings the training rows write)
+ROOT = Path(__file__).resolve().parents[2]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+SECTIONS = ("foundation", "simulator", "losses", "agents", "env", "training", "precision", "readers", "prophesee",
+            "predict")
 
 
 def report(section: str, row: str, value: float, unit: str) -> None:
@@ -46,13 +54,14 @@ def _recording(path: Path, seconds: float = 4.0, rate: float = 2e6, size=(260, 3
     return path
 
 
-def bench_foundation(quick: bool) -> None:
+def bench_foundation(quick: bool, tiny: bool = False) -> None:
     from envs.h5format import H5Reader
     from envs.representations import count_image
     from envs.windows import iter_windows
 
     with tempfile.TemporaryDirectory() as tmp:
-        path = _recording(Path(tmp) / "rec.h5", seconds=2.0 if quick else 4.0)
+        seconds, rate = (0.5, 1e5) if tiny else (2.0 if quick else 4.0, 2e6)
+        path = _recording(Path(tmp) / "rec.h5", seconds=seconds, rate=rate)
         with H5Reader(path) as reader:
             for mode, size, label in (("time", 10_000, "10 ms"), ("count", 30_000, "30k-event")):
                 start = time.perf_counter()
@@ -64,15 +73,15 @@ def bench_foundation(quick: bool) -> None:
                 report("foundation", f"project h5 346x260 @2 Mev/s: {label} windows + count image", n / elapsed, "windows/s")
 
 
-def bench_env(quick: bool) -> None:
+def bench_env(quick: bool, tiny: bool = False) -> None:
     import gymnasium
 
     import envs  # noqa: F401  (registers the ids)
     from envs.env import EventFlowEnv
 
-    steps = 20 if quick else 60
+    steps = 4 if tiny else 20 if quick else 60
     with tempfile.TemporaryDirectory() as tmp:
-        path = str(_recording(Path(tmp) / "rec.h5", seconds=2.0, rate=1e6))
+        path = str(_recording(Path(tmp) / "rec.h5", seconds=0.5 if tiny else 2.0, rate=1e5 if tiny else 1e6))
         for reward in (False, True):
             env = EventFlowEnv(path, window="time", window_size=10_000, compute_reward=reward)
             env.reset(seed=0)
@@ -97,9 +106,11 @@ def bench_env(quick: bool) -> None:
                 report("env", f"make_vec 4 envs {mode}, reward={'on' if reward else 'off'}", rate, "env-steps/s")
 
 
-def bench_training(quick: bool) -> None:
-    """Training windows/s (rollout + loss + backward + step) at 128x128, batch 8, CPU width,
-    per model; and a 2-process DDP run beside the single process."""
+def bench_training(quick: bool, tiny: bool = False, device: str = "cpu") -> None:
+    """Training windows/s (rollout + loss + backward + step) at 128x128, batch 8, L = 10. On CPU:
+    every model at CPU width, and EV-MGRFlowNet under torchrun with 1 and 2 processes (8 envs in
+    all). On CUDA: EV-MGRFlowNet at CPU and paper width, float32 and bf16 autocast (one GPU: no
+    torchrun rows, NCCL needs a GPU per process)."""
     import json
     import os
     import subprocess
@@ -107,68 +118,97 @@ def bench_training(quick: bool) -> None:
     from agents.learner import Learner, TrainConfig
     from tests.recordings import write_translating_recording
 
-    steps = 2 if quick else 4
+    steps = 1 if tiny else 2 if quick else 4
+    size, batch, unroll = (32, 2, 2) if tiny else (128, 8, 10)
+    cuda = torch.device(device).type == "cuda"
+    if cuda:
+        rows = [("ev-mgrflownet", width, amp) for width in ("cpu", "paper") for amp in ("off", "bf16")]
+    else:
+        rows = [(model, "cpu", "off") for model in ("ev-mgrflownet", "convgru-ev-flownet", "ev-flownet", "xlif-ev-flownet")]
     with tempfile.TemporaryDirectory() as tmp:
-        data = [str(write_translating_recording(Path(tmp) / f"r{i}.h5", np.random.default_rng(i), sensor_size=(128, 128),
-                                                 duration_us=2_000_000, events_per_s=400_000)) for i in range(2)]
-        for model in ("ev-mgrflownet", "convgru-ev-flownet", "ev-flownet", "xlif-ev-flownet"):
-            learner = Learner(TrainConfig(model=model, data=data, num_envs=8, unroll=10, width="cpu", flips=False))
-            learner.update()  # warm-up
+        data = [str(write_translating_recording(Path(tmp) / f"r{i}.h5", np.random.default_rng(i), sensor_size=(size, size),
+                                                 duration_us=300_000 if tiny else 2_000_000,
+                                                 events_per_s=50_000 if tiny else 400_000)) for i in range(2)]
+        for model, width, amp in rows:
+            learner = Learner(TrainConfig(model=model, data=data, num_envs=batch, unroll=unroll, width=width, flips=False,
+                                          device=device, amp=amp))
+            learner.update()  # warm-up (and the kernels' compile on a new machine)
             start = time.perf_counter()
             for _ in range(steps):
-                learner.update()
-            report("training", f"{model} cpu width 128x128 B=8 L=10", 80 * steps / (time.perf_counter() - start), "windows/s")
+                learner.update()  # ends in float(loss): the device has finished the step
+            precision = "" if amp == "off" else f", amp {amp}"
+            report("training", f"{model} {width} width {size}x{size} B={batch} L={unroll} ({device}{precision})",
+                   batch * unroll * steps / (time.perf_counter() - start), "windows/s")
             learner.close()
-        root = Path(__file__).resolve().parents[1]
+        if cuda:
+            return
         for nproc in (1, 2):
             out = Path(tmp) / f"ddp{nproc}"
-            cmd = [sys.executable, "-m", "torch.distributed.run", f"--nproc_per_node={nproc}", "--master_port=29555",
-                   str(root / "scripts" / "train.py"), "--data", *data, "--num-envs", str(8 // nproc), "--steps", str(steps + 1),
-                   "--out", str(out), "--val-data", "", "--no-progress", "--no-flips", "--device", "cpu"]
-            env = {**os.environ, "OMP_NUM_THREADS": str(max(1, 2 // nproc)), "PYTHONPATH": str(root)}
-            subprocess.run(cmd, check=True, capture_output=True, env=env)
+            cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={nproc}",
+                   str(ROOT / "scripts" / "train.py"), "--data", *data, "--num-envs", str(max(1, batch // nproc)),
+                   "--unroll", str(unroll), "--steps", str(steps + 1), "--out", str(out), "--val-data", "",
+                   "--no-progress", "--no-flips", "--device", "cpu"]
+            env = {**os.environ, "OMP_NUM_THREADS": str(max(1, 2 // nproc)), "PYTHONPATH": str(ROOT)}
+            done = subprocess.run(cmd, capture_output=True, text=True, env=env)
+            if done.returncode != 0:
+                raise RuntimeError(f"torchrun with {nproc} process(es) failed:\n{done.stderr[-3000:]}")
             rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
             rate = rows[-1]["windows_per_s"] * nproc  # rank 0 logs its own windows; ranks roll equal shares
-            report("training", f"ev-mgrflownet 128x128, 8 envs in all, torchrun {nproc} process(es)", rate, "windows/s")
+            report("training", f"ev-mgrflownet {size}x{size}, {batch} envs in all, torchrun {nproc} process(es)", rate,
+                   "windows/s")
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--only", nargs="+", choices=SECTIONS, default=list(SECTIONS))
     parser.add_argument("--quick", action="store_true", help="fewer repetitions and smaller inputs")
+    parser.add_argument("--tiny", action="store_true",
+                        help="the smallest sizes and one repetition: checks that every section runs (the numbers mean nothing)")
+    parser.add_argument("--device", default="cpu", help="torch device of the losses, agents, training and precision sections")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads", flush=True)
+    quick, tiny = args.quick or args.tiny, args.tiny
+    print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads, device {args.device}", flush=True)
     for section in args.only:
         if section == "foundation":
-            bench_foundation(args.quick)
+            bench_foundation(quick, tiny)
         elif section == "env":
-            bench_env(args.quick)
+            bench_env(quick, tiny)
         elif section == "training":
-            bench_training(args.quick)
+            bench_training(quick, tiny, args.device)
+        elif section == "precision":
+            from agents.commands import bench_precision
+
+            bench_precision.run(report, device=args.device, tiny=tiny)
         elif section == "simulator":
             from agents.commands import bench_simulator
 
-            bench_simulator.run(report, quick=args.quick)
+            bench_simulator.run(report, quick=quick, tiny=tiny)
         elif section == "losses":
             from agents.commands import bench_losses
 
-            bench_losses.run(report, quick=args.quick)
+            bench_losses.run(report, quick=quick, device=args.device, repeats=1 if tiny else None,
+                             events_divisor=1000 if tiny else None)
         elif section == "agents":
             from agents.commands import bench_agents
 
-            bench_agents.run(report, reps=1 if args.quick else 2)
+            bench_agents.run(report, reps=1 if quick else 2, device=args.device,
+                             widths=("cpu",) if tiny else ("paper", "cpu"), inputs=bench_agents.TINY_INPUTS if tiny else None)
         elif section == "readers":
             from agents.commands import bench_readers
 
-            bench_readers.run(report)
+            if tiny:
+                bench_readers.run(report, num_events=20_000, max_windows=10)
+            else:
+                bench_readers.run(report)
         elif section in ("prophesee", "predict"):
             from agents.commands import bench_prophesee
 
-            bench_prophesee.run(report, num_events=4_000_000 if args.quick else bench_prophesee.DEFAULT_EVENTS,
-                                sections=(section,))
+            events = 50_000 if tiny else 4_000_000 if quick else bench_prophesee.DEFAULT_EVENTS
+            bench_prophesee.run(report, num_events=events, max_windows=10 if tiny else 2000, sections=(section,),
+                                tiny=tiny)
     return 0
 
 

@@ -2,12 +2,15 @@
 
     python scripts/convert.py INPUT OUTPUT.h5 [--format mvsec|dsec|hagenaars|ecd-text|aedat4|evflow-h5]
         [--crop center256 | --crop TOP LEFT H W]  (MVSEC)   [--flow-dir DIR --flow-timestamps FILE] (DSEC)
-        [--sensor-size H W] (text)  [--flow-dt 1] [--no-flow] [--no-frames] [--chunk-events N] [--overwrite]
+        [--sensor-size H W | auto] (text; RAW / DAT without geometry)
+        [--flow-dt 1] [--no-flow] [--no-frames] [--chunk-events N] [--overwrite]
 
 The format is detected from the file unless --format is given. Events are streamed a chunk at a
 time with a progress bar; the output appears under its final name only when complete
 (envs.readers.convert.convert_recording). An existing OUTPUT is refused unless --overwrite is
-given; OUTPUT may never be INPUT itself (nor a link to it).
+given; OUTPUT may never be INPUT itself (nor a link to it), nor a file another process is writing
+now (envs.outputs.Output). Numbers are checked when parsed; a user error prints one line
+(``error: ...``) and exits 2 (agents.commands.cli; EVFLOW_DEBUG=1 shows the traceback).
 """
 
 from __future__ import annotations
@@ -16,19 +19,10 @@ import argparse
 import os
 import sys
 
+from agents.options import SENSOR_SIZE_HELP, SensorSize, positive_int
+from envs.outputs import Output
 from envs.readers import FORMATS, open_recording
 from envs.readers.convert import convert_recording
-
-
-def positive_int(text: str) -> int:
-    """argparse type: an integer > 0."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
 
 
 def main(argv=None) -> int:
@@ -40,8 +34,8 @@ def main(argv=None) -> int:
     parser.add_argument("--flow-dir", default=None, help="DSEC: folder of the flow PNGs")
     parser.add_argument("--flow-timestamps", default=None, help="DSEC: forward_timestamps.txt")
     parser.add_argument("--no-rectify", action="store_true", help="DSEC: keep the raw (unrectified) pixels")
-    parser.add_argument("--sensor-size", type=int, nargs=2, default=None, metavar=("H", "W"), help="text: sensor size")
-    parser.add_argument("--flow-dt", type=int, default=1, help="grid steps per stored ground-truth map")
+    parser.add_argument("--sensor-size", action=SensorSize, default=None, help=SENSOR_SIZE_HELP)
+    parser.add_argument("--flow-dt", type=positive_int, default=1, help="grid steps per stored ground-truth map")
     parser.add_argument("--no-flow", action="store_true", help="do not store ground truth")
     parser.add_argument("--no-frames", action="store_true", help="do not store frames")
     parser.add_argument("--chunk-events", type=positive_int, default=1 << 20, help="events per read/write step (> 0)")
@@ -57,12 +51,15 @@ def main(argv=None) -> int:
         options["flow_timestamps"] = args.flow_timestamps
     if args.no_rectify:
         options["rectify"] = False
-    if args.sensor_size:
-        options["sensor_size"] = tuple(args.sensor_size)
-    with open_recording(args.input, args.format, **options) as reader:
+    if args.sensor_size is not None:
+        options["sensor_size"] = args.sensor_size
+    # OUTPUT claimed before the input is opened (a Prophesee file is indexed on open): a bad OUTPUT
+    # fails at once
+    claim = Output(args.output, inputs=[("recording", args.input)], overwrite=args.overwrite)
+    with claim, open_recording(args.input, args.format, **options) as reader:
         print(reader, file=sys.stderr)
         out = convert_recording(
-            reader, args.output, chunk_events=args.chunk_events, flow_dt=None if args.no_flow else args.flow_dt,
+            reader, claim, chunk_events=args.chunk_events, flow_dt=None if args.no_flow else args.flow_dt,
             frames=not args.no_frames, progress=True, source=os.path.abspath(args.input), overwrite=args.overwrite,
         )
     print(out)

@@ -34,11 +34,17 @@ ground-truth pixel) and, with --dsec-submission, writes the benchmark's PNGs.
 --cmax adds per-window contrast maximisation of the same loss (no network, no ground truth;
 agents/cmax.py): the reference a learned model must beat. --refine K adds, for each model, a
 row with its flow refined by K steps of that solver on the window's own events.
+
+OUT/table.md and the JSON are claimed before any work (envs.outputs.Output): never an input,
+never a file of an earlier evaluation (nor its pictures/ or DSEC submission) without
+--overwrite, never one another process is writing. Numbers are checked when parsed; a user error
+prints one line (``error: ...``) and exits 2 (agents.commands.cli; EVFLOW_DEBUG=1: traceback).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,10 +56,22 @@ import agents.pretrained as pretrained_module
 from agents.checkpoint import load_model
 from agents.evaluation import evaluate, results_json, results_table, windowing_of
 from agents.mirror import MIRROR_SETS, MirrorPolicy
-from agents.options import add_options, check_choices, option, options_from_args
+from agents.options import (
+    add_options,
+    check_choices,
+    fraction,
+    non_negative_float,
+    non_negative_int,
+    option,
+    options_from_args,
+    positive_float,
+    positive_int,
+    sensor_size_option,
+)
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model, width_kwargs
 from agents.subwindows import SubWindowPolicy
+from envs.outputs import Output
 
 
 @dataclass
@@ -75,13 +93,13 @@ class EvaluateOptions:
     """add the zero-flow baseline row"""
     cmax: bool = False
     """add per-window contrast maximisation (no network, no ground truth; agents/cmax.py)"""
-    refine: int | None = option(None, metavar="K")
+    refine: int | None = option(None, metavar="K", type=non_negative_int)
     """also evaluate each model with its flow refined by K contrast-maximisation steps"""
     refine_solver: Literal["fine", "cmax"] = "fine"
     """--refine's solve: 'fine' (one 16-cell level, a local correction) or 'cmax' (the --cmax coarse-to-fine solve started from the network's flow, K steps over its levels)"""
-    refine_prior: float = 0.0
+    refine_prior: float = option(0.0, type=non_negative_float)
     """--refine holds the flow to the network's with this weight (mean square of the correction in flow-scaling units; 0: none)"""
-    refine_accept: float | None = option(None, metavar="A")
+    refine_accept: float | None = option(None, metavar="A", type=fraction)
     """--refine keeps the refined flow of a window only where it lowers the env's loss (L_HMC with the border rule) by at least the fraction A of the network's (else the network's flow); default: always"""
     split: str | None = option(None, metavar="N|dt")
     """also evaluate each model stepped through N equal sub-windows of every window, their flows composed (agents/subwindows.py); 'dt': one per ground-truth interval (N = the table's dt)"""
@@ -90,10 +108,12 @@ class EvaluateOptions:
     data: list[str] = option(default_factory=lambda: ["synthetic-test"])
     """synthetic split, recording files or directories"""
     format: str | None = None
-    """force a reader (evflow-h5, mvsec, dsec, hagenaars, ecd-text, aedat4)"""
+    """force a reader (evflow-h5, mvsec, dsec, hagenaars, ecd-text, aedat4, prophesee-raw, prophesee-dat)"""
+    sensor_size: tuple[int, int] | Literal["auto"] | None = sensor_size_option()
+    """H W (pixels, height first) or auto: the sensor size of recordings whose header gives none (Prophesee RAW / DAT, text); auto: the smallest known sensor holding every event, with a warning; files that store their geometry keep it"""
     mvsec: str | None = option(None, metavar="DIR")
     """run the MVSEC protocol on the four sequences in DIR"""
-    stride: list[int] | None = None
+    stride: list[int] | None = option(None, type=positive_int)
     """MVSEC: grid steps between window starts (default: dt, and also 1 for dt = 4)"""
     mvsec_grid: Literal["images", "gt"] = "images"
     """MVSEC windows on the image frames (EV-FlowNet dt) or the 20 Hz ground-truth steps"""
@@ -103,7 +123,7 @@ class EvaluateOptions:
     """outdoor_day1 span: 222.4-240.4 s or ground-truth indices 4356-4706"""
     no_hood: bool = False
     """MVSEC: score the car's hood rows too"""
-    hot_pixels: float | None = option(None, metavar="SIGMA")
+    hot_pixels: float | None = option(None, metavar="SIGMA", type=positive_float)
     """MVSEC: leave pixels SIGMA std above the mean event count out of the event mask"""
     protocol: Literal["default", "dsec"] = "default"
     """dsec: dense DSEC scores (EPE, 1PE, 2PE, 3PE, AE) on valid ground truth, no event mask"""
@@ -115,23 +135,25 @@ class EvaluateOptions:
     """DSEC: write <sequence>/<file_index:06d>.png flows in the benchmark's layout here"""
     window: Literal["frames", "time", "count"] = "frames"
     """how a window is cut: ground-truth frames, a time span or an event count"""
-    dt: list[int] | None = None
+    dt: list[int] | None = option(None, type=positive_int)
     """grid steps per window (frames mode); default: 1 and 4 with ground truth, else 1"""
-    window_size: int | None = None
+    window_size: int | None = option(None, type=positive_int)
     """time: us; count: events"""
-    dt_ratio: float = 1.0
+    dt_ratio: float = option(1.0, type=positive_float)
     """scale predictions by (ground-truth interval / input window)"""
-    crop: list[int] | None = None
+    crop: list[int] | None = option(None, type=non_negative_int)
     """H W (centred) or TOP LEFT H W"""
-    max_windows: int | None = None
+    max_windows: int | None = option(None, type=positive_int)
     """windows per sequence"""
     out: str = "runs/eval"
     """directory for table.md, results.json and pictures/"""
     json: str | None = None
     """also write the JSON results here (default OUT/results.json)"""
-    pictures: int = 2
+    overwrite: bool = False
+    """replace table.md, the JSON, pictures/ (and a DSEC submission) of an earlier evaluation"""
+    pictures: int = option(2, type=non_negative_int)
     """windows per sequence drawn as a labelled PNG panel (0: none)"""
-    animate: int = option(0, metavar="N")
+    animate: int = option(0, metavar="N", type=non_negative_int)
     """per sequence, a GIF of count image + predicted flow over its first N windows (0: none)"""
     device: str = "cpu"
     """torch device"""
@@ -219,6 +241,11 @@ def build_policies(args) -> dict:
     return policies
 
 
+def data_options(args) -> dict:
+    """The reader options every recording of the command opens with (``--sensor-size``)."""
+    return {"sensor_size": args.sensor_size} if args.sensor_size is not None else {}
+
+
 def protocol_settings(args, data) -> list:
     """(key, window size, protocol or None) per table: MVSEC dt and stride combinations, DSEC, or
     the plain windows of --window."""
@@ -236,46 +263,71 @@ def protocol_settings(args, data) -> list:
                 settings.append((f"dt{dt}" if stride == dt else f"dt{dt}_stride{stride}", dt, protocol))
         return settings
     if args.window == "frames":
-        return [(f"dt{dt}", dt, None) for dt in args.dt or ([1, 4] if has_ground_truth(data, args.format) else [1])]
+        truth = has_ground_truth(data, args.format, data_options(args))
+        return [(f"dt{dt}", dt, None) for dt in args.dt or ([1, 4] if truth else [1])]
     return [(args.window, args.window_size, None)]
 
 
-def has_ground_truth(data, fmt) -> bool:
+def has_ground_truth(data, fmt, options: dict | None = None) -> bool:
     from envs.dataset import resolve_data
 
-    return any(source.reader().flow_timestamps() is not None for source in resolve_data(data, format=fmt))
+    return any(source.reader().flow_timestamps() is not None
+               for source in resolve_data(data, format=fmt, options=options))
+
+
+def check_folder_unused(folder: Path, option: str, overwrite: bool) -> None:
+    """A folder this command fills (pictures, a DSEC submission) must not hold files of an earlier
+    run unless ``overwrite``: FileExistsError naming the option and the folder."""
+    if not overwrite and folder.is_dir() and any(folder.iterdir()):
+        raise FileExistsError(f"{option}: {folder} holds files of an earlier run; pass --overwrite to replace them, "
+                              "or write elsewhere")
 
 
 def main(argv=None) -> int:
     args = options_from_args(EvaluateOptions, build_parser().parse_args(argv))
-    if args.refine is not None and args.refine < 0:
-        raise SystemExit(f"--refine must be >= 0 steps, got {args.refine}")
-    if args.refine_prior < 0:
-        raise SystemExit(f"--refine-prior must be >= 0, got {args.refine_prior}")
     if args.refine_accept is not None and not args.refine:
         raise SystemExit("--refine-accept gates a refinement: give --refine K too")
-    if args.refine_accept is not None and not 0 <= args.refine_accept < 1:
-        raise SystemExit(f"--refine-accept must be a fraction in [0, 1), got {args.refine_accept}")
     if args.split is not None and args.split != "dt" and not (args.split.isdigit() and int(args.split) >= 1):
         raise SystemExit(f"--split must be a number of sub-windows >= 1 or 'dt', got {args.split!r}")
     if args.mirror is not None and args.mirror not in MIRROR_SETS:
         raise SystemExit(f"--mirror takes the number of copies, one of {sorted(MIRROR_SETS)}; got {args.mirror}")
-    policies = build_policies(args)
-    data = args.data[0] if len(args.data) == 1 else args.data
     if args.dsec_submission and not args.dsec_test_timestamps:
         raise SystemExit("--dsec-submission needs --dsec-test-timestamps (the windows and file indices to write)")
-    settings = protocol_settings(args, data)
     out = Path(args.out)
+    json_path = Path(args.json) if args.json else out / "results.json"
+    inputs = [("recording", path) for path in args.data] + [("checkpoint", path) for path in args.checkpoint]
+    with contextlib.ExitStack() as claims:  # every output claimed before any work (envs.outputs)
+        table_out = claims.enter_context(Output(out / "table.md", inputs=inputs, overwrite=args.overwrite, option="--out"))
+        json_out = claims.enter_context(Output(json_path, inputs=inputs, overwrite=args.overwrite,
+                                               option="--json" if args.json else "--out"))
+        if args.pictures or args.animate:
+            check_folder_unused(out / "pictures", "--out", args.overwrite)
+        if args.dsec_submission:
+            check_folder_unused(Path(args.dsec_submission), "--dsec-submission", args.overwrite)
+        table, per_setting = evaluate_settings(args)
+        table_out.write_text(table + "\n")
+        json_out.write_text(results_json(per_setting) + "\n")
+    print(table)
+    print(f"\nwrote {out / 'table.md'}, {json_path}" + (f" and pictures in {out / 'pictures'}" if args.pictures else ""))
+    return 0
+
+
+def evaluate_settings(args) -> tuple[str, dict]:
+    """Every table of the command: (the Markdown tables, {setting key: {row name: results}})."""
+    out = Path(args.out)
+    policies = build_policies(args)
+    data = args.data[0] if len(args.data) == 1 else args.data
+    settings = protocol_settings(args, data)
     per_setting: dict[str, dict] = {}
     tables = []
     for key, size, protocol in settings:
         if args.mvsec:
             runs = mvsec_runs(Path(args.mvsec), protocol)
         elif protocol is not None:  # DSEC
-            options = {"flow_dir": args.dsec_flow} if args.dsec_flow else {}
+            options = {**data_options(args), **({"flow_dir": args.dsec_flow} if args.dsec_flow else {})}
             runs = [(data, args.format, options, protocol.windows, protocol.scorer)]
         else:
-            runs = [(data, args.format, {}, None, None)]
+            runs = [(data, args.format, data_options(args), None, None)]
         named = {name: [] for name in policies}
         if args.split == "dt":  # one sub-window per ground-truth interval of this table
             for policy in policies.values():
@@ -302,15 +354,7 @@ def main(argv=None) -> int:
         for name, sink in sinks.items():
             print(f"[dsec] {name}: wrote {len(sink.written)} PNGs under {sink.out_dir}"
                   + (f" ({sink.clipped} pixels clipped to the 16-bit range)" if sink.clipped else ""))
-    table = "\n\n".join(tables)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "table.md").write_text(table + "\n")
-    json_path = Path(args.json) if args.json else out / "results.json"
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(results_json(per_setting) + "\n")
-    print(table)
-    print(f"\nwrote {out / 'table.md'}, {json_path}" + (f" and pictures in {out / 'pictures'}" if args.pictures else ""))
-    return 0
+    return "\n\n".join(tables), per_setting
 
 
 if __name__ == "__main__":

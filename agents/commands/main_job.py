@@ -129,7 +129,7 @@ def main(argv=None) -> int:
             print(f"\n[main] 1/3 no pretrained model ships in agents/weights/: zero flow on {data}", flush=True)
             rows_here = ["--zero", *rows]
         evaluate_command.main([*rows_here, "--data", data, *windows, "--out", str(out / "eval" / name),
-                              "--no-progress", *device])
+                              "--no-progress", "--overwrite", *device])  # the job owns its --out: a rerun replaces it
 
     if args.demo_minutes > 0:
         stage = args.demo_stage
@@ -145,11 +145,11 @@ def main(argv=None) -> int:
                   flush=True)
             recipe = RECIPE
         train_command.main([*recipe, "--minutes", str(args.demo_minutes), "--steps", "1000000",
-                           "--out", str(out / "demo"), "--val-data", "", "--no-progress", *device, *extra])
+                           "--out", str(out / "demo"), "--val-data", "", "--no-progress", "--overwrite", *device, *extra])
         demo_summary(out / "demo" / "metrics.jsonl")
         evaluate_command.main(["--checkpoint", str(out / "demo" / "checkpoint.pt"), "--name", "demo model", "--zero",
                               "--data", args.eval_data[0], "--dt", "1", "4", "--max-windows", "15", "--pictures", "0",
-                              "--out", str(out / "demo-eval"), "--no-progress", *device])
+                              "--out", str(out / "demo-eval"), "--no-progress", "--overwrite", *device])
 
     print("\n[main] 3/3 the full training of the recipe (resumable; --device cuda on a GPU):")
     print("  targets:  python scripts/teacher_targets.py " + " ".join(TARGETS) + "    # once, ~25 min on 2 cores")

@@ -38,7 +38,7 @@ def validation_score(checkpoint: Path, data: str, windows: int, out: Path, split
     out.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, str(CODE / "scripts" / "evaluate.py"), "--checkpoint", str(checkpoint), "--name", "model",
            "--zero", "--data", data, "--dt", "1", "4", "--max-windows", str(windows), "--pictures", "0",
-           "--no-progress", "--out", str(out), *(["--split", split] if split else [])]
+           "--no-progress", "--out", str(out), "--overwrite", *(["--split", split] if split else [])]  # its own folder
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     results = json.loads((out / "results.json").read_text())
     row = results if not split else results["baselines"][f"model + split {split}"]
@@ -96,8 +96,8 @@ def main(argv=None) -> int:
             init = args.init
             if (weights_dir / f"{args.name}.pt").exists():
                 init = str(weights_dir / f"{args.name}.pt")
-            cmd = [*recipe, "--out", str(train_dir), "--minutes", minutes, "--val-data", "",
-                   *(["--init", init] if init else [])]
+            cmd = [*recipe, "--out", str(train_dir), "--minutes", minutes, "--val-data", "", "--overwrite",
+                   *(["--init", init] if init else [])]  # (--overwrite: metrics of a chunk killed before its first save)
         print(f"[ship] chunk {chunk}: train.py {' '.join(cmd)}", flush=True)
         subprocess.run([sys.executable, str(CODE / "scripts" / "train.py"), *cmd, "--no-progress"], check=True)
         score, results = validation_score(checkpoint, args.val_data, args.val_windows, out / "val" / f"chunk{chunk}",

@@ -7,12 +7,15 @@ Examples:
   python scripts/train.py --model convgru-ev-flownet --loss at --out runs/baseline
   python scripts/train.py --model mypkg.models:build --out runs/mine  # any protocol module
   python scripts/train.py --resume runs/mgr/checkpoint.pt --steps 1000
+  python scripts/train.py --data old_camera.raw --sensor-size 480 640 --logger tensorboard --val-every 50
   python scripts/train.py --resume --out runs/mgr --lr 5e-5 --allow-changes lr
   torchrun --nproc_per_node=2 scripts/train.py --steps 100 --out runs/ddp
 
 Writes OUT/metrics.jsonl (one line per optimizer step, plus validation lines),
 OUT/checkpoint.pt (every --ckpt-every steps, on Ctrl-C / SIGINT, on SIGTERM and at the end;
-atomic) and OUT/config.json.
+atomic) and OUT/config.json; with --logger tensorboard also OUT/tensorboard/ (the same scalars,
+and a flow panel at each validation: agents/tensorboard_log.py). A new run in an OUT that holds
+an earlier run's checkpoint or metrics is refused: --resume continues it, --overwrite starts afresh.
 
 --resume continues the stored run: its configuration is used, and an option given on this command
 line that differs from it is refused, naming each field, unless --allow-changes lists it (run
@@ -24,7 +27,10 @@ too unless the step size decays with --decay cosine; the network's shape never: 
 it override them: paper (docs/method.md), and the project's recipe: teacher-cached (stage 1 on
 stored teacher targets), teacher (stage 1 solving them in every update), hmc-stage (stage 2).
 
-Distributed (torchrun): each rank uses the GPU of its LOCAL_RANK with NCCL, or the CPU with gloo.
+Distributed (torchrun): each rank uses the GPU of its LOCAL_RANK with NCCL, or the CPU with gloo,
+rolls out its own shard of the sequences and validates its share of the validation sequences;
+the checkpoint holds every rank's episodes, and a resume continues each on the rank it came from,
+so it needs the same number of processes (--allow-changes world_size: fresh episodes instead).
 """
 
 from __future__ import annotations
@@ -37,7 +43,9 @@ import signal
 import sys
 import time
 from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
+from typing import Literal
 
 import torch
 import torch.distributed as dist
@@ -45,10 +53,12 @@ from tqdm import tqdm
 
 from agents import pretrained as shipped
 from agents.checkpoint import load_checkpoint, save_checkpoint
-from agents.evaluation import evaluate
-from agents.learner import PRESETS, Learner, TrainConfig
-from agents.options import add_options, option, options_from_args
+from agents.distributed import all_reduce_sums
+from agents.evaluation import evaluate, first_window_panel
+from agents.learner import PRESETS, Learner, TrainConfig, data_options
+from agents.options import add_options, non_negative_float, non_negative_int, option, options_from_args, positive_int
 from agents.policy import RecurrentPolicy
+from agents.tensorboard_log import TensorBoardLog, require_tensorboard
 from envs.atomic import remove_stale_temporaries, temporary_path
 
 
@@ -66,22 +76,26 @@ class RunOptions:
     """with --resume: comma-separated config fields this command may change, e.g. lr,steps"""
     init: str | None = option(None, metavar="CHECKPOINT")
     """fine-tune from the weights of CHECKPOINT or of a shipped model (a fresh optimizer; the same network)"""
-    minutes: float | None = None
-    """also stop (and save) after this many minutes"""
-    ckpt_every: int = 100
+    minutes: float | None = option(None, type=non_negative_float)
+    """also stop (and save) after this many minutes (0: after the first step)"""
+    ckpt_every: int = option(100, type=positive_int)
     """save the checkpoint every N steps"""
-    val_every: int = 0
+    val_every: int = option(0, type=non_negative_int)
     """validate every N steps (0: only at the end)"""
     val_data: str = "synthetic-mini"
     """held-out data for validation ('' to skip)"""
-    val_windows: int = 20
+    val_windows: int = option(20, type=positive_int)
     """windows per validation sequence"""
+    logger: Literal["jsonl", "tensorboard"] = "jsonl"
+    """jsonl: the curves in OUT/metrics.jsonl (always written; the docs' curves come from it); tensorboard: also in OUT/tensorboard/, the step and validation scalars and a flow panel at each validation (needs the 'tensorboard' extra)"""
+    overwrite: bool = False
+    """start a new run in an OUT that holds an earlier run's checkpoint or metrics (they are replaced)"""
     no_progress: bool = False
     """no progress bar"""
 
 
 #: options that say how long and where a run goes, not what it learns: free to change on --resume
-RUN_OPTIONS = frozenset(f.name for f in dataclasses.fields(RunOptions)) | {"device"}
+RUN_OPTIONS = frozenset(f.name for f in dataclasses.fields(RunOptions)) | {"device", "amp"}
 GROUPS = {"model": "model", "data": "data", "num_envs": "optimisation", "loss": "loss", "seed": "run"}
 
 
@@ -98,20 +112,38 @@ def config_from_args(args) -> TrainConfig:
 
 
 def validate(learner: Learner, data: str, windows: int) -> dict:
-    """Mean L_HMC and AEE of the current weights vs zero flow on held-out sequences."""
+    """Mean L_HMC and AEE of the current weights vs zero flow on held-out sequences.
+
+    Under torch.distributed a collective: each rank scores its share of the sequences (sequence i
+    on rank i mod world) and the sums are added across the ranks, so no rank waits idle for
+    another's validation (a wait that could outlast the process group's timeout)."""
     policy = RecurrentPolicy(learner.policy.model, device=learner.device, input_key=learner.cfg.input,
-                             voxel_bins=learner.cfg.voxel_bins)  # own state
+                             voxel_bins=learner.cfg.voxel_bins)  # own state, float32
     val_crop = None if learner.cfg.random_crop else learner.cfg.crop  # random crops: whole frames
-    named = {
-        "model": evaluate(policy, data, crop=val_crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling),
-        "zero": evaluate(None, data, crop=val_crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling),
-    }
-    out = {}
-    for name, rows in named.items():
-        for key in ("hmc", "aee"):
-            total = sum(r.counts[key] for r in rows)
-            out[f"val_{key}_{name}"] = sum(r.sums[key] for r in rows) / total if total else float("nan")
-    return out
+    options = dict(crop=val_crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling,
+                   shard=(learner.rank, learner.world), data_options=data_options(learner.cfg))
+    named = {"model": evaluate(policy, data, **options), "zero": evaluate(None, data, **options)}
+    keys = [(name, key) for name in named for key in ("hmc", "aee")]
+    sums = [value for name, key in keys for value in (sum(r.sums[key] for r in named[name]),
+                                                      sum(r.counts[key] for r in named[name]))]
+    if learner.world > 1:
+        sums = all_reduce_sums(sums, learner.device)
+    return {f"val_{key}_{name}": sums[2 * i] / sums[2 * i + 1] if sums[2 * i + 1] else float("nan")
+            for i, (name, key) in enumerate(keys)}
+
+
+def log_validation(board: TensorBoardLog, learner: Learner, data: str, val: dict) -> None:
+    """A validation's scalars in TensorBoard, and the panel of the first window with events of
+    ``data`` (events, the current weights' flow with the colour wheel, ground truth where present;
+    agents.evaluation.window_panel). Rank 0 only: no collective."""
+    board.scalars(val, "val")
+    policy = RecurrentPolicy(learner.policy.model, device=learner.device, input_key=learner.cfg.input,
+                             voxel_bins=learner.cfg.voxel_bins)  # own state, float32
+    picture = first_window_panel(policy, data, crop=None if learner.cfg.random_crop else learner.cfg.crop,
+                                 flow_scaling=learner.flow_scaling, data_options=data_options(learner.cfg))
+    if picture is not None:
+        board.image("val/flow", picture, val["step"])
+    board.flush()
 
 
 def init_weights(learner, path: Path) -> None:
@@ -134,7 +166,7 @@ def init_weights(learner, path: Path) -> None:
 #: fields that shape the network: a resume cannot change them (fine-tune with --init)
 ARCHITECTURE = frozenset({"model", "width", "input", "voxel_bins", "model_kwargs", "flow_scaling", "head_init"})
 #: fields that change the episodes: an allowed change starts fresh ones instead of the stored ones
-EPISODE_FIELDS = frozenset({"data", "window", "window_size", "crop", "random_crop", "flips", "num_envs", "vector", "seed"})
+EPISODE_FIELDS = frozenset({"data", "sensor_size", "window", "window_size", "crop", "random_crop", "flips", "num_envs", "vector", "seed"})
 
 
 def given_options(argv: list[str] | None) -> set[str]:
@@ -165,9 +197,10 @@ def resume_config(stored: dict, args, given: set[str], source: Path) -> tuple[Tr
     asked = config_from_args(args)
     allowed = {name.strip() for name in args.allow_changes.split(",") if name.strip()}
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = sorted(allowed - fields)
+    unknown = sorted(allowed - fields - {"world_size"})  # world_size: the number of processes (check_world_size)
     if unknown:
-        raise ValueError(f"--allow-changes: unknown config field(s) {', '.join(unknown)}; fields: {', '.join(sorted(fields))}")
+        raise ValueError(f"--allow-changes: unknown config field(s) {', '.join(unknown)}; fields: "
+                         f"{', '.join(sorted(fields | {'world_size'}))}")
     fixed = sorted(allowed & ARCHITECTURE)
     if fixed:
         raise ValueError(f"--allow-changes {', '.join(fixed)}: a resume cannot change the network's shape; start a new run "
@@ -185,7 +218,8 @@ def resume_config(stored: dict, args, given: set[str], source: Path) -> tuple[Tr
             f"--resume {source}: this command changes the run's configuration ({lines}); pass "
             f"--allow-changes {','.join(refused)} to continue with the new values, or drop the option(s)"
         )
-    cfg = dataclasses.replace(old, **{name: new for name, (_, new) in changed.items()}, device=args.device)
+    cfg = dataclasses.replace(old, **{name: new for name, (_, new) in changed.items()}, device=args.device,
+                              amp=args.amp if "amp" in given else old.amp)
     return cfg, set(changed)
 
 
@@ -223,6 +257,21 @@ def truncate_metrics(path: Path, step: int) -> None:
     os.replace(tmp, path)
 
 
+def check_new_run_folder(out: Path, overwrite: bool) -> None:
+    """A new run (no --resume) in a folder holding an earlier run's checkpoint.pt or metrics.jsonl
+    would replace the one and mix its steps into the other: FileExistsError naming them, unless
+    ``overwrite`` (the new run then starts them afresh)."""
+    used = [name for name in ("checkpoint.pt", "metrics.jsonl") if (out / name).is_file() and (out / name).stat().st_size]
+    if used and not overwrite:
+        raise FileExistsError(f"--out {out}: holds an earlier run ({', '.join(used)}); continue it with --resume, "
+                              "start afresh with --overwrite, or give another --out")
+
+
+#: how long a collective waits for the slowest rank before the job aborts (NCCL's own default is
+#: 10 minutes): the ranks wait for rank 0's checkpoint write, and for the longest validation share
+PROCESS_GROUP_TIMEOUT = timedelta(minutes=30)
+
+
 def setup_distributed(args) -> int:
     """Under torchrun: bind this rank to the GPU of its LOCAL_RANK (NCCL) or to the CPU (gloo),
     and join the process group; returns the rank (0 without torchrun)."""
@@ -232,10 +281,33 @@ def setup_distributed(args) -> int:
         local_rank = int(os.environ.get("LOCAL_RANK", 0))
         torch.cuda.set_device(local_rank)
         args.device = f"cuda:{local_rank}"
-        dist.init_process_group("nccl", device_id=torch.device(args.device))
+        if torch.__version__.startswith("2.7.0"):  # its eager NCCL init (device_id) can hang: pytorch#153960
+            os.environ.setdefault("TORCH_NCCL_USE_COMM_NONBLOCKING", "0")
+        dist.init_process_group("nccl", device_id=torch.device(args.device), timeout=PROCESS_GROUP_TIMEOUT)
     else:
-        dist.init_process_group("gloo")
+        dist.init_process_group("gloo", timeout=PROCESS_GROUP_TIMEOUT)
     return dist.get_rank()
+
+
+def check_world_size(payload: dict, world: int, allow_changes: str, source: Path) -> bool:
+    """Whether a resume continues the stored episodes: True when the checkpoint was written by as
+    many processes as this run has (each continues the episodes of its own shard of sequences).
+    Otherwise ValueError naming both counts, unless ``--allow-changes`` lists world_size: then
+    False (every rank starts fresh episodes; weights, optimizer and step continue), said on stderr."""
+    stored = int(payload.get("world_size", 1))
+    if stored == world:
+        return True
+    if "world_size" not in {name.strip() for name in allow_changes.split(",")}:
+        older = "" if "world_size" in payload else " (or by an older version, which kept rank 0's episodes only)"
+        raise ValueError(
+            f"--resume {source}: written by {stored} process(es){older}, this run has {world}; each process continues "
+            f"the episodes of its own shard of sequences, so resume with {stored} (torchrun --nproc_per_node {stored}), "
+            "or pass --allow-changes world_size to start fresh episodes on every process (weights, optimizer and step "
+            "continue)")
+    if not dist.is_initialized() or dist.get_rank() == 0:
+        print(f"--resume {source}: written by {stored} process(es), this run has {world}: fresh episodes on every "
+              "process (--allow-changes world_size)", file=sys.stderr)
+    return False
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -249,17 +321,27 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    rank = setup_distributed(args)
     out = Path(args.out)
-    payload, changed = None, set()
+    if args.logger == "tensorboard":
+        try:
+            require_tensorboard()  # before any work
+        except ImportError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+    if not args.resume:
+        check_new_run_folder(out, args.overwrite)
+    rank = setup_distributed(args)
+    world = dist.get_world_size() if dist.is_initialized() else 1
+    payload, changed, same_world = None, set(), True
     if args.resume:
         source, payload = open_training_checkpoint(args.resume, out)
         cfg, changed = resume_config(payload["config"], args, given_options(argv), source)
+        same_world = check_world_size(payload, world, args.allow_changes, source)
     else:
         cfg = config_from_args(args)
     learner = Learner(cfg)
-    if payload is not None:
-        learner.load_state_dict(payload, restore_episodes=not changed & EPISODE_FIELDS)
+    if payload is not None:  # each rank takes back its own episodes
+        learner.load_state_dict(payload, restore_episodes=same_world and not changed & EPISODE_FIELDS)
     elif args.init:
         init_weights(learner, Path(args.init))
     if rank == 0:
@@ -268,17 +350,21 @@ def main(argv=None) -> int:
         (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2, default=str))
         if payload is not None:
             truncate_metrics(out / "metrics.jsonl", learner.step)
-    log = open(out / "metrics.jsonl", "a") if rank == 0 else None
+    log = open(out / "metrics.jsonl", "a" if payload is not None else "w") if rank == 0 else None
+    board = TensorBoardLog(out / "tensorboard", learner.step) if rank == 0 and args.logger == "tensorboard" else None
 
     def save() -> None:
+        state = learner.state_dict()  # under torchrun a collective: every rank's episodes gathered to rank 0
         if rank == 0:
-            save_checkpoint(out / "checkpoint.pt", learner.state_dict())
+            save_checkpoint(out / "checkpoint.pt", state)
 
     # SIGINT (Ctrl-C) and SIGTERM (schedulers, timeout) both finish the step, save and stop
     interrupted = {"signal": None}
     handlers = {sig: signal.signal(sig, lambda signum, _: interrupted.__setitem__("signal", signum))
                 for sig in (signal.SIGINT, signal.SIGTERM)}
     start = time.time()
+    signalled = False  # stopped by a signal on any rank (agreed by all)
+    validated = None  # the step the last validation scored
     bar = tqdm(total=cfg.steps, initial=learner.step, unit="step", disable=args.no_progress or rank != 0)
     try:
         while learner.step < cfg.steps:
@@ -289,38 +375,54 @@ def main(argv=None) -> int:
             if log:
                 log.write(json.dumps(stats) + "\n")
                 log.flush()
+            if board:
+                board.scalars(stats, "train")
             shown = {"loss": f"{stats['loss']:.4f}", "zero": f"{stats['zero_flow_loss']:.4f}"}
             if "model_hmc" in stats:
                 shown["hmc"] = f"{stats['model_hmc']:.4f}"
             bar.set_postfix(**shown, win_s=f"{stats['windows_per_s']:.1f}")
             bar.update(1)
-            if args.val_every and learner.step % args.val_every == 0 and args.val_data and rank == 0:
-                val = {"step": learner.step, **validate(learner, args.val_data, args.val_windows)}
-                log.write(json.dumps(val) + "\n")
-                bar.write(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in val.items()))
+            if args.val_every and learner.step % args.val_every == 0 and args.val_data:
+                val = {"step": learner.step, **validate(learner, args.val_data, args.val_windows)}  # every rank
+                validated = learner.step
+                if log:
+                    log.write(json.dumps(val) + "\n")
+                    bar.write(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in val.items()))
+                if board:
+                    log_validation(board, learner, args.val_data, val)
             if learner.step % args.ckpt_every == 0:
                 save()
-            stop = interrupted["signal"] is not None or (args.minutes is not None and elapsed > 60 * args.minutes)
-            if dist.is_initialized():  # every rank stops on the same step (the flag on the rank's own device)
-                flag = torch.tensor([float(stop)], device=learner.device)
-                dist.all_reduce(flag, op=dist.ReduceOp.MAX)
-                stop = bool(flag.item())
-            if stop:
+            stop = [interrupted["signal"] is not None, args.minutes is not None and elapsed > 60 * args.minutes]
+            if dist.is_initialized():  # every rank stops on the same step (the flags on the rank's own device)
+                flags = torch.tensor(stop, dtype=torch.float32, device=learner.device)
+                dist.all_reduce(flags, op=dist.ReduceOp.MAX)
+                stop = [bool(flag) for flag in flags.tolist()]
+            signalled = stop[0]
+            if any(stop):
                 break
     finally:
         bar.close()
-        save()
+        failed = sys.exc_info()[0] is not None
+        if not dist.is_initialized():  # one process: also a signal that came after the last step
+            signalled = interrupted["signal"] is not None
+        if not (failed and dist.is_initialized()):  # a collective with a failed peer would hang: the last save stands
+            save()
         for sig, previous in handlers.items():
             signal.signal(sig, previous)
-        if rank == 0:
-            if interrupted["signal"] is not None:
-                name = signal.Signals(interrupted["signal"]).name
-                print(f"{name}: stopped at step {learner.step}; saved {out / 'checkpoint.pt'}", file=sys.stderr)
-            if args.val_data and interrupted["signal"] is None:
-                val = {"step": learner.step, **validate(learner, args.val_data, args.val_windows)}
+        if rank == 0 and interrupted["signal"] is not None:
+            name = signal.Signals(interrupted["signal"]).name
+            print(f"{name}: stopped at step {learner.step}; saved {out / 'checkpoint.pt'}", file=sys.stderr)
+        if args.val_data and not signalled and not failed and validated != learner.step:
+            val = {"step": learner.step, **validate(learner, args.val_data, args.val_windows)}  # every rank
+            if log:
                 log.write(json.dumps(val) + "\n")
                 print(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in val.items()))
+            if board:
+                log_validation(board, learner, args.val_data, val)
+        if log:
             log.close()
+        if board:
+            board.close()
         learner.close()
         if dist.is_initialized():
             if sys.exc_info()[0] is None:  # tear down together: a rank whose peer already left can abort in gloo

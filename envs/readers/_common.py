@@ -17,8 +17,12 @@ import numpy as np
 from envs.h5format import FormatError
 
 __all__ = [
+    "KNOWN_SENSORS",
+    "SENSOR_SIZE_HINT",
     "SortedColumn",
+    "auto_sensor_size",
     "check_finite",
+    "check_flow_gt",
     "check_pixel_coordinates",
     "open_h5",
     "require",
@@ -38,6 +42,39 @@ def missing_extra(package: str, extra: str, what: str) -> ImportError:
         f"{what} needs the '{package}' package, which is not installed: "
         f"install the '{extra}' extra: pip install evflow-gym[{extra}]"
     )
+
+
+#: how a user gives the geometry a file lacks, in every message that asks for it
+SENSOR_SIZE_HINT = ("pass --sensor-size H W (or --sensor-size auto) on the command line, sensor_size=(height, width) "
+                    "to the reader, or data_options={'sensor_size': (height, width)} to the env")
+
+#: the sensors ``sensor_size="auto"`` picks from, fewest pixels first: (name, (height, width))
+KNOWN_SENSORS = (
+    ("DAVIS240", (180, 240)),
+    ("DAVIS346", (260, 346)),
+    ("Prophesee GenX320", (320, 320)),
+    ("Prophesee VGA", (480, 640)),
+    ("Prophesee HD", (720, 1280)),
+)
+
+
+def auto_sensor_size(max_x: int, max_y: int, source: str | os.PathLike) -> tuple[int, int]:
+    """``sensor_size="auto"``: the known sensor (:data:`KNOWN_SENSORS`) with the fewest pixels
+    that holds every event, else the events' bounds; never silently: a warning names the choice.
+
+    max_x, max_y: the largest event column and row (-1: no events). Returns (height, width)."""
+    import warnings
+
+    fits = [(name, size) for name, size in KNOWN_SENSORS if max_x < size[1] and max_y < size[0]]
+    if fits:
+        name, size = fits[0]
+        why = f"{name}, the smallest known sensor holding every event"
+    else:
+        size = (max(max_y, 0) + 1, max(max_x, 0) + 1)
+        why = "the events' bounds: no known sensor holds every event"
+    warnings.warn(f"{source}: sensor_size auto: {size[0]}x{size[1]} (height x width; {why}: x <= {max_x}, "
+                  f"y <= {max_y}); pass --sensor-size H W to set it", stacklevel=2)  # one place per reader: shown once
+    return size
 
 
 def open_h5(path: str | os.PathLike, layout: str) -> h5py.File:
@@ -93,6 +130,30 @@ def check_finite(values: np.ndarray, source: str, field: str, offset: int = 0) -
     if not finite.all():
         i = int(np.flatnonzero(~finite.ravel())[0])
         raise FormatError(f"{source}: field '{field}' is not a finite number at index {offset + i} ({values.ravel()[i].item()!r})")
+
+
+#: ground truth may displace a pixel by at most this many times the sensor's longer side: a point
+#: that moved further within one window left the field of view long before; 1e30 is corruption
+FLOW_GT_SENSOR_MULTIPLE = 4
+
+
+def check_flow_gt(flow: np.ndarray, valid: np.ndarray, sensor_size: tuple[int, int], source: str) -> None:
+    """Raise FormatError naming ``source`` and the first bad pixel when a valid pixel of ground
+    truth is not finite or moves further than ``FLOW_GT_SENSOR_MULTIPLE * max(H, W)`` pixels.
+
+    flow: (2, H, W) pixels of displacement over the window; valid: (H, W) bool (invalid pixels
+    are never scored, so they may hold anything); sensor_size: (H, W) of the recording."""
+    flow, valid = np.asarray(flow), np.asarray(valid, bool)
+    limit = FLOW_GT_SENSOR_MULTIPLE * max(sensor_size)
+    with np.errstate(invalid="ignore"):
+        bad = valid & ~(np.isfinite(flow).all(axis=0) & (np.abs(flow) <= limit).all(axis=0))
+    if bad.any():
+        y, x = (int(v) for v in np.argwhere(bad)[0])
+        raise FormatError(
+            f"{source}: ground-truth flow at pixel (x={x}, y={y}) is ({float(flow[0, y, x]):.6g}, {float(flow[1, y, x]):.6g}) px; "
+            f"a valid pixel must hold a finite displacement of at most {limit} px ({FLOW_GT_SENSOR_MULTIPLE} x the "
+            f"{sensor_size[0]}x{sensor_size[1]} sensor's longer side)"
+        )
 
 
 def check_pixel_coordinates(values: np.ndarray, source: str, field: str, offset: int = 0) -> np.ndarray:

@@ -7,10 +7,11 @@ the reader has it (stepping by flow_dt, like the "frames" windows); frames are c
 (:class:`envs.h5format.H5Writer`), so an interrupted conversion leaves no file behind (and a
 killed one's temporary is removed by the next conversion to that name).
 
-Refused before anything is written: an existing output unless ``overwrite=True``; an output that
-is the input file itself (also through a symlink or a hard link), whatever ``overwrite`` says
-(an MVSEC file also holds IMU, depth and the other camera); an output that is a folder; a
-``chunk_events`` that is not a positive integer.
+Refused before anything is written (:class:`envs.outputs.Output`): an existing output unless
+``overwrite=True``; an output that is the input file itself (also through a symlink or a hard
+link), whatever ``overwrite`` says (an MVSEC file also holds IMU, depth and the other camera); an
+output that is a folder or that another process is writing now; a ``chunk_events`` that is not a
+positive integer.
 Rectified (float) coordinates are rounded to the nearest pixel, since the project h5 stores
 integer pixels; events that round outside the sensor are dropped.
 """
@@ -22,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.atomic import same_file
 from envs.events import Events
 from envs.h5format import H5Writer
+from envs.outputs import Output
 from envs.readers.base import EventReader
 
 __all__ = ["convert_recording"]
@@ -51,7 +52,7 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
 
 def convert_recording(
     reader: EventReader,
-    out_path: str | os.PathLike,
+    out_path: str | os.PathLike | Output,
     *,
     chunk_events: int = 1 << 20,
     flow_dt: int | None = 1,
@@ -60,7 +61,8 @@ def convert_recording(
     source: str | None = None,
     overwrite: bool = False,
 ) -> Path:
-    """Write ``reader`` to ``out_path`` as a project h5 file; returns the path.
+    """Write ``reader`` to ``out_path`` (a path, or an :class:`envs.outputs.Output` claimed before
+    the reader was opened) as a project h5 file; returns the path.
 
     chunk_events: events per read/write step, a positive int.
     flow_dt: grid steps per stored ground-truth map (None: no ground truth).
@@ -68,17 +70,10 @@ def convert_recording(
     source: the input the user named (a file or folder), also compared with ``out_path``.
     overwrite: replace an existing ``out_path`` (never the input itself).
     """
-    out_path = Path(out_path)
+    target, out_path = out_path, out_path.path if isinstance(out_path, Output) else Path(out_path)
     if isinstance(chunk_events, bool) or not isinstance(chunk_events, (int, np.integer)) or chunk_events <= 0:
         raise ValueError(f"chunk_events must be a positive integer (events per read/write step), got {chunk_events!r}")
-    inputs = [p for p in (getattr(reader, "path", None), source) if p is not None]
-    for used in inputs:
-        if same_file(out_path, used):
-            raise FileExistsError(f"{out_path}: is the input recording {used}; write the conversion to another file")
-    if out_path.is_dir():
-        raise IsADirectoryError(f"{out_path}: is a folder; the output must be a file path (e.g. {out_path / (reader.name + '.h5')})")
-    if out_path.exists() and not overwrite:
-        raise FileExistsError(f"{out_path}: exists; pass overwrite=True (--overwrite) to replace it")
+    inputs = [("recording", getattr(reader, "path", None)), ("recording", source)]
     provenance = {"source": source or str(getattr(reader, "path", reader.name)), "reader": type(reader).__name__}
     if getattr(reader, "crop", None) is not None:
         provenance["crop"] = list(reader.crop)
@@ -88,8 +83,8 @@ def convert_recording(
 
         bar = tqdm(total=reader.num_events, unit="ev", unit_scale=True, desc=f"convert {reader.name}")
     try:
-        with H5Writer(out_path, reader.sensor_size, name=reader.name, provenance=provenance,
-                      t_start_us=reader.t_start, t_end_us=reader.t_end, overwrite=overwrite) as writer:
+        with H5Writer(target, reader.sensor_size, name=reader.name, provenance=provenance, t_start_us=reader.t_start,
+                      t_end_us=reader.t_end, overwrite=overwrite, inputs=inputs, exclusive=True) as writer:
             for i0 in range(0, reader.num_events, chunk_events):
                 i1 = min(reader.num_events, i0 + chunk_events)
                 writer.append_events(_integer_pixels(reader.events_range(i0, i1)))

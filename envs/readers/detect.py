@@ -13,14 +13,18 @@ detected from the file:
   ``events/xs`` -> hagenaars; ``events/x`` with ``ms_to_idx`` or ``t_offset`` -> dsec;
 - any other text file whose first event line holds four numbers: ecd-text.
 
-``options`` go to the reader (e.g. ``crop="center256"`` for MVSEC, ``flow_dir=`` for DSEC,
-``sensor_size=`` for text).
+``options`` go to the reader (e.g. ``crop="center256"`` for MVSEC, ``flow_dir=`` for DSEC).
+``sensor_size=(height, width)`` or ``"auto"`` goes to the formats whose files may lack it
+(``GEOMETRY_OPTIONAL``: text, Prophesee RAW and DAT; DSEC takes a size, not "auto"); the other
+formats store their geometry and keep it (a warning says so when the size given differs), so
+one option serves a list of recordings in several formats.
 """
 
 from __future__ import annotations
 
 import importlib
 import os
+import warnings
 from pathlib import Path
 
 import h5py
@@ -28,10 +32,12 @@ import h5py
 from envs.h5format import FORMAT_NAME, FormatError, H5Reader
 from envs.readers.base import EventReader
 
-__all__ = ["open_recording", "detect_format", "FORMATS"]
+__all__ = ["open_recording", "detect_format", "FORMATS", "GEOMETRY_OPTIONAL"]
 
 FORMATS = ("evflow-h5", "mvsec", "dsec", "hagenaars", "ecd-text", "aedat4", "prophesee-raw", "prophesee-dat")
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
+#: formats whose files may not say their sensor size: their readers take ``sensor_size`` (or "auto")
+GEOMETRY_OPTIONAL = ("ecd-text", "prophesee-raw", "prophesee-dat")
 
 
 def _resolve_dir(path: Path) -> tuple[Path, str]:
@@ -139,9 +145,19 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
     elif Path(path).is_dir():
         resolved, found = _resolve_dir(Path(path))
         path = resolved
-    if format == "evflow-h5":
-        return H5Reader(path, **options)
-    if format not in _READERS:
+    if format != "evflow-h5" and format not in _READERS:
         raise ValueError(f"unknown format {format!r}; expected one of {FORMATS}")
-    module, name = _READERS[format]  # imported on use: each reader's dependencies load only when needed
-    return getattr(importlib.import_module(module), name)(path, **options)
+    size = options.pop("sensor_size", None)
+    taken = format in GEOMETRY_OPTIONAL or (format == "dsec" and not isinstance(size, str))
+    if size is not None and taken:
+        options["sensor_size"] = size
+    if format == "evflow-h5":
+        reader = H5Reader(path, **options)
+    else:
+        module, name = _READERS[format]  # imported on use: each reader's dependencies load only when needed
+        reader = getattr(importlib.import_module(module), name)(path, **options)
+    if size is not None and not taken and not isinstance(size, str) and tuple(size) != tuple(reader.sensor_size):
+        warnings.warn(f"{path}: a {format} file stores its sensor size, {reader.sensor_size[0]}x{reader.sensor_size[1]} "
+                      f"(height x width), which it keeps; the sensor size given ({size[0]}x{size[1]}) is for files "
+                      f"without one ({', '.join(GEOMETRY_OPTIONAL)})", stacklevel=2)
+    return reader

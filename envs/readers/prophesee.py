@@ -20,18 +20,28 @@ event), following Prophesee's published format descriptions:
   of event size (8), then records of a uint32 time (µs) and a uint32 with x in bits 0..13, y in
   bits 14..27 and the polarity in bits 28..31.
 
+**Geometry.** From the header; older cameras and converters write none: then ``sensor_size=(height,
+width)`` (``--sensor-size H W`` on the commands, ``data_options={"sensor_size": ...}`` in the env),
+or ``"auto"``: the smallest known sensor holding every event, with a warning naming it.
+
 Time-base wrap-arounds are unfolded (times are absolute µs since the camera's clock start, as
 Metavision reports them). Events whose time, row or x is not yet known (before the first
 time-high word; in EVT 3.0 also before the first TIME_LOW, EVT_ADDR_Y or, for vectors,
 VECT_BASE_X) are dropped. The rare event stamped earlier than one before it is given that earlier
-time (the project's events never go back in time); ``reordered_events`` counts them.
+time (the project's events never go back in time); ``reordered_events`` counts them. DAT's 32-bit
+counter wraps only when it really does (a small step forward across 2^32, read as serial-number
+arithmetic); a record stamped more than ``DAT_REORDER_TOLERANCE_US`` back is refused, naming the
+file and its byte offset, instead of being taken for a wrap. Times spanning more than
+``envs.events.MAX_SPAN_US`` (24 h) are refused as corrupt; header values that are not whole
+numbers of pixels (``height=abc``, ``% Width abc``) are refused naming the file and the line.
 
 **Streaming.** The file is cut into chunks of a fixed number of words. On first open the
 whole file is decoded once, chunk by chunk, and for every chunk the decoder state at its start
 (time base, y, base x...), its first event index and its last event time are kept: the *time
 index*. It is cached on disk (``index_dir``, default ``$EVFLOW_CACHE/prophesee-index``; in
 memory only when the cache is off), keyed by the file's path, size and modification time, so
-later opens read it instead of decoding. A window is then read by decoding only the one or two
+later opens read it instead of decoding. The index also keeps each chunk's largest x and y, so
+every open, from the cache or not, checks the events against the sensor size it was given. A window is then read by decoding only the one or two
 chunks that hold it (the last chunks decoded are kept), wherever it lies in the file: memory
 stays a few chunks deep however long the recording.
 """
@@ -49,8 +59,9 @@ from typing import Literal
 
 import numpy as np
 
-from envs.events import Events
+from envs.events import MAX_SENSOR_SIDE, MAX_SPAN_US, Events
 from envs.h5format import FormatError
+from envs.readers._common import SENSOR_SIZE_HINT, auto_sensor_size
 from envs.readers.base import EventReader
 
 __all__ = ["RawHeader", "read_raw_header", "PropheseeRawReader", "PropheseeDatReader", "RAW_FORMATS",
@@ -60,7 +71,10 @@ RAW_FORMATS = ("EVT2", "EVT3")
 # DAT event-type byte: the CD layouts read here (Event2d, EventCd); 0x0E is EventExtTrigger
 DAT_EVENT_TYPES = {0x00: "Event2d", 0x0C: "EventCd"}
 _DAT_TRIGGER = 0x0E
-_INDEX_VERSION = 2
+_INDEX_VERSION = 3  # 3: per-chunk coordinate maxima (the geometry is checked on a cached index too)
+#: DAT: a record may be stamped this much earlier than one before it (given that earlier time);
+#: further back is no wrap of the 32-bit counter and no jitter, but a corrupt record
+DAT_REORDER_TOLERANCE_US = 1000
 _HEADER_LIMIT = 1 << 16  # bytes of header read at most
 
 
@@ -99,6 +113,19 @@ def _header_lines(path: Path, head: bytes) -> tuple[list[str], int]:
     return lines, pos
 
 
+def _header_size(path: Path, line: str, height: str, width: str) -> tuple[int, int]:
+    """(height, width) from header text; anything but two whole numbers in [1, MAX_SENSOR_SIDE]
+    raises FormatError naming the file and the header line."""
+    try:
+        size = (int(height.strip()), int(width.strip()))
+    except ValueError:
+        size = None
+    if size is None or not all(0 < side <= MAX_SENSOR_SIDE for side in size):
+        raise FormatError(f"{path}: the header's {line} gives height {height.strip()!r} and width {width.strip()!r}; "
+                          f"expected whole numbers of pixels in [1, {MAX_SENSOR_SIDE}] (or {SENSOR_SIZE_HINT})")
+    return size
+
+
 def read_raw_header(path: str | os.PathLike) -> RawHeader:
     """Parse a RAW file's header; a missing header or an EVT version other than 2.0 / 3.0 raises
     FormatError naming the file."""
@@ -122,7 +149,7 @@ def read_raw_header(path: str | os.PathLike) -> RawHeader:
         fmt = name.strip().upper()
         opts = dict(o.split("=", 1) for o in options if "=" in o)
         if "height" in opts and "width" in opts:
-            size = (int(opts["height"]), int(opts["width"]))
+            size = _header_size(path, f"'% format {keys['format']}'", opts["height"], opts["width"])
     if fmt is None and "evt" in keys:  # older headers: "% evt 2.0"
         fmt = {"2.0": "EVT2", "3.0": "EVT3"}.get(keys["evt"], f"EVT {keys['evt']}")
     if fmt is None:
@@ -134,8 +161,7 @@ def read_raw_header(path: str | os.PathLike) -> RawHeader:
         )
     if size is None and "geometry" in keys:  # "1280x720" (width x height)
         w, _, h = keys["geometry"].partition("x")
-        if w.strip().isdigit() and h.strip().isdigit():
-            size = (int(h), int(w))
+        size = _header_size(path, f"'% geometry {keys['geometry']}' (width x height)", h, w)
     camera = {k: v for k, v in keys.items() if k not in ("format", "evt", "geometry")}
     return RawHeader(fmt, size, camera, offset)
 
@@ -318,20 +344,63 @@ def _decode_evt3(words: np.ndarray, state: np.ndarray):
             reordered)
 
 
+class _TimeWentBack(Exception):
+    """A decoder's record ``index`` (in its chunk), holding the time word ``stamp``, reads as
+    ``behind`` µs earlier than a record before it, more than the format tolerates; the reader
+    names the file and the byte offset."""
+
+    def __init__(self, index: int, stamp: int, behind: int) -> None:
+        super().__init__(index, stamp, behind)
+        self.index, self.stamp, self.behind = index, stamp, behind
+
+
 def _decode_dat(records: np.ndarray, state: np.ndarray):
-    """records: (N, 2) uint32 (time, packed address). Returns (x, y, t, p, state, reordered)."""
+    """records: (N, 2) uint32 (time, packed address). Returns (x, y, t, p, state, reordered).
+
+    The 32-bit µs counter wraps every ~71.6 min. Each record's step from the one before is read
+    modulo 2^32 as a signed number (serial-number arithmetic, RFC 1982): a counter that passed
+    0xFFFFFFFF steps forward by a little, which is a wrap; a step back (0xFFFFFFF0 after 2000,
+    or 900 after 1000) is a time going backwards, never a wrap. Going back by at most
+    ``DAT_REORDER_TOLERANCE_US`` behind the latest time is a late-stamped event (given that
+    time, counted); further raises :class:`_TimeWentBack`.
+    """
     time, last_t = (int(v) for v in state)
-    full = _unwrap(records[:, 0], time, 32)  # 32-bit µs: wraps every ~71.6 min
+    stamps = records[:, 0].astype(np.int64)
+    if len(stamps) == 0:
+        return (np.zeros(0, np.int16), np.zeros(0, np.int16), np.zeros(0, np.int64), np.zeros(0, np.int8),
+                state.copy(), 0)
+    period = np.int64(1) << 32
+    previous = np.concatenate([[time % period if time >= 0 else stamps[0]], stamps[:-1]])
+    steps = (stamps - previous + period // 2) % period - period // 2
+    full = (time if time >= 0 else stamps[0]) + np.cumsum(steps)
+    latest = np.maximum.accumulate(np.maximum(full, last_t))
+    behind = np.flatnonzero(latest - full > DAT_REORDER_TOLERANCE_US)
+    if len(behind):
+        i = int(behind[0])
+        raise _TimeWentBack(i, int(stamps[i]), int(latest[i] - full[i]))
     t, reordered = _monotonic(full, last_t)
     data = records[:, 1]
     x = (data & 0x3FFF).astype(np.int16)
     y = ((data >> 14) & 0x3FFF).astype(np.int16)
     p = (((data >> 28) & 0xF) > 0).astype(np.int8)
-    new_state = np.array([full[-1], t[-1]], np.int64) if len(full) else state.copy()
-    return x, y, t, p, new_state, reordered
+    return x, y, t, p, np.array([full[-1], t[-1]], np.int64), reordered
 
 
 # ---------------------------------------------------------------------------------------------
+
+
+def _given_or_header(path: Path, given, header: tuple[int, int] | None, lacking: str) -> tuple[int, int] | None:
+    """The sensor size a reader opens with: ``given`` (height, width) over the header's; "auto":
+    the header's, or None (picked from the events once they are indexed); neither: FormatError
+    naming the file and how to give the size."""
+    if isinstance(given, str):
+        if given != "auto":
+            raise ValueError(f"{path}: sensor_size must be (height, width) or 'auto', got {given!r}")
+        return header
+    size = given if given is not None else header
+    if size is None:
+        raise FormatError(f"{path}: {lacking}; {SENSOR_SIZE_HINT}")
+    return int(size[0]), int(size[1])
 
 
 def _index_root(index_dir) -> Path | None:
@@ -380,6 +449,11 @@ class _ChunkedReader(EventReader):
             self._t_end = int(self._t_last[-1]) + 1
         else:
             self._t_start, self._t_end = 0, 1
+        if self._t_end - self._t_start > MAX_SPAN_US:
+            raise FormatError(
+                f"{path}: the event times span [{self._t_start}, {self._t_end}) us, more than "
+                f"{MAX_SPAN_US // 3_600_000_000} h; corrupt time words?"
+            )
         if self.reordered_events:
             warnings.warn(f"{path}: {self.reordered_events} events were stamped earlier than an event before "
                           "them and were given that earlier time", stacklevel=3)
@@ -391,17 +465,23 @@ class _ChunkedReader(EventReader):
         return hashlib.sha1(ident.encode()).hexdigest()[:16]
 
     def _load_or_build_index(self, root: Path | None) -> None:
+        """The time index from the cache, else built and cached; either way the geometry is
+        checked against it (a cached index holds each chunk's largest x and y)."""
         cached = None if root is None else root / f"{self.name}-{self._index_key()}.npz"
         if cached is not None and cached.exists():
             try:
                 with np.load(cached) as z:
                     self._states, self._first_event = z["states"], z["first_event"]
                     self._t_last, self.reordered_events = z["t_last"], int(z["reordered"])
+                    self._chunk_max = z["chunk_max"]
                 self.index_path = cached
-                return
             except (OSError, KeyError, ValueError):
-                pass  # unreadable cache: build again
+                cached.unlink(missing_ok=True)  # unreadable cache: build again
+            else:
+                self._check_geometry()
+                return
         self._build_index()
+        self._check_geometry()  # before caching: a refused file leaves nothing behind
         self.index_path = None
         if cached is not None:
             try:
@@ -410,7 +490,7 @@ class _ChunkedReader(EventReader):
                 os.close(fd)
                 try:
                     np.savez(tmp, states=self._states, first_event=self._first_event, t_last=self._t_last,
-                             reordered=np.int64(self.reordered_events))
+                             reordered=np.int64(self.reordered_events), chunk_max=self._chunk_max)
                     os.replace(tmp, cached)
                     self.index_path = cached
                 finally:
@@ -423,35 +503,59 @@ class _ChunkedReader(EventReader):
         states = np.empty((n_chunks + 1, len(self._state_names)), np.int64)
         first = np.zeros(n_chunks + 1, np.int64)
         t_last = np.empty(n_chunks, np.int64)
+        chunk_max = np.full((n_chunks, 2), -1, np.int64)  # each chunk's largest x and y (-1: no events)
         state = np.full(len(self._state_names), -1, np.int64)
         reordered = 0
         last_t = -1
         for k in range(n_chunks):
             states[k] = state
-            x, y, t, p, state, moved = self._decoder(self._read_words(k), state)
-            self._check(k, x, y)
+            x, y, t, p, state, moved = self._decode(k, state)
+            if len(x):
+                chunk_max[k] = int(x.max()), int(y.max())
             reordered += moved
             first[k + 1] = first[k] + len(t)
             last_t = int(t[-1]) if len(t) else last_t
             t_last[k] = last_t
         states[n_chunks] = state
         self._states, self._first_event, self._t_last = states, first, t_last
+        self._chunk_max = chunk_max
         self.reordered_events = reordered
 
-    def _check(self, k: int, x: np.ndarray, y: np.ndarray) -> None:
-        if not self.validate or not len(x):
+    def _check_geometry(self) -> None:
+        """Every event inside the sensor, from the index's per-chunk maxima (so a cached index,
+        made at another geometry, is checked too): FormatError naming the file and the chunk.
+        With ``sensor_size="auto"`` on a file without geometry, the size is picked here first
+        (``envs.readers._common.auto_sensor_size``, from the index's maxima)."""
+        if self.sensor_size is None:
+            top = self._chunk_max.max(axis=0) if len(self._chunk_max) else (-1, -1)
+            self.sensor_size = auto_sensor_size(int(top[0]), int(top[1]), self.path)
+        if not self.validate:
             return
         h, w = self.sensor_size
-        for name, values, limit in (("x", x, w), ("y", y, h)):
-            bad = np.flatnonzero(values >= limit)
+        for axis, (name, limit) in enumerate((("x", w), ("y", h))):
+            bad = np.flatnonzero(self._chunk_max[:, axis] >= limit)
             if len(bad):
+                k = int(bad[0])
                 raise FormatError(
-                    f"{self.path}: event {name}={int(values[bad[0]])} outside the {h}x{w} sensor (height x width) "
+                    f"{self.path}: event {name}={int(self._chunk_max[k, axis])} outside the {h}x{w} sensor (height x width) "
                     f"in the words from byte {self._data_offset + k * self._chunk_words * self._word_bytes}; "
-                    "wrong geometry in the header? pass sensor_size=(height, width)"
+                    f"wrong geometry in the header? {SENSOR_SIZE_HINT}"
                 )
 
     # --- decoding -------------------------------------------------------------------------
+    def _decode(self, k: int, state: np.ndarray):
+        """The decoder on chunk ``k`` from ``state``; a time going backwards raises FormatError
+        naming the file and the record's byte offset."""
+        try:
+            return self._decoder(self._read_words(k), state)
+        except _TimeWentBack as back:
+            offset = self._data_offset + (k * self._chunk_words + back.index) * self._word_bytes
+            raise FormatError(
+                f"{self.path}: the event at byte {offset} is stamped {back.stamp} us (0x{back.stamp:08X}), {back.behind} us "
+                f"before an event ahead of it: more than the {DAT_REORDER_TOLERANCE_US} us tolerated, and no wrap of "
+                "the time counter; the record is corrupt"
+            ) from None
+
     def _read_words(self, k: int) -> np.ndarray:
         start = k * self._chunk_words
         count = min(self._chunk_words, self._num_words - start)
@@ -467,7 +571,7 @@ class _ChunkedReader(EventReader):
         if hit is not None:
             self._decoded.move_to_end(k)
             return hit
-        x, y, t, p, _, _ = self._decoder(self._read_words(k), self._states[k])
+        x, y, t, p, _, _ = self._decode(k, self._states[k])
         hit = (x, y, t, np.where(p > 0, 1, -1).astype(np.int8))
         self._decoded[k] = hit
         while len(self._decoded) > 3:
@@ -518,7 +622,9 @@ class _ChunkedReader(EventReader):
 class PropheseeRawReader(_ChunkedReader):
     """A Prophesee RAW file (EVT 2.0 or EVT 3.0; module docstring).
 
-    sensor_size: (height, width), needed only when the header gives no geometry.
+    sensor_size: (height, width), needed only when the header gives no geometry (given, it
+    replaces the header's); "auto": the header's, else the smallest known sensor holding every
+    event (``envs.readers._common.KNOWN_SENSORS``), with a warning naming it.
     chunk_words: words decoded at a time (memory: about 12 events per EVT 3.0 word at worst).
     index_dir: where the time index is cached (default ``$EVFLOW_CACHE/prophesee-index``).
     validate: check every event lies inside the sensor while building the index.
@@ -533,7 +639,7 @@ class PropheseeRawReader(_ChunkedReader):
         self,
         path: str | os.PathLike,
         *,
-        sensor_size: tuple[int, int] | None = None,
+        sensor_size: tuple[int, int] | str | None = None,
         chunk_words: int | None = None,
         index_dir: str | os.PathLike | None = None,
         validate: bool = True,
@@ -542,10 +648,7 @@ class PropheseeRawReader(_ChunkedReader):
         if not path.exists():
             raise FileNotFoundError(f"{path}: no such file")
         self.header = read_raw_header(path)
-        size = sensor_size or self.header.sensor_size
-        if size is None:
-            raise FormatError(f"{path}: the RAW header gives no geometry; pass sensor_size=(height, width)")
-        self.sensor_size = (int(size[0]), int(size[1]))
+        self.sensor_size = _given_or_header(path, sensor_size, self.header.sensor_size, "the RAW header gives no geometry")
         if self.header.format == "EVT2":
             self._word_dtype, self._state_names, self._decoder = np.dtype("<u4"), _EVT2_STATE, _decode_evt2
         else:
@@ -561,8 +664,8 @@ class PropheseeRawReader(_ChunkedReader):
 class PropheseeDatReader(_ChunkedReader):
     """A Prophesee DAT file of CD events (module docstring).
 
-    sensor_size: (height, width), needed only when the header has no ``% Width``/``% Height``.
-    chunk_words: records decoded at a time; index_dir, validate: as for RAW.
+    sensor_size: (height, width), needed only when the header has no ``% Width``/``% Height``;
+    "auto" as for RAW. chunk_words: records decoded at a time; index_dir, validate: as for RAW.
     Attribute ``header``: the header's keys. ``__init__`` opens as the RAW reader's does (the
     same options and checks), then reads its own header.
     """
@@ -576,7 +679,7 @@ class PropheseeDatReader(_ChunkedReader):
         self,
         path: str | os.PathLike,
         *,
-        sensor_size: tuple[int, int] | None = None,
+        sensor_size: tuple[int, int] | str | None = None,
         chunk_words: int = 1 << 18,
         index_dir: str | os.PathLike | None = None,
         validate: bool = True,
@@ -602,11 +705,9 @@ class PropheseeDatReader(_ChunkedReader):
             )
         if ev_size != 8:
             raise FormatError(f"{path}: DAT event size {ev_size} bytes; CD events are 8 bytes")
-        size = sensor_size
-        if size is None and "Height" in self.header and "Width" in self.header:
-            size = (int(self.header["Height"]), int(self.header["Width"]))
-        if size is None:
-            raise FormatError(f"{path}: the DAT header has no '% Width'/'% Height'; pass sensor_size=(height, width)")
-        self.sensor_size = (int(size[0]), int(size[1]))
+        header_size = None  # read only when no size is given: a given size stands for a bad header's
+        if sensor_size in (None, "auto") and "Height" in self.header and "Width" in self.header:
+            header_size = _header_size(path, "'% Height' / '% Width' lines", self.header["Height"], self.header["Width"])
+        self.sensor_size = _given_or_header(path, sensor_size, header_size, "the DAT header has no '% Width'/'% Height'")
         self._decoder = _decode_dat
         self._setup(path, offset + 2, chunk_words, index_dir, validate)

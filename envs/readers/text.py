@@ -5,12 +5,16 @@ column, y row, p in {0, 1} (or -1/+1). Leading header lines that do not hold fou
 are skipped; a leading ``width height`` line (the rpg_e2vid convention) gives the sensor size.
 Blank lines after the header are an error (they would break the line index), and so are a
 file whose first lines are not text or hold no ``t x y p`` line (e.g. a binary file forced as
-text), a NaN or infinite time, and coordinates that are not whole non-negative numbers (10.7 is
-not truncated to 10).
+text), a NaN or infinite time, coordinates that are not whole non-negative numbers (10.7 is
+not truncated to 10) or that reach ``MAX_SENSOR_SIDE`` (x = 70000 is not stored as 4464), a
+polarity other than 0, 1 (or -1), and a time more than ``MAX_SPAN_US`` (24 h) after the first
+event's; each names the line. A UTF-8 byte-order mark before the first line is skipped.
 
 Sensor size: the ``sensor_size`` argument, else the header line, else the first frame's size
 when ``images.txt`` lies beside the file, else the ECD camera (DAVIS240C, 180 x 240) when all
-coordinates fit it, else the largest coordinates + 1.
+coordinates fit it, else the largest coordinates + 1. ``sensor_size="auto"`` takes the header
+or the frames too, else the smallest known sensor holding every event, with a warning naming it
+(``envs.readers._common.auto_sensor_size``).
 
 Streaming: opening makes one pass over the file (a chunk at a time) that records the byte
 offset and first time of every block of ``block_lines`` lines; a window then reads and parses
@@ -28,15 +32,16 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.events import Events
+from envs.events import MAX_SENSOR_SIDE, MAX_SPAN_US, Events
 from envs.h5format import FormatError
-from envs.readers._common import check_finite, check_pixel_coordinates
+from envs.readers._common import auto_sensor_size, check_finite, check_pixel_coordinates
 from envs.readers.base import EventReader
 
 __all__ = ["TextReader", "ECD_SENSOR_SIZE"]
 
 ECD_SENSOR_SIZE = (180, 240)
 _READ_BYTES = 1 << 23
+_BOM = b"\xef\xbb\xbf"
 
 
 def _parse(body: bytes, path: Path, first_line: int) -> np.ndarray:
@@ -52,7 +57,7 @@ def _parse(body: bytes, path: Path, first_line: int) -> np.ndarray:
 class TextReader(EventReader):
     """A ``t x y p`` event text file, streamed (module docstring for the conventions).
 
-    sensor_size: (height, width), overrides detection. time_unit: "s" (ECD) or "us".
+    sensor_size: (height, width), overrides detection; "auto": module docstring. time_unit: "s" (ECD) or "us".
     block_lines: lines per index block (memory per cached block: 32 bytes per line).
     """
 
@@ -62,7 +67,7 @@ class TextReader(EventReader):
         self,
         path: str | os.PathLike,
         *,
-        sensor_size: tuple[int, int] | None = None,
+        sensor_size: tuple[int, int] | str | None = None,
         time_unit: str = "s",
         block_lines: int = 1 << 15,
         validate: bool = True,
@@ -81,13 +86,18 @@ class TextReader(EventReader):
         self._data_start = data_start
         self._index()
         self._frames_t, self._frame_paths = self._find_frames()
-        if sensor_size is None:
+        auto = isinstance(sensor_size, str)
+        if auto and sensor_size != "auto":
+            raise ValueError(f"{self.path}: sensor_size must be (height, width) or 'auto', got {sensor_size!r}")
+        if sensor_size is None or auto:
             sensor_size = header_size
         if sensor_size is None and self._frame_paths:
             from PIL import Image
 
             with Image.open(self._frame_paths[0]) as im:
                 sensor_size = (im.height, im.width)
+        if sensor_size is None and auto:
+            sensor_size = auto_sensor_size(self._max_x, self._max_y, self.path)
         if sensor_size is None:
             fits = self._max_x < ECD_SENSOR_SIZE[1] and self._max_y < ECD_SENSOR_SIZE[0]
             sensor_size = ECD_SENSOR_SIZE if fits else (self._max_y + 1, self._max_x + 1)
@@ -108,7 +118,12 @@ class TextReader(EventReader):
         FormatError: such a file is not an event text file (a binary file would otherwise read
         as a header and no events)."""
         size, offset = None, 0
+        self._header_lines = 0
         with open(self.path, "rb") as fh:
+            if fh.read(3) == _BOM:  # a UTF-8 byte-order mark (Windows editors): not part of line 1
+                offset = len(_BOM)
+            else:
+                fh.seek(0)
             for k in range(17):
                 line = fh.readline()
                 if not line:
@@ -128,6 +143,7 @@ class TextReader(EventReader):
                 if len(tokens) == 4 and not line.lstrip().startswith(b"#"):
                     try:
                         [float(v) for v in tokens]
+                        self._header_lines = k
                         break
                     except ValueError:
                         pass
@@ -144,7 +160,7 @@ class TextReader(EventReader):
         """One pass: block offsets and first times, event count, coordinate range, time order."""
         b = self.block_lines
         offsets, block_t = [], []
-        n, last_t = 0, None
+        n, last_t, first_t = 0, None, None
         max_x = max_y = -1
         min_xy = 0
         with open(self.path, "rb") as fh:
@@ -179,7 +195,10 @@ class TextReader(EventReader):
                 check_finite(rows[:, 0], str(self.path), "t", n)
                 for column, field in ((1, "x"), (2, "y")):
                     check_pixel_coordinates(rows[:, column], str(self.path), field, n)
+                self._check_values(rows, n, None if first_t is None else first_t / self._scale)
                 t = self._to_us(rows[:, 0])
+                if first_t is None and len(t):
+                    first_t = int(t[0])
                 if self.validate:
                     dt = np.diff(t)
                     if (dt < 0).any() or (last_t is not None and len(t) and t[0] < last_t):
@@ -203,6 +222,30 @@ class TextReader(EventReader):
         self._max_x, self._max_y, self._min_xy = max_x, max_y, min_xy
         self._t_start = int(self._block_t[0]) if n else 0
         self._t_end = (last_t + 1) if last_t is not None else 1
+
+    def _check_values(self, rows: np.ndarray, n: int, first_t: float | None) -> None:
+        """Values that parse but cannot be right, refused naming the line: a coordinate beyond
+        the largest sensor (``MAX_SENSOR_SIDE``), a polarity other than 0, 1 (or -1), a time
+        more than ``MAX_SPAN_US`` after the first event's (or one whose µs overflow int64).
+        rows: (N, 4) float64 t x y p of events n.. ; first_t: the first event's time in the
+        file's unit (None: these rows start the file)."""
+        if not len(rows):
+            return
+        unit = "s" if self._scale == 1e6 else "us"
+        origin = rows[0, 0] if first_t is None else first_t
+        span = MAX_SPAN_US / self._scale
+        checks = [
+            (rows[:, 1] >= MAX_SENSOR_SIDE, lambda r: f"x = {r[1]:.17g} is beyond the largest sensor side, {MAX_SENSOR_SIDE} pixels"),
+            (rows[:, 2] >= MAX_SENSOR_SIDE, lambda r: f"y = {r[2]:.17g} is beyond the largest sensor side, {MAX_SENSOR_SIDE} pixels"),
+            (~np.isin(rows[:, 3], (0.0, 1.0, -1.0)), lambda r: f"polarity p = {float(r[3])!r}; expected 0 or 1 (or -1 / +1)"),
+            ((np.abs(rows[:, 0]) * self._scale > 2.0**62) | (rows[:, 0] - origin > span),
+             lambda r: f"t = {float(r[0])!r} {unit} is more than {span:g} {unit} ({MAX_SPAN_US // 3_600_000_000} h) "
+                       f"after the first event's {float(origin)!r} {unit}; corrupt time?"),
+        ]
+        for bad, message in checks:
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise FormatError(f"{self.path}: line {self._header_lines + n + i + 1} (event {n + i}): {message(rows[i])}")
 
     def _find_frames(self):
         listing = self.path.with_name("images.txt")

@@ -23,6 +23,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
+from envs.atomic import temporary_path
 from envs.simulator.simulate import SIMULATOR_VERSION, SimulatedSequence
 
 __all__ = ["OutputFormat", "OUTPUT_FORMATS", "output_path", "write_sequence"]
@@ -49,7 +50,7 @@ def write_sequence(
     if fmt == "evflow-h5":
         return sequence.to_h5(path, name=name, provenance=provenance)
     info = {"simulator_version": SIMULATOR_VERSION, "scene_config": sequence.config.to_dict(), **(provenance or {})}
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    tmp = temporary_path(path)  # host and pid: a cache may be shared by several machines
     if fmt == "hagenaars":
         _write_hagenaars(sequence, tmp, info)
     else:

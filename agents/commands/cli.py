@@ -1,0 +1,75 @@
+"""How every command ends on a user's mistake: one line ``error: <message>`` on stderr and exit
+status 2 (as argparse does for a bad option), not a traceback.
+
+A user error is one this project raises on purpose about its input: a ``raise`` statement in
+``envs/``, ``agents/`` or ``losses/`` raising a ``ValueError`` (``FormatError``, ``EventError``,
+``CheckpointError``... are ValueErrors) or a missing, existing, unwritable path
+(``FileNotFoundError``, ``FileExistsError``, ``IsADirectoryError``, ``NotADirectoryError``,
+``PermissionError``). Anything else (a bug, an error raised inside numpy or torch) keeps its
+traceback, and ``EVFLOW_DEBUG=1`` shows the traceback of a user error too.
+
+``python scripts/X.py`` runs ``run(main)``; the console commands (``evflow-*``) are the
+functions at the bottom of this module.
+"""
+
+from __future__ import annotations
+
+import importlib
+import linecache
+import os
+import sys
+from pathlib import Path
+from typing import Callable
+
+__all__ = ["USER_ERRORS", "is_user_error", "run"]
+
+USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError)
+_OURS = tuple(str(Path(__file__).resolve().parents[2] / package) + os.sep for package in ("envs", "agents", "losses"))
+
+
+def is_user_error(err: BaseException) -> bool:
+    """True for an exception of ``USER_ERRORS`` raised by a ``raise`` statement of this project
+    (the innermost frame of its traceback)."""
+    if not isinstance(err, USER_ERRORS) or err.__traceback__ is None:
+        return False
+    tb = err.__traceback__
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    filename = os.path.realpath(tb.tb_frame.f_code.co_filename)
+    return filename.startswith(_OURS) and linecache.getline(filename, tb.tb_lineno).lstrip().startswith("raise")
+
+
+def run(main: Callable[[list[str] | None], int], argv: list[str] | None = None) -> int:
+    """``main(argv)``'s exit status; a user error (:func:`is_user_error`) prints ``error: <message>``
+    to stderr and returns 2, unless the environment sets ``EVFLOW_DEBUG=1``."""
+    try:
+        return main(argv)
+    except USER_ERRORS as err:
+        if os.environ.get("EVFLOW_DEBUG", "") not in ("", "0") or not is_user_error(err):
+            raise
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+def _program(command: str) -> Callable[[list[str] | None], int]:
+    def entry(argv: list[str] | None = None) -> int:
+        return run(importlib.import_module(f"agents.commands.{command}").main, argv)
+
+    entry.__name__ = command
+    entry.__doc__ = f"The console command of agents/commands/{command}.py."
+    return entry
+
+
+# console commands (pyproject.toml [project.scripts])
+train = _program("train")
+evaluate = _program("evaluate")
+predict = _program("predict")
+convert = _program("convert")
+generate = _program("generate")
+benchmark = _program("benchmark")
+teacher_targets = _program("teacher_targets")
+ship = _program("ship")
+export_model = _program("export_model")
+ablations = _program("ablations")
+main_job = _program("main_job")
+param_counts = _program("param_counts")
