@@ -106,29 +106,19 @@ def _size(payload: dict[str, Any]) -> int:
 EPISODE_KEYS = ("policy_state", "obs", "info")
 
 
-def _halve(value: Any) -> Any:
-    """float32 arrays and tensors in ``value`` as float16 (other types unchanged)."""
-    if isinstance(value, torch.Tensor) and value.dtype == torch.float32:
-        return value.half()
-    if isinstance(value, np.ndarray) and value.dtype == np.float32:
-        return value.astype(np.float16)
+def _cast(value: Any, source: torch.dtype, target: torch.dtype) -> Any:
+    """``value`` with its ``source``-typed arrays and tensors cast to ``target`` (nested dicts,
+    lists and tuples followed; other types unchanged). float32 -> float16 halves the episodes
+    in progress; float16 -> float32 restores them."""
+    if isinstance(value, torch.Tensor) and value.dtype == source:
+        return value.to(target)
+    np_source, np_target = (np.dtype(str(d).removeprefix("torch.")) for d in (source, target))
+    if isinstance(value, np.ndarray) and value.dtype == np_source:
+        return value.astype(np_target)
     if isinstance(value, dict):
-        return {k: _halve(v) for k, v in value.items()}
+        return {k: _cast(v, source, target) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return type(value)(_halve(v) for v in value)
-    return value
-
-
-def _widen(value: Any) -> Any:
-    """Inverse of :func:`_halve`: float16 back to float32."""
-    if isinstance(value, torch.Tensor) and value.dtype == torch.float16:
-        return value.float()
-    if isinstance(value, np.ndarray) and value.dtype == np.float16:
-        return value.astype(np.float32)
-    if isinstance(value, dict):
-        return {k: _widen(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return type(value)(_widen(v) for v in value)
+        return type(value)(_cast(v, source, target) for v in value)
     return value
 
 
@@ -152,7 +142,7 @@ def slim_state(payload: dict[str, Any], budget: int = STATE_BUDGET) -> tuple[dic
     slim = {**payload, "optimizer": optimizer}
     if _size(slim) <= budget:
         return slim, "moments"
-    slim = {**slim, **{k: _halve(slim.get(k)) for k in EPISODE_KEYS}, "episodes_halved": True}
+    slim = {**slim, **{k: _cast(slim.get(k), torch.float32, torch.float16) for k in EPISODE_KEYS}, "episodes_halved": True}
     if _size(slim) <= budget:
         return slim, "moments, half episodes"
     slim = {k: v for k, v in slim.items() if k not in (*EPISODE_KEYS, "env_states", "episodes_halved")}
@@ -168,7 +158,7 @@ def unslim_state(payload: dict[str, Any]) -> dict[str, Any]:
     """A training checkpoint from a slim state: the halved episodes widened back to float32."""
     payload = {k: v for k, v in payload.items() if k != "campaign"}
     if payload.pop("episodes_halved", False):
-        payload.update({k: _widen(payload.get(k)) for k in EPISODE_KEYS})
+        payload.update({k: _cast(payload.get(k), torch.float16, torch.float32) for k in EPISODE_KEYS})
     return payload
 
 
