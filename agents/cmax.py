@@ -130,7 +130,7 @@ class RefinedPolicy:
     (None: always the refined flow; 0: the refined flow unless it raises that loss). The idea:
     where the network is near the truth the solve still finds a slightly lower loss by inventing
     motion, a small drop. Whether a drop says where the refinement helps is measured, per split,
-    by ``tools/refine_gate.py`` (docs/results.md, eleventh round).
+    by ``tools/refine_gate.py`` (docs/history/2026-12-02-round-11.md).
     """
 
     SOLVERS = ("fine", "cmax")

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Loss-landscape diagnostics on synthetic windows (no network), used in docs/results.md.
+"""Loss-landscape diagnostics on synthetic windows (no network), used in the rounds of docs/history/.
 
   python tools/diagnose.py scale   --window-size 1      # L_HMC of c x ground truth, c = 0 .. 2
   python tools/diagnose.py teacher --window-size 1      # per-window contrast maximisation vs truth

@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """One recipe probe: train for a time budget, evaluate on held-out synthetic sequences, print
-one summary line (and append it to OUT/probes.jsonl). Used to build docs/results.md.
+one summary line (and append it to OUT/probes.jsonl). Used in the first rounds of docs/history/.
 
   python tools/probe.py NAME --minutes 8 -- --flow-scaling 16 --lr 1e-3
   python tools/probe.py sup  --minutes 8 -- --loss supervised

@@ -73,7 +73,7 @@ def main(argv=None) -> int:
 
     def train(argv: list[str]) -> None:
         # each stage in its own process (as ship.py does): a stage run inside the runner's process
-        # did not learn (docs/results.md, tenth round), the same options in a process of their own did
+        # did not learn (docs/history/2026-12-02-round-10.md), the same options in a process of their own did
         env = {**os.environ, **({"OMP_NUM_THREADS": str(args.threads)} if args.threads else {})}
         subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), *argv], check=True, env=env)
 

@@ -14,7 +14,7 @@
    4-frame windows. The default demo (--demo-stage hmc) runs stage 2 from the shipped stage-1
    model (the default model) and prints the network's L_HMC as a ratio to zero flow's on the
    same training windows: it starts below 1 and falls further within a few
-   minutes (docs/results.md, seventh round). --demo-stage teacher runs stage 1 from scratch
+   minutes (docs/history/2026-11-22-round-07.md). --demo-stage teacher runs stage 1 from scratch
    instead, solving the teacher inside every update (a few minutes do not yet leave zero flow
    there). Then a quick evaluation of the demo model on the test split;
 3. print the commands for the full training: the teacher's targets, solved once, then both
@@ -37,7 +37,7 @@ from agents.commands import train as train_command
 from agents.learner import preset_options
 from agents.pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info
 
-#: The project's recipe (docs/results.md says how it was found and how far it gets), as train.py
+#: The project's recipe (docs/results.md: how far it gets; docs/history/: how it was found), as train.py
 #: presets (agents.learner.PRESETS). Stage 1: distil the per-window contrast-maximisation teacher
 #: (from scratch). The full run solves the teacher once (TARGETS) and trains on the stored targets
 #: (CACHED_RECIPE, preset teacher-cached); the demo of stage 1 (--demo-stage teacher) solves it
