@@ -18,6 +18,12 @@ one frame interval, spread geometrically over each split, so windows range from 
   (any N; sequence i is the same whatever N, and shares its cache file).
 - ``synthetic-dr-val``: 8 sequences of the training distribution with seeds no training
   sequence has: the validation that picks a training run's checkpoints (so not a test).
+- ``synthetic-transfer-train`` / ``synthetic-transfer-val``: the same, drawn from
+  ``TRANSFER_FACTORS`` (textured surfaces, slower cameras at the low end, sensor settings over
+  real sensors' ranges); 256 / 8 sequences, ``synthetic-transfer-train:N`` like the above.
+- ``synthetic-traffic``: held out: 4 sequences of 1.5 s (180x240 and 260x346) of a fixed camera
+  watching 1-4 mostly small moving objects, with background activity and hot pixels
+  (``TRAFFIC_FACTORS``): the case of a static DAVIS346 over a street.
 - ``synthetic-stress``: held out, never for training or tuning: 4 groups of 3 sequences
   (1 s, native size), each with one factor group outside the training ranges: ``texture``
   (dots and plaid families), ``fast`` (camera 16-22, objects 22-30 px per frame), ``noise``
@@ -49,13 +55,14 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.h5format import H5Reader
+from envs.cache import cache_root
 from envs.readers.base import EventReader, FlowGT
+from envs.readers.h5 import H5Reader
 from envs.simulator import SIMULATOR_VERSION, Scene, SceneConfig, SimulatedSequence, simulate
 from envs.simulator.randomize import (
+    FACTOR_SETS,
     RANDOMIZED_VERSION,
     STRESS_FACTORS,
-    TRAIN_FACTORS,
     FactorRanges,
     draw_scene,
     draw_size,
@@ -112,7 +119,7 @@ class SequenceSpec:
 class RandomizedSpec:
     """One domain-randomised sequence: its scene is drawn by
     :func:`envs.simulator.randomize.draw_scene` from the factor ranges named by ``factors``
-    ("train" or a key of ``STRESS_FACTORS``). height, width: the drawn size (stored so a split
+    (a key of ``FACTOR_SETS``: "train", "transfer", "traffic" or a stress group). height, width: the drawn size (stored so a split
     lists its sizes without drawing the scenes)."""
 
     name: str
@@ -124,11 +131,11 @@ class RandomizedSpec:
     fps: float = 30.0
 
     def __post_init__(self) -> None:
-        if self.factors != "train" and self.factors not in STRESS_FACTORS:
-            raise ValueError(f"RandomizedSpec.factors must be 'train' or one of {tuple(STRESS_FACTORS)}, got {self.factors!r}")
+        if self.factors not in FACTOR_SETS:
+            raise ValueError(f"RandomizedSpec.factors must be one of {tuple(FACTOR_SETS)}, got {self.factors!r}")
 
     def ranges(self) -> FactorRanges:
-        return TRAIN_FACTORS if self.factors == "train" else STRESS_FACTORS[self.factors]
+        return FACTOR_SETS[self.factors]
 
     def config(self) -> SceneConfig:
         return draw_scene(self.seed, self.ranges(), duration_s=self.duration_s, fps=self.fps)
@@ -152,21 +159,40 @@ STRESS_PER_GROUP = 3
 DR_VAL = "synthetic-dr-val"
 DR_VAL_SEED = 30_000_000  # the training distribution, seeds no training sequence has
 DR_VAL_SIZE = 8
+TRANSFER_TRAIN = "synthetic-transfer-train"
+TRANSFER_TRAIN_SEED = 40_000_000
+TRANSFER_VAL = "synthetic-transfer-val"
+TRANSFER_VAL_SEED = 50_000_000
+TRAFFIC = "synthetic-traffic"
+TRAFFIC_SEED = 60_000_000
+TRAFFIC_SIZE = 4
+
+#: the endless randomised series: split -> (seed of sequence 0, factor set); ``SPLIT:N`` is the
+#: first N of the series
+SERIES = {DR_TRAIN: (DR_TRAIN_SEED, "train"), TRANSFER_TRAIN: (TRANSFER_TRAIN_SEED, "transfer")}
 
 
 def dr_train_specs(n: int) -> list[RandomizedSpec]:
     """The first n sequences of ``synthetic-dr-train`` (sequence i does not depend on n)."""
+    return series_specs(DR_TRAIN, n)
+
+
+def series_specs(split: str, n: int) -> list[RandomizedSpec]:
+    """The first n sequences of the randomised series ``split`` (a key of :data:`SERIES`;
+    sequence i does not depend on n)."""
     if not 0 < n < 10_000_000:
-        raise ValueError(f"{DR_TRAIN}: the number of sequences must be in 1..9999999, got {n}")
-    return list(_dr_train_specs(n))
+        raise ValueError(f"{split}: the number of sequences must be in 1..9999999, got {n}")
+    return list(_series_specs(split, n))
 
 
 @functools.lru_cache(maxsize=8)
-def _dr_train_specs(n: int) -> tuple[RandomizedSpec, ...]:
-    return tuple(
-        RandomizedSpec(f"{DR_TRAIN}-{i:05d}", DR_TRAIN_SEED + i, *draw_size(DR_TRAIN_SEED + i, TRAIN_FACTORS), 1.0)
-        for i in range(n)
-    )
+def _series_specs(split: str, n: int) -> tuple[RandomizedSpec, ...]:
+    seed0, factors = SERIES[split]
+    return tuple(_randomized(f"{split}-{i:05d}", seed0 + i, factors, 1.0) for i in range(n))
+
+
+def _randomized(name: str, seed: int, factors: str, duration_s: float) -> RandomizedSpec:
+    return RandomizedSpec(name, seed, *draw_size(seed, FACTOR_SETS[factors]), duration_s, factors)
 
 
 def _stress_specs() -> list[RandomizedSpec]:
@@ -204,8 +230,10 @@ def _build_splits() -> dict[str, list[SequenceSpec]]:
         "synthetic-mini": mini,
         DR_TRAIN: dr_train_specs(DR_TRAIN_DEFAULT_SIZE),
         "synthetic-stress": _stress_specs(),
-        DR_VAL: [RandomizedSpec(f"{DR_VAL}-{i}", DR_VAL_SEED + i, *draw_size(DR_VAL_SEED + i, TRAIN_FACTORS), 1.0)
-                 for i in range(DR_VAL_SIZE)],
+        DR_VAL: [_randomized(f"{DR_VAL}-{i}", DR_VAL_SEED + i, "train", 1.0) for i in range(DR_VAL_SIZE)],
+        TRANSFER_TRAIN: series_specs(TRANSFER_TRAIN, DR_TRAIN_DEFAULT_SIZE),
+        TRANSFER_VAL: [_randomized(f"{TRANSFER_VAL}-{i}", TRANSFER_VAL_SEED + i, "transfer", 1.0) for i in range(DR_VAL_SIZE)],
+        TRAFFIC: [_randomized(f"{TRAFFIC}-{i}", TRAFFIC_SEED + i, "traffic", 1.5) for i in range(TRAFFIC_SIZE)],
     }
 
 
@@ -224,13 +252,14 @@ def _split_folder(split: str) -> str:
 def list_sequences(split: str) -> list[SequenceSpec | RandomizedSpec]:
     """The specs of a split, in order; ``synthetic-dr-train:N`` gives that split's first N.
     Unknown split -> ValueError listing the known ones."""
-    if split.startswith(DR_TRAIN + ":"):
-        count = split[len(DR_TRAIN) + 1 :]
+    series, _, count = split.partition(":")
+    if count and series in SERIES:
         if not count.isdigit():
-            raise ValueError(f"{split!r}: the number after {DR_TRAIN}: must be a positive integer")
-        return dr_train_specs(int(count))
+            raise ValueError(f"{split!r}: the number after {series}: must be a positive integer")
+        return series_specs(series, int(count))
     if split not in SPLITS:
-        raise ValueError(f"unknown synthetic split {split!r}; known splits: {', '.join(SPLITS)} (and {DR_TRAIN}:N for N sequences)")
+        raise ValueError(f"unknown synthetic split {split!r}; known splits: {', '.join(SPLITS)} "
+                         f"(and {' or '.join(f'{s}:N' for s in SERIES)} for N sequences)")
     return list(SPLITS[split])
 
 
@@ -245,14 +274,6 @@ def get_spec(split: str, index_or_name: int | str) -> SequenceSpec:
         if spec.name == index_or_name:
             return spec
     raise KeyError(f"{split} has no sequence named {index_or_name!r}; names: {specs[0].name} .. {specs[-1].name}")
-
-
-def cache_root() -> Path | None:
-    """The on-disk cache folder ($EVFLOW_CACHE or ~/.cache/evflow), None when set to 'off'."""
-    root = os.environ.get("EVFLOW_CACHE", str(Path.home() / ".cache" / "evflow"))
-    if root.strip().lower() in ("", "off", "0", "none"):
-        return None
-    return Path(root).expanduser()
 
 
 class SyntheticH5Reader(H5Reader):

@@ -17,7 +17,7 @@ import pytest
 
 from envs.simulator import AffineMotion, EventEmulator, Scene, SceneConfig, SensorConfig, TextureConfig, simulate
 from envs.simulator.export import OUTPUT_FORMATS, write_sequence
-from envs.simulator.randomize import STRESS_FACTORS, TRAIN_FACTORS, peak_flow_px
+from envs.simulator.randomize import STRESS_FACTORS, TRAFFIC_FACTORS, TRAIN_FACTORS, TRANSFER_FACTORS, peak_flow_px
 from envs.simulator.textures import make_texture
 from envs.synthetic import (
     SyntheticH5Reader,
@@ -243,7 +243,7 @@ def test_new_motions_frames_agree_after_warping_by_ground_truth(new_motion):
 # --- textures --------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("family", ["noise", "edges", "lines", "checker", "glyphs", "gradient", "flat", "dots", "plaid"])
+@pytest.mark.parametrize("family", ["noise", "edges", "lines", "checker", "glyphs", "gradient", "flat", "dots", "plaid", "natural"])
 def test_texture_families_fill_their_range(family):
     config = TextureConfig(family=family, log_min=-2.0, log_max=0.0, shading=0.0, blur_sigma=0.0)
     texture = make_texture(np.random.default_rng(0), 128, config)
@@ -255,6 +255,58 @@ def test_texture_families_fill_their_range(family):
         assert texture.std() > 0.05
     with pytest.raises(ValueError, match="family"):
         TextureConfig(family="photograph")
+
+
+def _power_slope(texture: np.ndarray) -> float:
+    """Log-log slope of the power spectrum between 2 cycles per image and 1/4 cycle per pixel."""
+    n = texture.shape[0]
+    power = np.abs(np.fft.fft2(texture - texture.mean())) ** 2
+    f = np.hypot(np.fft.fftfreq(n)[:, None], np.fft.fftfreq(n)[None, :])
+    band = (f > 2 / n) & (f < 0.25)
+    return float(np.polyfit(np.log(f[band]), np.log(power[band]), 1)[0])
+
+
+def _gradient_kurtosis(texture: np.ndarray) -> float:
+    g = np.diff(texture.astype(float), axis=1).ravel()
+    g -= g.mean()
+    return float((g**4).mean() / (g**2).mean() ** 2)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_natural_texture_has_natural_image_statistics_and_texture_inside_leaves(seed):
+    """Photographs: power spectra ~1/f^2 (slopes about -1.6 to -3), heavy-tailed gradients
+    (kurtosis well above a Gaussian's 3), and texture almost everywhere. Plain dead leaves
+    share the first two but are flat inside their leaves; 1/f noise shares the first only."""
+    def texture(family):
+        config = TextureConfig(family=family, log_min=-2.0, log_max=0.0, shading=0.0, blur_sigma=0.0)
+        return make_texture(np.random.default_rng(seed), 256, config)
+
+    natural, leaves, noise = texture("natural"), texture("dead_leaves"), texture("noise")
+    assert -3.0 < _power_slope(natural) < -1.6
+    assert _gradient_kurtosis(natural) > 6.0 and _gradient_kurtosis(noise) < 4.0
+    textured = lambda t: float((np.abs(np.diff(t, axis=1)) > 1e-3).mean())  # noqa: E731
+    assert textured(natural) > 0.6 and textured(leaves) < 0.3
+    again = make_texture(np.random.default_rng(seed), 256, TextureConfig(family="natural", shading=0.0, blur_sigma=0.0,
+                                                                          log_min=-2.0, log_max=0.0))
+    np.testing.assert_array_equal(natural, again)
+
+
+def test_a_pan_over_natural_texture_gives_events_that_follow_the_truth():
+    """Events of a pan over textured leaves, warped by the exact flow, are sharper than
+    unwarped or warped twice as far (the texture inside the leaves moves with them)."""
+    h, w = 48, 64
+    camera = AffineMotion(anchor=((w - 1) / 2.0, (h - 1) / 2.0), velocity=(90.0, 40.0), camera=True)
+    texture = TextureConfig(family="natural", r_min=4.0, r_max=32.0, log_min=-2.0, log_max=0.0)
+    seq = simulate(SceneConfig(3, h, w, camera, (), texture, SensorConfig()), duration_s=0.2)
+    times = seq.frame_times
+    for k in range(len(times) - 1):
+        t0, t1 = int(times[k]), int(times[k + 1])
+        flow, _ = seq.flow_between(t0, t1)
+        events = seq.events.slice_time(t0, t1)
+        assert len(events.t) > 0.1 * h * w
+        sharp = _iwe_variance(events, flow, t0, t1)
+        assert sharp > 1.2 * _iwe_variance(events, 0 * flow, t0, t1)
+        assert sharp > 1.1 * _iwe_variance(events, 2 * flow, t0, t1)
 
 
 # --- the splits ------------------------------------------------------------------------------
@@ -302,6 +354,50 @@ def test_training_draws_stay_inside_their_ranges_and_stress_outside():
                 for o in config.objects
             ]
             assert camera >= 16.0 * 0.99 or max(objects, default=0.0) >= 22.0 * 0.99
+
+
+def _peak_object_flow(obj) -> float:
+    r = obj.radius
+    corners = np.array([[-r, r, r, -r], [-r, -r, r, r], [1.0] * 4])
+    return peak_flow_px(obj.motion, corners, 1.5, 1 / 30)
+
+
+def test_transfer_and_traffic_draws_stay_inside_their_ranges():
+    frame_s = 1 / 30
+    transfer = [spec.config() for spec in list_sequences("synthetic-transfer-train")[:24]]
+    families = set()
+    for config in transfer:
+        families |= {config.texture.family} | {o.texture.family for o in config.objects}
+        s = config.sensor
+        assert 0.12 <= s.contrast_threshold <= 0.5 and 0.05 * s.contrast_threshold <= s.threshold_sigma <= 0.2 * s.contrast_threshold + 1e-9
+        assert 0.01 <= s.noise_rate_hz <= 1.0 and 0 <= s.hot_pixels <= 10
+        assert peak_flow_px(config.camera, config.sensor_size, 1.0, frame_s) <= 15.0 * 1.01
+    assert families <= set(TRANSFER_FACTORS.families) and "natural" in families
+    traffic = list_sequences("synthetic-traffic")
+    assert len(traffic) == 4 and all(spec.duration_s == 1.5 for spec in traffic)
+    for spec in traffic:
+        config = spec.config()
+        assert config.sensor_size in TRAFFIC_FACTORS.sizes
+        assert peak_flow_px(config.camera, config.sensor_size, 1.5, frame_s) == 0.0  # a fixed camera
+        assert 1 <= len(config.objects) <= 4
+        assert all(0.5 * 0.99 <= _peak_object_flow(o) <= 8.0 * 1.01 for o in config.objects)
+        assert 0.1 <= config.sensor.noise_rate_hz <= 1.0 and 2 <= config.sensor.hot_pixels <= 12
+    # seeds apart from every other split: no validation or held-out sequence is a training one
+    seeds = {name: {spec.seed for spec in list_sequences(name)} for name in
+             ("synthetic-dr-train", "synthetic-dr-val", "synthetic-transfer-train", "synthetic-transfer-val", "synthetic-traffic")}
+    assert sum(len(v) for v in seeds.values()) == len(set().union(*seeds.values()))
+
+
+def test_transfer_series_extends_like_the_randomised_one():
+    specs = list_sequences("synthetic-transfer-train")
+    more = list_sequences("synthetic-transfer-train:300")
+    assert len(specs) == 256 and len(more) == 300 and more[:256] == specs
+    assert get_spec("synthetic-transfer-train:300", 299).name == "synthetic-transfer-train-00299"
+    assert all(spec.factors == "transfer" for spec in more)
+    with pytest.raises(ValueError, match="positive integer"):
+        list_sequences("synthetic-transfer-train:x")
+    with pytest.raises(ValueError, match="synthetic-transfer-train:N"):
+        list_sequences("synthetic-nowhere")
 
 
 def test_same_seed_same_bytes(tmp_path):

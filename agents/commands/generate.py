@@ -23,11 +23,11 @@ import time
 from pathlib import Path
 
 from envs.simulator.export import OUTPUT_FORMATS
-from envs.synthetic import DR_TRAIN, SPLITS, generate_split, list_sequences
+from envs.synthetic import SERIES, SPLITS, generate_split, list_sequences
 
 
 def split_name(text: str) -> str:
-    """argparse type: a known split, or synthetic-dr-train:N."""
+    """argparse type: a known split, or SERIES:N (e.g. synthetic-dr-train:N)."""
     try:
         list_sequences(text)
     except ValueError as err:
@@ -39,7 +39,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         description="Simulate a named synthetic split into files (events, frames, exact flow).",
         epilog="Splits: " + "; ".join(f"{name} ({len(specs)} sequences)" for name, specs in SPLITS.items())
-        + f"; {DR_TRAIN}:N (its first N sequences, any N)",
+        + "; " + ", ".join(f"{name}:N" for name in SERIES) + " (a series' first N sequences, any N)",
     )
     parser.add_argument("--split", required=True, type=split_name, help="which split to generate")
     where = parser.add_mutually_exclusive_group(required=True)

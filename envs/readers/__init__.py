@@ -1,16 +1,29 @@
 """Readers for event recordings: one interface (:class:`EventReader`), one class per format.
 
 ``open_recording(path, format=None, **options)`` opens any supported file (see
-:mod:`envs.readers.detect`). The format modules load on first use: ``envs.h5format`` imports
-this package, and they import ``envs.h5format``.
+:mod:`envs.readers.detect`). The package owns its errors (:class:`FormatError`, in
+:mod:`envs.readers.base`) and the project's own h5 reader and writer (:mod:`envs.readers.h5`);
+it imports nothing of ``envs`` but :mod:`envs.events`, :mod:`envs.outputs` and :mod:`envs.cache`.
 """
 
-from envs.readers.base import ArrayReader, EventReader, FlowGT
+from envs.readers.aedat import AedatReader
+from envs.readers.base import ArrayReader, EventReader, FlowGT, FormatError
+from envs.readers.detect import FORMATS, detect_format, open_recording
+from envs.readers.dsec import DSECReader
+from envs.readers.h5 import H5Reader, H5Writer, write_h5
+from envs.readers.hagenaars import HagenaarsReader
+from envs.readers.mvsec import MVSECReader
+from envs.readers.prophesee import PropheseeDatReader, PropheseeRawReader
+from envs.readers.text import TextReader
 
 __all__ = [
     "ArrayReader",
     "EventReader",
     "FlowGT",
+    "FormatError",
+    "H5Reader",
+    "H5Writer",
+    "write_h5",
     "open_recording",
     "detect_format",
     "FORMATS",
@@ -22,24 +35,3 @@ __all__ = [
     "PropheseeRawReader",
     "PropheseeDatReader",
 ]
-
-_LAZY = {
-    "open_recording": "envs.readers.detect",
-    "detect_format": "envs.readers.detect",
-    "FORMATS": "envs.readers.detect",
-    "MVSECReader": "envs.readers.mvsec",
-    "DSECReader": "envs.readers.dsec",
-    "HagenaarsReader": "envs.readers.hagenaars",
-    "TextReader": "envs.readers.text",
-    "AedatReader": "envs.readers.aedat",
-    "PropheseeRawReader": "envs.readers.prophesee",
-    "PropheseeDatReader": "envs.readers.prophesee",
-}
-
-
-def __getattr__(name):
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'envs.readers' has no attribute {name!r}")

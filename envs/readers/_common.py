@@ -14,7 +14,7 @@ from typing import Callable
 import h5py
 import numpy as np
 
-from envs.h5format import FormatError
+from envs.readers.base import FormatError
 
 __all__ = [
     "KNOWN_SENSORS",

@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from envs.events import EventError, Events
-from envs.h5format import FormatError, H5Reader, H5Writer
 from envs.readers._common import missing_extra
-from envs.readers.base import EventReader, FlowGT
+from envs.readers.base import EventReader, FlowGT, FormatError
+from envs.readers.h5 import H5Reader, H5Writer
 
 __all__ = ["AedatReader", "import_aedat"]
 

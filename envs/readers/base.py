@@ -13,7 +13,12 @@ import numpy as np
 
 from envs.events import Events
 
-__all__ = ["EventReader", "ArrayReader", "FlowGT"]
+__all__ = ["EventReader", "ArrayReader", "FlowGT", "FormatError"]
+
+
+class FormatError(ValueError):
+    """A file that is not in the expected layout; the message names the file and the dataset."""
+
 
 # (flow, valid): flow (2, H, W) float32 pixels of displacement over the interval; valid (H, W) bool.
 FlowGT = tuple[np.ndarray, np.ndarray]

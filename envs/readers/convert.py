@@ -4,7 +4,7 @@ Events are copied ``chunk_events`` at a time (memory stays one chunk deep); grou
 stored for the windows ``[T_k, T_{k+flow_dt})`` of the reader's ``flow_timestamps()`` grid where
 the reader has it (stepping by flow_dt, like the "frames" windows); frames are copied as
 (H, W) uint8. The output is written under a temporary name and renamed at the end
-(:class:`envs.h5format.H5Writer`), so an interrupted conversion leaves no file behind (and a
+(:class:`envs.readers.h5.H5Writer`), so an interrupted conversion leaves no file behind (and a
 killed one's temporary is removed by the next conversion to that name).
 
 Refused before anything is written (:class:`envs.outputs.Output`): an existing output unless
@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from envs.events import Events
-from envs.h5format import H5Writer
 from envs.outputs import Output
 from envs.readers.base import EventReader
+from envs.readers.h5 import H5Writer
 
 __all__ = ["convert_recording"]
 

@@ -1,6 +1,6 @@
 """Open any supported recording: ``open_recording(path, format=None, **options)``.
 
-Formats (``FORMATS``): "evflow-h5" (the project's own, :class:`envs.h5format.H5Reader`), "mvsec",
+Formats (``FORMATS``): "evflow-h5" (the project's own, :class:`envs.readers.h5.H5Reader`), "mvsec",
 "dsec", "hagenaars", "ecd-text", "aedat4", "prophesee-raw", "prophesee-dat". Without ``format`` it is
 detected from the file:
 
@@ -22,15 +22,20 @@ one option serves a list of recordings in several formats.
 
 from __future__ import annotations
 
-import importlib
 import os
 import warnings
 from pathlib import Path
 
 import h5py
 
-from envs.h5format import FORMAT_NAME, FormatError, H5Reader
-from envs.readers.base import EventReader
+from envs.readers.aedat import AedatReader
+from envs.readers.base import EventReader, FormatError
+from envs.readers.dsec import DSECReader
+from envs.readers.h5 import FORMAT_NAME, H5Reader
+from envs.readers.hagenaars import HagenaarsReader
+from envs.readers.mvsec import MVSECReader
+from envs.readers.prophesee import PropheseeDatReader, PropheseeRawReader
+from envs.readers.text import TextReader
 
 __all__ = ["open_recording", "detect_format", "FORMATS", "GEOMETRY_OPTIONAL"]
 
@@ -126,15 +131,16 @@ def detect_format(path: str | os.PathLike) -> tuple[Path, str]:
     raise FormatError(f"{path}: cannot tell the format; pass format= one of {FORMATS}")
 
 
-#: format -> (module, reader class) of every format but the project's own
-_READERS = {
-    "mvsec": ("envs.readers.mvsec", "MVSECReader"),
-    "dsec": ("envs.readers.dsec", "DSECReader"),
-    "hagenaars": ("envs.readers.hagenaars", "HagenaarsReader"),
-    "ecd-text": ("envs.readers.text", "TextReader"),
-    "aedat4": ("envs.readers.aedat", "AedatReader"),
-    "prophesee-raw": ("envs.readers.prophesee", "PropheseeRawReader"),
-    "prophesee-dat": ("envs.readers.prophesee", "PropheseeDatReader"),
+#: format -> reader class of every format but the project's own (each reader imports its optional
+#: extras, aedat or hdf5plugin, only when a file needs them)
+_READERS: dict[str, type[EventReader]] = {
+    "mvsec": MVSECReader,
+    "dsec": DSECReader,
+    "hagenaars": HagenaarsReader,
+    "ecd-text": TextReader,
+    "aedat4": AedatReader,
+    "prophesee-raw": PropheseeRawReader,
+    "prophesee-dat": PropheseeDatReader,
 }
 
 
@@ -154,8 +160,7 @@ def open_recording(path: str | os.PathLike, format: str | None = None, **options
     if format == "evflow-h5":
         reader = H5Reader(path, **options)
     else:
-        module, name = _READERS[format]  # imported on use: each reader's dependencies load only when needed
-        reader = getattr(importlib.import_module(module), name)(path, **options)
+        reader = _READERS[format](path, **options)
     if size is not None and not taken and not isinstance(size, str) and tuple(size) != tuple(reader.sensor_size):
         warnings.warn(f"{path}: a {format} file stores its sensor size, {reader.sensor_size[0]}x{reader.sensor_size[1]} "
                       f"(height x width), which it keeps; the sensor size given ({size[0]}x{size[1]}) is for files "

@@ -32,10 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from envs.events import Events
-from envs.h5format import FormatError
 from envs.readers._common import SortedColumn, missing_extra, nonbuiltin_filters, open_h5, require
-from envs.readers.base import EventReader, FlowGT
-from envs.readers.png16 import png_size, read_png
+from envs.readers.base import EventReader, FlowGT, FormatError
+from envs.readers.png16 import png_size, read_png, write_png
 
 __all__ = ["DSECReader", "DSEC_SENSOR_SIZE", "decode_flow_png", "encode_flow_png", "read_test_timestamps",
            "require_hdf5plugin"]
@@ -71,8 +70,6 @@ def decode_flow_png(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
 def encode_flow_png(path: str | os.PathLike, flow: np.ndarray, valid: np.ndarray, *, filters=0) -> None:
     """Inverse of :func:`decode_flow_png` (tests, converters): flow (2, H, W) px, valid (H, W)."""
-    from envs.readers.png16 import write_png
-
     rgb = np.zeros(flow.shape[1:] + (3,), np.uint16)
     rgb[:, :, 0] = np.clip(np.rint(flow[0] * 128.0 + 2**15), 0, 65535)
     rgb[:, :, 1] = np.clip(np.rint(flow[1] * 128.0 + 2**15), 0, 65535)

@@ -38,9 +38,8 @@ import h5py
 import numpy as np
 
 from envs.events import Events
-from envs.h5format import FormatError
 from envs.readers._common import SortedColumn, check_finite, open_h5, require, seconds_to_us
-from envs.readers.base import EventReader, FlowGT
+from envs.readers.base import EventReader, FlowGT, FormatError
 from envs.readers.flowgt import flow_from_displacements, valid_of
 
 __all__ = ["HagenaarsReader", "FLOW_GROUPS"]

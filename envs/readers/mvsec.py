@@ -47,7 +47,6 @@ from typing import Literal
 import numpy as np
 
 from envs.events import Events
-from envs.h5format import FormatError
 from envs.readers._common import (
     SortedColumn,
     check_finite,
@@ -58,7 +57,7 @@ from envs.readers._common import (
     resolve_crop,
     seconds_to_us,
 )
-from envs.readers.base import EventReader, FlowGT
+from envs.readers.base import EventReader, FlowGT, FormatError
 from envs.readers.flowgt import flow_from_displacements, valid_of
 
 __all__ = [

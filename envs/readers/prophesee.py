@@ -59,10 +59,10 @@ from typing import Literal
 
 import numpy as np
 
+from envs.cache import cache_root
 from envs.events import MAX_SENSOR_SIDE, MAX_SPAN_US, Events
-from envs.h5format import FormatError
 from envs.readers._common import SENSOR_SIZE_HINT, auto_sensor_size
-from envs.readers.base import EventReader
+from envs.readers.base import EventReader, FormatError
 
 __all__ = ["RawHeader", "read_raw_header", "PropheseeRawReader", "PropheseeDatReader", "RAW_FORMATS",
            "DAT_EVENT_TYPES"]
@@ -406,8 +406,6 @@ def _given_or_header(path: Path, given, header: tuple[int, int] | None, lacking:
 def _index_root(index_dir) -> Path | None:
     if index_dir is not None:
         return Path(index_dir)
-    from envs.synthetic import cache_root
-
     root = cache_root()
     return None if root is None else root / "prophesee-index"
 

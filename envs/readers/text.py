@@ -33,9 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from envs.events import MAX_SENSOR_SIDE, MAX_SPAN_US, Events
-from envs.h5format import FormatError
 from envs.readers._common import auto_sensor_size, check_finite, check_pixel_coordinates
-from envs.readers.base import EventReader
+from envs.readers.base import EventReader, FormatError
 
 __all__ = ["TextReader", "ECD_SENSOR_SIZE"]
 

@@ -11,6 +11,16 @@ factors by values the training ranges never reach:
 - ``noise``: background activity of 3-6 Hz per pixel (training: at most 2 Hz);
 - ``size``: a 480x640 sensor (training: at most 260x346).
 
+``TRANSFER_FACTORS`` (split ``synthetic-transfer-train``) is a training distribution meant to
+carry over to recordings the project did not make: the training ranges with surfaces textured
+inside (the ``natural`` family, three draws in ten), cameras slower at the low end (0.1 px per
+frame), and sensor settings over the ranges reported for DAVIS346 and Prophesee Gen3/Gen4
+sensors (contrast thresholds 0.12-0.5 in log units, i.e. 13-65 % contrast; per-pixel threshold
+spread 5-20 % of it; background activity 0.01-1 Hz per pixel; up to 10 hot pixels).
+``TRAFFIC_FACTORS`` (held-out split ``synthetic-traffic``) looks like a street seen by a fixed
+DAVIS346: a still camera, 1-4 moving objects, most of them small, background activity of
+0.1-1 Hz per pixel and 2-12 hot pixels: where a network must not put flow on the noise.
+
 Speeds are peak displacements of any visible point of a layer over one frame interval
 (``1 / fps``), measured on the drawn motion (:func:`peak_flow_px`) and met by rescaling it,
 so a bound holds for the sequence as drawn, not only on average.
@@ -30,7 +40,18 @@ from envs.simulator.motion import AffineMotion
 from envs.simulator.scene import ObjectSpec, SceneConfig, SensorConfig, _next_pow2, random_shape
 from envs.simulator.textures import TextureConfig
 
-__all__ = ["FactorRanges", "TRAIN_FACTORS", "STRESS_FACTORS", "RANDOMIZED_VERSION", "draw_scene", "draw_size", "peak_flow_px"]
+__all__ = [
+    "FactorRanges",
+    "TRAIN_FACTORS",
+    "STRESS_FACTORS",
+    "TRANSFER_FACTORS",
+    "TRAFFIC_FACTORS",
+    "FACTOR_SETS",
+    "RANDOMIZED_VERSION",
+    "draw_scene",
+    "draw_size",
+    "peak_flow_px",
+]
 
 # Bump whenever a change alters a randomised sequence for a given seed (the draws here, or the
 # sensor effects only these splits use): it enters their cache keys, which SIMULATOR_VERSION
@@ -45,7 +66,8 @@ class FactorRanges:
     """Where each factor is drawn from (uniform unless "log-uniform" is said).
 
     sizes: (height, width) sensor sizes, one picked uniformly.
-    families: texture families for the background and the objects.
+    families: texture families for the background and the objects, one drawn uniformly (a
+        family listed twice is drawn twice as often).
     contrast: a layer's log-intensity range, log-uniform (0.1 = 1.1:1, 4.5 = 90:1).
     brightness: a layer's top log intensity (0.8 is white in the frames).
     static_camera: probability of a still camera (then the background is a flat or dark
@@ -102,6 +124,32 @@ STRESS_FACTORS: dict[str, FactorRanges] = {
     "noise": dataclasses.replace(TRAIN_FACTORS, noise_hz=(3.0, 6.0)),
     "size": dataclasses.replace(TRAIN_FACTORS, sizes=((480, 640),)),
 }
+
+TRANSFER_FACTORS = dataclasses.replace(
+    TRAIN_FACTORS,
+    families=("natural", "natural", "natural", "dead_leaves", "noise", "edges", "lines", "checker", "glyphs", "gradient", "flat"),
+    camera_flow_px=(0.1, 15.0),
+    threshold=(0.12, 0.5),
+    threshold_spread=(0.05, 0.2),
+    noise_hz=(0.01, 1.0),
+    hot_pixels=(0, 10),
+)
+
+TRAFFIC_FACTORS = dataclasses.replace(
+    TRAIN_FACTORS,
+    sizes=((180, 240), (260, 346)),
+    families=("natural", "dead_leaves", "flat"),
+    static_camera=1.0,
+    num_objects=(1, 4),
+    object_flow_px=(0.5, 8.0),
+    small_object=0.6,
+    noise_hz=(0.1, 1.0),
+    hot_pixels=(2, 12),
+    hot_pixel_hz=(20.0, 300.0),
+)
+
+#: every named set of factor ranges (the ``factors`` of a randomised sequence)
+FACTOR_SETS: dict[str, FactorRanges] = {"train": TRAIN_FACTORS, "transfer": TRANSFER_FACTORS, "traffic": TRAFFIC_FACTORS, **STRESS_FACTORS}
 
 
 def draw_size(seed: int, factors: FactorRanges) -> tuple[int, int]:

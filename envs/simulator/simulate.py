@@ -17,6 +17,7 @@ import numpy as np
 
 from envs.events import Events
 from envs.readers.base import ArrayReader, FlowGT
+from envs.readers.h5 import H5Writer
 from envs.simulator.emulator import EventEmulator
 from envs.simulator.scene import Scene, SceneConfig
 
@@ -89,11 +90,9 @@ class SimulatedSequence:
         )
 
     def to_h5(self, path: str | Path, *, name: str = "synthetic", provenance: dict | None = None) -> Path:
-        """Write a project h5 file (envs.h5format): the events, the frames, and the exact flow
+        """Write a project h5 file (envs.readers.h5): the events, the frames, and the exact flow
         between consecutive frames (the ground-truth grid). ``provenance`` is added to the
         scene config and simulator version."""
-        from envs.h5format import H5Writer
-
         info = {"simulator_version": SIMULATOR_VERSION, "scene_config": self.config.to_dict()}
         info.update(provenance or {})
         with H5Writer(path, self.sensor_size, name=name, provenance=info, t_start_us=0, t_end_us=self.duration_us) as writer:

@@ -14,8 +14,12 @@ Other families (``TextureConfig.family``; the domain-randomised splits draw them
 around one orientation), ``lines`` (thin oriented lines on a plain ground), ``checker``
 (square cells, each its own level), ``glyphs`` (rows of random 3x5 stroke glyphs, text-like),
 ``gradient`` (very smooth, ``1/f^3``), ``flat`` (one level: a blank wall or a dark ground),
-``dots`` (sparse discs on a plain ground) and ``plaid`` (two sine gratings). Each draws a
-pattern in [0, 1] that is mapped onto [log_min, log_max]; shading and blur follow as above.
+``dots`` (sparse discs on a plain ground), ``plaid`` (two sine gratings) and ``natural``
+(textured dead leaves: the r^-3 leaves above, each showing its own amount of a shared
+``1/f^exponent`` noise, so that surfaces are textured inside as well as at their edges, like
+grass, gravel or foliage in photographs, whose amplitude spectra fall as ~1/f and whose
+gradients are heavy-tailed). Each draws a pattern in [0, 1] that is mapped
+onto [log_min, log_max]; shading and blur follow as above.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ import numpy as np
 
 __all__ = ["TextureConfig", "TextureFamily", "PeriodicTexture", "dead_leaves", "make_texture", "sample_wrapped"]
 
-TextureFamily = Literal["dead_leaves", "noise", "edges", "lines", "checker", "glyphs", "gradient", "flat", "dots", "plaid"]
+TextureFamily = Literal["dead_leaves", "noise", "edges", "lines", "checker", "glyphs", "gradient", "flat", "dots", "plaid", "natural"]
 
 
 @dataclass(frozen=True)
@@ -39,11 +43,13 @@ class TextureConfig:
     coverage: expected number of leaves covering a point (4 leaves: 98 % covered).
     shading: standard deviation of the low-frequency shading field, log units.
     blur_sigma: Gaussian anti-aliasing blur, texture pixels.
-    family: the pattern (module docstring); r_min, r_max and coverage apply to dead leaves.
+    family: the pattern (module docstring); r_min, r_max and coverage apply to dead leaves
+        (``dead_leaves`` and ``natural``).
     scale: the other families' feature size, texture pixels (bar width, line spacing, cell,
         glyph stroke x 4, dot radius x 2, grating period / 2).
     orientation, orientation_spread: edges' and lines' mean angle and its normal spread, rad.
-    exponent: the amplitude-spectrum exponent of ``noise`` (1 = natural-image-like).
+    exponent: the amplitude-spectrum exponent of ``noise`` and of ``natural``'s leaf texture
+        (1 = natural-image-like).
     """
 
     r_min: float = 2.0
@@ -70,11 +76,12 @@ def _leaf_radii(rng: np.random.Generator, n: int, r_min: float, r_max: float) ->
     return (a - rng.random(n) * (a - b)) ** -0.5
 
 
-def dead_leaves(rng: np.random.Generator, size: int, config: TextureConfig = TextureConfig()) -> np.ndarray:
-    """A periodic dead-leaves image: (size, size) float32 log intensities, size a power of two.
+def _leaf_owner(rng: np.random.Generator, size: int, config: TextureConfig) -> tuple[np.ndarray, int]:
+    """Dead leaves dropped on a periodic (size, size) canvas: (size * size,) int64, the index of
+    the top leaf at each pixel (-1: none), and the number of leaves n.
 
-    Leaves are painted back to front (leaf i+1 covers leaf i): every pixel takes the value of
-    the highest-numbered leaf covering it, found with one ``np.maximum.at`` per radius class.
+    Leaves are painted back to front (leaf i+1 covers leaf i): every pixel takes the
+    highest-numbered leaf covering it, found with one ``np.maximum.at`` per radius class.
     """
     if size & (size - 1):
         raise ValueError(f"texture size must be a power of two, got {size}")
@@ -84,7 +91,6 @@ def dead_leaves(rng: np.random.Generator, size: int, config: TextureConfig = Tex
     n = int(np.ceil(config.coverage * size * size / (np.pi * mean_r2)))
     radii = _leaf_radii(rng, n, r_min, r_max)
     cx, cy = rng.uniform(0, size, (2, n))
-    values = rng.uniform(config.log_min, config.log_max, n).astype(np.float32)
 
     owner = np.full(size * size, -1, np.int64)
     half = np.ceil(radii).astype(np.int64)
@@ -101,6 +107,14 @@ def dead_leaves(rng: np.random.Generator, size: int, config: TextureConfig = Tex
             inside = (px - cx[ids, None]) ** 2 + (py - cy[ids, None]) ** 2 <= radii[ids, None] ** 2
             flat = ((py & mask) * size + (px & mask))[inside]
             np.maximum.at(owner, flat, np.broadcast_to(ids[:, None], inside.shape)[inside])
+    return owner, n
+
+
+def dead_leaves(rng: np.random.Generator, size: int, config: TextureConfig = TextureConfig()) -> np.ndarray:
+    """A periodic dead-leaves image: (size, size) float32 log intensities, size a power of two,
+    each leaf one uniform random level in [log_min, log_max]."""
+    owner, n = _leaf_owner(rng, size, config)
+    values = rng.uniform(config.log_min, config.log_max, n).astype(np.float32)
     background = np.float32(0.5 * (config.log_min + config.log_max))
     image = np.where(owner >= 0, values[np.maximum(owner, 0)], background)
     return image.reshape(size, size).astype(np.float32)
@@ -204,6 +218,28 @@ def _spectral(rng: np.random.Generator, size: int, exponent: float) -> np.ndarra
     return np.clip((field - low) / max(high - low, 1e-12), 0.0, 1.0)
 
 
+def _spectral_field(rng: np.random.Generator, size: int, exponent: float) -> np.ndarray:
+    """Periodic Gaussian noise with a 1/f^exponent amplitude spectrum, zero mean, unit std."""
+    f = np.sqrt(np.fft.fftfreq(size)[:, None] ** 2 + np.fft.rfftfreq(size)[None, :] ** 2)
+    f[0, 0] = np.inf
+    field = np.fft.irfft2(np.fft.rfft2(rng.standard_normal((size, size))) * f**-exponent, s=(size, size))
+    return field / max(float(field.std()), 1e-12)
+
+
+def _natural(rng, size, config):
+    """Textured dead leaves (module docstring): leaf levels uniform in [0, 1], each leaf showing
+    a shared 1/f^exponent field (unit std) at its own strength, uniform in [0, 0.35]; the 1st to
+    99th percentiles mapped onto [0, 1] (clipped). At blur 0 the power spectrum falls as
+    ~f^-2.3 and the horizontal gradients' kurtosis is ~8 (tests/test_simulator_factors.py)."""
+    owner, n = _leaf_owner(rng, size, config)
+    levels = rng.random(n + 1)
+    strength = 0.35 * rng.random(n + 1)
+    top = owner.reshape(size, size)  # -1 (uncovered) picks the extra entry n
+    pattern = levels[top] + strength[top] * _spectral_field(rng, size, config.exponent)
+    low, high = np.percentile(pattern, [1.0, 99.0])
+    return np.clip((pattern - low) / max(high - low, 1e-12), 0.0, 1.0)
+
+
 def _noise(rng, size, config):
     return _spectral(rng, size, config.exponent)
 
@@ -279,6 +315,7 @@ _PATTERNS = {
     "flat": _flat,
     "dots": _dots,
     "plaid": _plaid,
+    "natural": _natural,
 }
 
 

@@ -1,0 +1,104 @@
+"""envs/readers/ imports one way: each of its modules imports first in a fresh interpreter, none
+reaches into the simulator (envs.synthetic, envs.simulator), and none hides a cycle behind an
+import inside a function or a module ``__getattr__``. Also envs/cache.py (the cache root the
+simulated sequences and the Prophesee indexes share) and the earlier names kept importable."""
+
+from __future__ import annotations
+
+import ast
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+READERS = ROOT / "envs" / "readers"
+READER_FILES = sorted(READERS.glob("*.py"))
+#: what a reader must not import: the simulator and the synthetic benchmark built on it
+FORBIDDEN = ("envs.synthetic", "envs.simulator")
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path) -> list[tuple[str, int, bool]]:
+    """(imported module, line, at module level) for every import in the file, wherever it sits,
+    and every ``importlib.import_module("...")`` / ``__import__("...")`` of a constant name."""
+    tree = ast.parse(path.read_text(), str(path))
+    top = {id(node) for node in tree.body}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(alias.name, node.lineno, id(node) in top) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.append((node.module, node.lineno, id(node) in top))
+        elif (isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant)
+              and isinstance(node.args[0].value, str)
+              and (getattr(node.func, "attr", None) == "import_module" or getattr(node.func, "id", None) == "__import__")):
+            found.append((node.args[0].value, node.lineno, False))
+    return found
+
+
+@pytest.mark.parametrize("path", READER_FILES, ids=lambda p: p.name)
+def test_each_reader_module_imports_first_in_a_fresh_interpreter(path):
+    """Imported before anything else of ours, so no module of the package leans on another
+    having been imported first (a cycle shows as an ImportError on a partial module)."""
+    module = _module_name(path)
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    done = subprocess.run([sys.executable, "-c", f"import {module}"], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, f"import {module} first failed:\n{done.stderr}"
+
+
+@pytest.mark.parametrize("path", READER_FILES, ids=lambda p: p.name)
+def test_no_reader_imports_the_simulator(path):
+    bad = [f"line {line}: {name}" for name, line, _ in _imports(path)
+           if any(name == f or name.startswith(f + ".") for f in FORBIDDEN)]
+    assert not bad, f"{path.relative_to(ROOT)} imports the simulator side ({', '.join(bad)}); readers sit below it"
+
+
+@pytest.mark.parametrize("path", READER_FILES, ids=lambda p: p.name)
+def test_readers_import_our_modules_at_module_level_only(path):
+    """An import of ours inside a function is how a cycle hides; only optional third-party
+    extras (aedat, hdf5plugin, PIL, tqdm) are imported where a file needs them."""
+    late = [f"line {line}: {name}" for name, line, top in _imports(path)
+            if not top and (name == "envs" or name.startswith("envs.") or name in ("losses", "agents"))]
+    assert not late, f"{path.relative_to(ROOT)} imports modules of ours inside a function: {', '.join(late)}"
+
+
+def test_the_readers_package_has_no_lazy_attributes():
+    tree = ast.parse((READERS / "__init__.py").read_text())
+    names = {node.name for node in tree.body if isinstance(node, ast.FunctionDef)}
+    assert "__getattr__" not in names
+
+
+def test_earlier_names_are_the_same_objects():
+    import envs.h5format
+    import envs.readers
+    import envs.readers.base
+    import envs.readers.h5
+    import envs.synthetic
+    from envs.cache import cache_root
+
+    for name in ("H5Reader", "H5Writer", "write_h5"):
+        assert getattr(envs.h5format, name) is getattr(envs.readers.h5, name) is getattr(envs.readers, name)
+    assert envs.h5format.FORMAT_NAME == envs.readers.h5.FORMAT_NAME
+    assert envs.h5format.FormatError is envs.readers.base.FormatError is envs.readers.FormatError
+    assert envs.synthetic.cache_root is cache_root
+
+
+def test_cache_root_follows_evflow_cache(monkeypatch, tmp_path):
+    from envs.cache import cache_root
+
+    monkeypatch.setenv("EVFLOW_CACHE", str(tmp_path))
+    assert cache_root() == tmp_path
+    for off in ("off", "OFF", "0", "none", "", " "):
+        monkeypatch.setenv("EVFLOW_CACHE", off)
+        assert cache_root() is None
+    monkeypatch.delenv("EVFLOW_CACHE")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert cache_root() == tmp_path / "home" / ".cache" / "evflow"
