@@ -6,7 +6,7 @@ events come as a padded :class:`EventBatch`.
 """
 
 from .average_timestamp import average_timestamp_loss
-from .contrast import contrast_maximisation_flow
+from .contrast import CMAX_WEIGHTS, contrast_maximisation_flow
 from .event_count import event_count_loss
 from .events import EventBatch
 from .hmc import (
@@ -41,15 +41,20 @@ from .sampling import sample_flow
 from .smoothness import charbonnier_smoothness, event_pixel_mask
 from .splat import bilinear_splat, crop_padding, padded_corners, splat_rows
 from .warp import forward_warp_flow, warp_events
+from .window import LOSS_NAMES, window_loss, zero_flow_loss
 
 __all__ = [
     "contrast_maximisation_flow",
+    "CMAX_WEIGHTS",
     "cpu_kernels",
     "cpu_kernels_enabled",
     "set_cpu_kernels",
     "EventBatch",
     "LossOutput",
     "LossWeights",
+    "window_loss",
+    "zero_flow_loss",
+    "LOSS_NAMES",
     "border_rule_weight",
     "hmc_loss",
     "at_loss",

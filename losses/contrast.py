@@ -15,15 +15,21 @@ these flows (an unsupervised recipe: the teacher sees only the events).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Sequence
 
 import torch
 import torch.nn.functional as F
 
 from .events import EventBatch
-from .hmc import BORDER_RAMP, border_rule_weight, hmc_loss
+from .hmc import LossWeights
+from .window import window_loss, zero_flow_loss
 
-__all__ = ["contrast_maximisation_flow"]
+__all__ = ["contrast_maximisation_flow", "CMAX_WEIGHTS"]
+
+#: The solver's weights: the env's reward but for a stronger smoothness term, which regularises
+#: the coarse grid of flow vectors.
+CMAX_WEIGHTS = LossWeights(lambda_2=1e-2)
 
 
 def contrast_maximisation_flow(
@@ -35,11 +41,7 @@ def contrast_maximisation_flow(
     steps: int | Sequence[int] = 40,
     lr: float = 0.05,
     flow_scaling: float | None = None,
-    lambda_1: float = 1.0,
-    lambda_2: float = 1e-2,
-    alpha: float = 0.6,
-    border_penalty: float | torch.Tensor = 1.0,
-    border_ramp: float = BORDER_RAMP,
+    weights: LossWeights = CMAX_WEIGHTS,
     return_coarse: bool = False,
     sensor_scales: Sequence[int] | None = None,
     lr_decay: float = 1.0,
@@ -51,9 +53,8 @@ def contrast_maximisation_flow(
     events: EventBatch of B windows (tau in [0, 1]). grids: the coarse-to-fine levels, the
     number of cells along the longer image side (the other side in proportion, at least 1).
     steps: Adam steps per level (one int for all, or one per level), lr: its step size in
-    pixels. The loss is ``hmc_loss`` with the given weights; ``border_penalty`` as there, a float
-    multiplies each window's zero-flow loss (the env's border rule), ``border_ramp`` its ramp in
-    pixels. Returns a detached tensor on the events' device, float32; with ``return_coarse``
+    pixels. The loss is ``window_loss`` (L_HMC) with ``weights``, border rule included (default
+    :data:`CMAX_WEIGHTS`). Returns a detached tensor on the events' device, float32; with ``return_coarse``
     the last level's (B, 2, gh, gw) grid instead (the flow is its bilinear upsampling,
     align_corners=False).
 
@@ -74,7 +75,6 @@ def contrast_maximisation_flow(
     device = events.x.device
     B = events.x.shape[0]
     scaling = float(max(height, width)) if flow_scaling is None else float(flow_scaling)
-    weights = dict(lambda_1=lambda_1, lambda_2=lambda_2, alpha=alpha)
     scales = [1] * len(grids) if sensor_scales is None else [int(s) for s in sensor_scales]
     per_level = [int(steps)] * len(grids) if isinstance(steps, int) else [int(k) for k in steps]
     if len(scales) != len(grids) or len(per_level) != len(grids) or min(scales, default=1) < 1:
@@ -97,11 +97,12 @@ def contrast_maximisation_flow(
             else:
                 init = F.interpolate(coarse, size=(gh, gw), mode="bilinear", align_corners=False)
             level_events, (hs, ws) = _coarsen(events, scale), (-(-height // scale), -(-width // scale))
-            level = dict(flow_scaling=scaling / scale, **weights)
-            penalty = border_penalty
-            if not isinstance(border_penalty, torch.Tensor):
-                penalty = border_rule_weight(hmc_loss, torch.zeros(B, 2, hs, ws, device=device), level_events,
-                                             float(border_penalty), **level)
+            # the sensor grid s times coarser: flows, the flow scaling and the ramp in its pixels
+            level = dict(weights=dataclasses.replace(weights, border_ramp=weights.border_ramp / scale),
+                         flow_scaling=scaling / scale)
+            zero = None
+            if weights.border_penalty:  # the border rule's reference, once per level
+                zero = zero_flow_loss(torch.zeros(B, 2, hs, ws, device=device), level_events, **level).per_sample
             offset = None
             if base is not None:
                 offset = base.float() if scale == 1 else F.interpolate(base.float(), size=(hs, ws), mode="area")
@@ -114,8 +115,7 @@ def contrast_maximisation_flow(
                 flow = F.interpolate(param, size=(hs, ws), mode="bilinear", align_corners=False) / scale
                 if offset is not None:
                     flow = flow + offset
-                loss = hmc_loss(flow, level_events, border_penalty=penalty, border_ramp=border_ramp / scale,
-                                **level).per_sample.sum()
+                loss = window_loss(flow, level_events, zero_flow=zero, **level).per_sample.sum()
                 if prior_weight:
                     loss = loss + prior_weight * (param / scaling).pow(2).sum(1).mean(dim=(1, 2)).sum()
                 optimizer.zero_grad(set_to_none=True)

@@ -52,7 +52,10 @@ FlowInput = torch.Tensor | Sequence[torch.Tensor]
 
 @dataclass(frozen=True)
 class LossWeights:
-    """The weights of L_HMC (eq. 17) and of the border rule (docs/method.md, "Losses")."""
+    """The weights of L_HMC (eq. 17) and of the border rule (docs/method.md, "Losses").
+
+    The defaults are the env's reward: the paper's lambda_1, lambda_2 and alpha, with the
+    project's border rule on. Every other default of these weights is read from here."""
 
     lambda_1: float = 1.0
     """weight of the event-count term L_EC"""
@@ -253,9 +256,9 @@ def hmc_loss(
     events: EventBatch,
     *,
     flow_scaling: float | None = None,
-    lambda_1: float = 1.0,
-    lambda_2: float = 1e-3,
-    alpha: float = 0.6,
+    lambda_1: float = LossWeights.lambda_1,
+    lambda_2: float = LossWeights.lambda_2,
+    alpha: float = LossWeights.alpha,
     border_penalty: float | torch.Tensor = 0.0,
     border_ramp: float = 0.0,
     upsampling: Upsampling = "bilinear",
@@ -268,7 +271,7 @@ def hmc_loss(
         or a list of such tensors at several resolutions (see ``to_full_resolution``).
     events: EventBatch of B windows (x, y pixels; tau in [0, 1]; padded with mask).
     flow_scaling: pixels per network unit for the smoothness term; default max(H, W).
-    lambda_1 = 1, lambda_2 = 1e-3, alpha = 0.6: paper values. border_penalty: 0 (paper), or the
+    lambda_1, lambda_2, alpha: defaults from :class:`LossWeights` (the paper's). border_penalty: 0 (paper), or the
     weight (float, or (B,) tensor per window) of ``sum_s (1 - kept_s)`` (see the module doc).
     border_ramp: pixels; > 0 charges each event's dropped share times ``min(1, d / border_ramp)``,
     d = how far beyond the image it lands (``ramped_dropped_share``); 0: the plain share.
@@ -293,7 +296,7 @@ def at_loss(
     events: EventBatch,
     *,
     flow_scaling: float | None = None,
-    lambda_2: float = 1e-3,
+    lambda_2: float = LossWeights.lambda_2,
     border_penalty: float | torch.Tensor = 0.0,
     border_ramp: float = 0.0,
     upsampling: Upsampling = "bilinear",
@@ -301,9 +304,9 @@ def at_loss(
     at_normalisation: AtNormalisation = "event_pixels",
 ) -> LossOutput:
     """Baseline loss "L_AT": ``L_AT(0) + L_AT(1) + lambda_2 L_smooth`` (same args as hmc_loss).
-    ``components["ec"]`` is still reported (detached, alpha = 0.6) for logging."""
-    return _per_window(flow, events, flow_scaling, 1.0, lambda_2, 0.6, border_penalty, False,
-                       border_ramp, upsampling, reference_times, at_normalisation)
+    ``components["ec"]`` is still reported (detached, the default alpha) for logging."""
+    return _per_window(flow, events, flow_scaling, LossWeights.lambda_1, lambda_2, LossWeights.alpha, border_penalty,
+                       False, border_ramp, upsampling, reference_times, at_normalisation)
 
 
 def accumulated_hmc_loss(
@@ -311,9 +314,9 @@ def accumulated_hmc_loss(
     events_list: Sequence[EventBatch],
     *,
     flow_scaling: float | None = None,
-    lambda_1: float = 1.0,
-    lambda_2: float = 1e-3,
-    alpha: float = 0.6,
+    lambda_1: float = LossWeights.lambda_1,
+    lambda_2: float = LossWeights.lambda_2,
+    alpha: float = LossWeights.alpha,
     border_penalty: float | torch.Tensor = 0.0,
     outside_weight: float | torch.Tensor = 0.0,
     border_ramp: float = 0.0,

@@ -12,6 +12,7 @@ import torch
 
 from losses import (
     EventBatch,
+    LossWeights,
     accumulated_hmc_loss,
     at_loss,
     bilinear_splat,
@@ -23,6 +24,8 @@ from losses import (
     smoothness,
     warp,
     warped_event_images,
+    window_loss,
+    zero_flow_loss,
 )
 
 RTOL = 1e-6
@@ -591,6 +594,32 @@ def test_event_count_loss_zero_for_empty_window(backend):
     assert torch.all(out.components["smooth"] == 0)
     assert torch.all(out.components["kept"] == 1)
     assert out.loss.item() == 0.0
+
+
+@pytest.mark.parametrize("loss, fn", [("hmc", hmc_loss), ("at", at_loss)])
+def test_window_loss_is_the_weighted_loss_plus_the_border_rule(loss, fn):
+    """window_loss = the loss with the weights, plus border_penalty x each window's zero-flow loss
+    x its charge; zero_flow_loss is window_loss of zero flow (the rule charges zero flow nothing);
+    a zero-flow loss handed in is the one computed; a batch gives each window its loss alone."""
+    a, (H, W) = translating_dots((12.0, 6.0))
+    b, _ = translating_dots((-5.0, 3.0), per_dot=40, seed=1)  # fewer events: the batch pads it
+    ev = EventBatch.from_windows([a, b], dtype=torch.float64)
+    weights = LossWeights(lambda_1=0.8, lambda_2=0.01, alpha=0.5, border_penalty=0.7, border_ramp=4.0)
+    flow = torch.randn(2, 2, H, W, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    flow[1] += 20.0  # the second window's events leave the frame
+    zero = fn(torch.zeros_like(flow), ev, **weights.of(loss)).per_sample
+    expected = fn(flow, ev, border_penalty=0.7 * zero, **weights.of(loss)).per_sample
+    out = window_loss(flow, ev, weights, loss=loss)
+    torch.testing.assert_close(out.per_sample, expected)
+    assert out.per_sample[1] > fn(flow, ev, **weights.of(loss)).per_sample[1] + 0.1 * zero[1]  # the rule charged
+    torch.testing.assert_close(zero_flow_loss(flow, ev, weights, loss=loss).per_sample, zero)
+    torch.testing.assert_close(window_loss(torch.zeros_like(flow), ev, weights, loss=loss).per_sample, zero)
+    torch.testing.assert_close(window_loss(flow, ev, weights, loss=loss, zero_flow=zero).per_sample, expected)
+    for i, window in enumerate((a, b)):
+        alone = window_loss(flow[i : i + 1], EventBatch.from_windows([window], dtype=torch.float64), weights, loss=loss)
+        torch.testing.assert_close(alone.per_sample, expected[i : i + 1])
+    with pytest.raises(ValueError, match=r"loss must be one of \('hmc', 'at'\), got 'l1'"):
+        window_loss(flow, ev, loss="l1")
 
 
 def test_kept_share_and_border_penalty_expose_the_border_hole(backend):

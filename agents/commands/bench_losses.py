@@ -20,7 +20,7 @@ import time
 
 import torch
 
-from losses import EventBatch, hmc_loss
+from losses import EventBatch, LossWeights, hmc_loss
 
 SECTION = "losses"
 CONFIGS = [  # (name, batch, events per window, height, width)
@@ -72,7 +72,7 @@ def _naive_scatter(flat, w, H, W):
     return img.scatter_add_(1, flat, w)
 
 
-def naive_hmc_loss(flow, ev, lambda_1=1.0, lambda_2=1e-3, alpha=0.6):
+def naive_hmc_loss(flow, ev, lambda_1=LossWeights.lambda_1, lambda_2=LossWeights.lambda_2, alpha=LossWeights.alpha):
     """L_HMC the straightforward way; integer event coordinates (flow gathered at the pixel)."""
     B, _, H, W = flow.shape
     flat_ev = (ev.y * W + ev.x).long()  # (B, N)
