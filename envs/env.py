@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import multiprocessing
-from collections.abc import Mapping
-from typing import Any, Iterator, Sequence
+from typing import Any, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -14,12 +13,12 @@ from gymnasium import spaces
 from envs.dataset import resolve_data
 from envs.events import Events
 from envs.readers._common import check_flow_gt, resolve_crop
-from envs.representations import IMAGE_INPUTS, EventView, count_image, image_input
+from envs.representations import IMAGE_INPUTS, count_image, image_input
 from envs.visualize import count_image_to_rgb, flow_to_rgb
-from envs.windows import WINDOW_MODES, window_bounds, window_grid
-from losses import BORDER_RAMP, EventBatch, LossWeights, at_loss, border_rule_weight, check_border_ramp, hmc_loss
+from envs.windows import WINDOW_MODES, Window, window_bounds, window_grid
+from losses import LOSS_NAMES, LossWeights, check_border_ramp, window_loss
 
-__all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "WindowEvents", "score_flow", "NoWindowsError"]
+__all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "Window", "NoWindowsError"]
 
 
 class NoWindowsError(ValueError):
@@ -29,30 +28,6 @@ class NoWindowsError(ValueError):
 OBSERVATION_KEYS = ("count_image", "voxel_grid", "events", "count_time_image")
 # Finite upper bound of the count/voxel boxes: far above any real per-pixel count.
 _MAX_COUNT = float(2**24)
-
-
-@torch.no_grad()
-def score_flow(
-    flow: torch.Tensor,
-    events: EventBatch,
-    *,
-    loss: str = "hmc",
-    flow_scaling: float | None = None,
-    lambda_1: float = 1.0,
-    lambda_2: float = 1e-3,
-    alpha: float = 0.6,
-    border_penalty: float = 1.0,
-    border_ramp: float = BORDER_RAMP,
-):
-    """The env's (negated) reward for a batch: L_HMC (or L_AT) plus the border rule.
-
-    flow: (B, 2, H, W) pixels per window; events: the B windows. Returns the loss's
-    LossOutput (``loss`` is the batch mean; for one window, -reward).
-    """
-    fn = {"hmc": hmc_loss, "at": at_loss}[loss]
-    kwargs = LossWeights(lambda_1, lambda_2, alpha, border_penalty, border_ramp).of(loss)
-    penalty = border_rule_weight(fn, torch.zeros_like(flow), events, border_penalty, flow_scaling=flow_scaling, **kwargs)
-    return fn(flow, events, border_penalty=penalty, flow_scaling=flow_scaling, **kwargs)
 
 
 class EventFlowEnv(gym.Env):
@@ -71,8 +46,8 @@ class EventFlowEnv(gym.Env):
       per polarity the latest event's time in the window, scaled so the latest is 1.
     - ``"events"``: (max_events, 4) rows ``(x, y, tau, p)`` of the window's events, zero
       padded; ``"num_events"``: (1,) how many rows are real. A window with more events
-      than ``max_events`` is subsampled evenly for this part only (``info`` and the reward
-      always use every event).
+      than ``max_events`` is subsampled evenly for this part only (``info["window"]`` and the
+      reward always use every event).
 
     **Action**: ``Box(-F, F, (2, H, W), float32)``: flow in pixels of displacement over the
     window (channel 0 = x, right; channel 1 = y, down), with ``F = flow_limit`` (default
@@ -81,8 +56,18 @@ class EventFlowEnv(gym.Env):
 
     **Reward**: ``-L_HMC(action, events of the window just observed)`` (docs/method.md, "Losses":
     L_AT(0) + L_AT(1) + lambda_1 (L_EC(0) + L_EC(1)) + lambda_2 L_smooth), or ``-L_AT``
-    (+ smoothing) with ``loss="at"``. A Python float; higher is better; 0 is unattainable for
-    a window with events.
+    (+ smoothing) with ``loss="at"``, border rule included: exactly
+    ``-losses.window_loss(action, window, env.loss_weights, loss=env.loss_name,
+    flow_scaling=env.flow_scaling)`` with ``window = info["window"]`` of the observation acted
+    on. A Python float; higher is better; 0 is unattainable for a window with events.
+
+    *Training's batched path equals -reward*: the learner (``agents/learner.py``) runs its envs
+    with ``compute_reward=False`` and computes the same ``window_loss`` itself, with gradients,
+    on B windows padded into one ``EventBatch`` (``EventBatch.from_windows(info["window"])``)
+    and each window's zero-flow loss computed once (``losses.zero_flow_loss``). Padding is
+    ignored, so each window's ``per_sample`` loss there is this env's -reward for the same flow
+    (up to float32 rounding; tests/test_env.py checks it), when the run keeps the env's weights
+    and readings (the defaults).
 
     *Border rule* (a deviation from the paper's loss, on by default): corners of warped events
     that leave the image are dropped by L_AT and L_EC, so a huge constant action that pushes
@@ -103,14 +88,15 @@ class EventFlowEnv(gym.Env):
     observation returned with ``truncated=True`` is all zeros (there is no next window).
     ``max_episode_steps`` (through ``gymnasium.make``) cuts training chunks.
 
-    **info** (numpy and Python scalars only), describing the window the returned
-    observation shows:
+    **info**, describing the window the returned observation shows:
 
-    - ``"events"``: read-only dict (a :class:`WindowEvents` mapping) of numpy ``x``, ``y``
-      (pixels), ``t`` (int64 µs), ``p`` (+-1) arrays. Being a mapping rather than a dict,
-      a vector env hands it over as one object per env (windows differ in length, which
-      Gymnasium's stacking of info arrays cannot hold): ``info["events"][i]["x"]``;
-    - ``"t_start"``, ``"t_end"``: int µs, the window ``[t_start, t_end)``;
+    - ``"window"``: the window (:class:`envs.windows.Window`): its events (``window.events``:
+      numpy ``x``, ``y`` pixels, ``t`` int64 µs, ``p`` +-1, in the env's frame), its bounds
+      ``window.t_start``, ``window.t_end`` (int µs, ``[t_start, t_end)``), its ground truth
+      where present, and ``window.batch()``, what the loss takes. It is also the window dict
+      (``window["x"]``, ..., ``window["t_end"]``). Not being a dict, a vector env hands it over
+      as one object per env (windows differ in length, which Gymnasium's stacking of info
+      arrays cannot hold): ``info["window"][i]``;
     - ``"sequence"`` (name), ``"sequence_index"``, ``"step"`` (window index in the episode);
     - ``"windowing"``: how this episode's windows are cut: ``"ground truth"``, ``"frames"``
       (APS frame times) or ``"time"`` (fixed 30 Hz) in ``frames`` mode, else ``"time"`` /
@@ -120,7 +106,9 @@ class EventFlowEnv(gym.Env):
       them, anything computed on the whole sensor frame maps into the env's frame);
     - ``"flow_gt"`` (2, H, W) float32 pixels over the window and ``"flow_gt_valid"`` (H, W)
       bool, when the recording has ground truth for this window (checked: every valid pixel
-      finite and within 4 x the sensor's longer side, else a FormatError naming the file);
+      finite and within 4 x the sensor's longer side, else a FormatError naming the file); the
+      same arrays as ``window.flow_gt`` and ``window.flow_gt_valid``, here so that a vector env
+      stacks them;
     - after ``step`` only: ``"reward_components"``: dict of ``at``, ``ec``, ``smooth`` (floats,
       the scored window's loss terms; ``ec`` is reported with ``loss="at"`` too).
 
@@ -163,7 +151,8 @@ class EventFlowEnv(gym.Env):
             0.5 once per episode; the ground truth is flipped to match.
         loss: ``"hmc"`` or ``"at"``; lambda_1, lambda_2, alpha: the loss weights (paper
             defaults); border_penalty: the border rule's weight (default 1; 0 = paper);
-            border_ramp: its ramp in pixels (default 16; 0 = the plain dropped share).
+            border_ramp: its ramp in pixels (default 16; 0 = the plain dropped share). The
+            defaults are :class:`losses.LossWeights`'; ``env.loss_weights`` holds the env's.
         flow_scaling: pixels per network unit in the smoothness term (default max(H, W)).
         flow_limit: F, the action bound (default flow_scaling).
         random_start: start each episode at a random window instead of the first.
@@ -193,11 +182,11 @@ class EventFlowEnv(gym.Env):
         max_events: int = 30_000,
         flips: bool | Sequence[str] = False,
         loss: str = "hmc",
-        lambda_1: float = 1.0,
-        lambda_2: float = 1e-3,
-        alpha: float = 0.6,
-        border_penalty: float = 1.0,
-        border_ramp: float = BORDER_RAMP,
+        lambda_1: float = LossWeights.lambda_1,
+        lambda_2: float = LossWeights.lambda_2,
+        alpha: float = LossWeights.alpha,
+        border_penalty: float = LossWeights.border_penalty,
+        border_ramp: float = LossWeights.border_ramp,
         flow_scaling: float | None = None,
         flow_limit: float | None = None,
         random_start: bool = False,
@@ -223,12 +212,11 @@ class EventFlowEnv(gym.Env):
         if unknown or not observations:
             raise ValueError(f"observations must be a non-empty subset of {OBSERVATION_KEYS}, got {list(observations)}")
         self.observation_keys = tuple(observations)
-        if loss not in ("hmc", "at"):
-            raise ValueError(f"loss must be 'hmc' or 'at', got {loss!r}")
+        if loss not in LOSS_NAMES:
+            raise ValueError(f"loss must be one of {LOSS_NAMES}, got {loss!r}")
         self.loss_name = loss
         check_border_ramp(border_ramp)
-        self.loss_weights = dict(lambda_1=lambda_1, lambda_2=lambda_2, alpha=alpha, border_penalty=border_penalty,
-                                 border_ramp=border_ramp)
+        self.loss_weights = LossWeights(lambda_1, lambda_2, alpha, border_penalty, border_ramp)
         flips = ("h", "v", "p") if flips is True else (() if flips is False else tuple(flips))
         if any(f not in ("h", "v", "p") for f in flips):
             raise ValueError(f"flips must be True/False or a subset of ('h', 'v', 'p'), got {flips}")
@@ -307,9 +295,9 @@ class EventFlowEnv(gym.Env):
         self._seq_index = -1
         self._step = 0
         self._flips: dict[str, bool] = {}
-        self._window: dict[str, Any] | None = None
+        self._window: Window | None = None
         self._last_action: np.ndarray | None = None
-        self._scored_window: dict[str, Any] | None = None
+        self._scored_window: Window | None = None
 
     # ------------------------------------------------------------------------------------------
     @staticmethod
@@ -431,20 +419,27 @@ class EventFlowEnv(gym.Env):
             raise ValueError(f"action holds a non-finite value at index {tuple(int(i) for i in bad)}: flow must be finite")
         return np.clip(action, -self.flow_limit, self.flow_limit).astype(np.float32)
 
-    def _score(self, flow: np.ndarray, window: dict) -> tuple[float, dict]:
-        batch = EventBatch.from_windows([{**window["events"], "t_start": window["t_start"], "t_end": window["t_end"]}])
-        out = score_flow(torch.from_numpy(flow).unsqueeze(0), batch, loss=self.loss_name, flow_scaling=self.flow_scaling,
-                         **self.loss_weights)
+    @torch.no_grad()
+    def _score(self, flow: np.ndarray, window: Window) -> tuple[float, dict]:
+        out = window_loss(torch.from_numpy(flow).unsqueeze(0), window, self.loss_weights, loss=self.loss_name,
+                          flow_scaling=self.flow_scaling)
         components = {k: float(v.reshape(-1)[0]) for k, v in out.components.items()}
         return -float(out.loss), components
 
-    def _load_window(self, k: int) -> dict[str, Any]:
+    @property
+    def current_window(self) -> Window | None:
+        """The window the last observation shows (``info["window"]``); None before ``reset``
+        and after the episode's end."""
+        return self._window
+
+    def _load_window(self, k: int) -> Window:
         t_start, t_end, i_start, i_end = (int(v) for v in self._bounds[k])
         reader = self._reader(self._seq_index)
         events = reader.events_range(i_start, i_end)
         top, left, ch, cw = self._crop_for(reader)
         x, y, t, p = events.x, events.y, events.t, events.p
-        if (top, left, ch, cw) != (0, 0) + tuple(reader.sensor_size):
+        cropped = (top, left, ch, cw) != (0, 0) + tuple(reader.sensor_size)
+        if cropped:
             keep = (x >= left) & (x < left + cw) & (y >= top) & (y < top + ch)
             x, y, t, p = x[keep] - left, y[keep] - top, t[keep], p[keep]
             x, y = x.astype(events.x.dtype), y.astype(events.y.dtype)
@@ -454,7 +449,9 @@ class EventFlowEnv(gym.Env):
             y = (ch - 1 - y).astype(y.dtype)
         if self._flips.get("p"):
             p = (-p).astype(p.dtype)
-        window = {"events": {"x": x, "y": y, "t": t, "p": p}, "t_start": t_start, "t_end": t_end}
+        if cropped or any(self._flips.values()):
+            events = Events(x, y, t, p, (ch, cw))  # trusted: a crop and flips of validated events
+        flow = valid = None
         gt = reader.flow_between(t_start, t_end)
         if gt is not None:
             flow, valid = gt
@@ -468,36 +465,33 @@ class EventFlowEnv(gym.Env):
             if self._flips.get("v"):
                 flow, valid = flow[:, ::-1].copy(), valid[::-1].copy()
                 flow[1] = -flow[1]
-            window["flow_gt"], window["flow_gt_valid"] = flow, valid
-        return window
+        return Window(k, t_start, t_end, i_start, i_end, events, flow, valid)
 
-    def _empty_window(self) -> dict[str, Any]:
-        t_end = int(self._bounds[-1][1])
-        ev = Events.empty((self.height, self.width))
-        return {"events": ev.as_dict(), "t_start": t_end, "t_end": t_end}
+    def _empty_window(self) -> Window:
+        """What ``info`` describes after the last window: no events, at the recording's end."""
+        t_end, i_end = int(self._bounds[-1][1]), int(self._bounds[-1][3])
+        return Window(len(self._bounds), t_end, t_end, i_end, i_end, Events.empty((self.height, self.width)))
 
-    def _observation(self, window: dict) -> dict[str, np.ndarray]:
-        ev = window["events"]
+    def _observation(self, window: Window) -> dict[str, np.ndarray]:
+        ev = window.events
         size = (self.height, self.width)
         obs: dict[str, np.ndarray] = {
-            kind: image_input(kind, EventView(ev), window["t_start"], window["t_end"], size, self.voxel_bins)
+            kind: image_input(kind, ev, window.t_start, window.t_end, size, self.voxel_bins)
             for kind in IMAGE_INPUTS if kind in self.observation_keys
         }
         if "events" in self.observation_keys:
-            n = len(ev["t"])
+            n = len(ev)
             rows = np.zeros((self.max_events, 4), np.float32)
             pick = np.arange(n) if n <= self.max_events else np.linspace(0, n - 1, self.max_events).astype(np.int64)
-            tau = (ev["t"][pick] - window["t_start"]) / max(window["t_end"] - window["t_start"], 1)
-            rows[: len(pick)] = np.stack([ev["x"][pick], ev["y"][pick], np.clip(tau, 0, 1), ev["p"][pick]], axis=1)
+            tau = (ev.t[pick] - window.t_start) / max(window.duration_us, 1)
+            rows[: len(pick)] = np.stack([ev.x[pick], ev.y[pick], np.clip(tau, 0, 1), ev.p[pick]], axis=1)
             obs["events"] = rows
             obs["num_events"] = np.array([len(pick)], np.float32)
         return obs
 
-    def _info(self, window: dict) -> dict[str, Any]:
+    def _info(self, window: Window) -> dict[str, Any]:
         info = {
-            "events": WindowEvents(window["events"]),
-            "t_start": window["t_start"],
-            "t_end": window["t_end"],
+            "window": window,
             "sequence": self.sequence_names[self._seq_index],
             "sequence_index": self._seq_index,
             "step": self._step,
@@ -505,9 +499,8 @@ class EventFlowEnv(gym.Env):
             "crop": np.array(self._crop_for(self._reader(self._seq_index)), np.int64),
             "flips": np.array([self._flips.get(k, False) for k in ("h", "v", "p")], bool),
         }
-        for key in ("flow_gt", "flow_gt_valid"):
-            if key in window:
-                info[key] = window[key]
+        if window.flow_gt is not None:
+            info["flow_gt"], info["flow_gt_valid"] = window.flow_gt, window.flow_gt_valid
         return info
 
     # ------------------------------------------------------------------------------------------
@@ -547,7 +540,7 @@ class EventFlowEnv(gym.Env):
         # the window the last action was scored on; before any step, the current one
         shown = self._scored_window if self._scored_window is not None else self._window
         if shown is not None:
-            counts = count_image(EventView(shown["events"]), size)
+            counts = count_image(shown.events, size)
         else:
             counts = np.zeros((2,) + size, np.float32)
         left = count_image_to_rgb(counts)
@@ -592,36 +585,3 @@ def _sizes_differ(sizes: dict[str, tuple[int, int]]) -> str:
             "crop=(height, width) to use that crop of each, or make one env per size (scripts/evaluate.py "
             "evaluates each recording whole at its own size)")
 
-
-class WindowEvents(Mapping):
-    """The events of one window: a read-only mapping of ``x``, ``y``, ``t``, ``p`` numpy arrays."""
-
-    __slots__ = ("_arrays",)
-
-    def __init__(self, arrays: dict[str, np.ndarray]) -> None:
-        self._arrays = arrays
-
-    def __getitem__(self, key: str) -> np.ndarray:
-        return self._arrays[key]
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self._arrays)
-
-    def __len__(self) -> int:
-        return len(self._arrays)
-
-    def __repr__(self) -> str:
-        return f"WindowEvents(n={len(self._arrays['t'])})"
-
-    def __eq__(self, other) -> bool:
-        if not isinstance(other, Mapping) or set(other) != set(self._arrays):
-            return False
-        return all(np.array_equal(self._arrays[k], other[k]) for k in self._arrays)
-
-    __hash__ = None
-
-    def __getstate__(self):
-        return self._arrays
-
-    def __setstate__(self, state) -> None:
-        self._arrays = state

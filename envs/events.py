@@ -188,7 +188,7 @@ class Events:
         return (self.t - t_start) / float(t_end - t_start)
 
     def as_dict(self) -> dict[str, np.ndarray]:
-        """The four arrays, e.g. for an env's ``info["events"]``."""
+        """The four arrays, e.g. for a window dict (with ``t_start`` and ``t_end``)."""
         return {"x": self.x, "y": self.y, "t": self.t, "p": self.p}
 
     def __repr__(self) -> str:

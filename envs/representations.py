@@ -36,7 +36,8 @@ __all__ = [
 
 class EventView:
     """Attribute access (``x``, ``y``, ``t``, ``p``) over a window's events held as a dict of
-    numpy arrays (``info["events"]``, a window dict): what the functions here read."""
+    numpy arrays (a window dict, e.g. a sub-window): what the functions here read. An
+    :class:`~envs.events.Events` (``window.events``) needs none."""
 
     def __init__(self, events) -> None:
         self.x, self.y, self.t, self.p = events["x"], events["y"], events["t"], events["p"]

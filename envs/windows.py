@@ -18,13 +18,16 @@ order. The iterator reads window by window through the reader, never the whole r
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Iterator
 
 import numpy as np
+import torch
 
 from envs.events import Events
 from envs.readers.base import EventReader
+from losses import EventBatch
 
 __all__ = ["Window", "iter_windows", "window_bounds", "window_grid", "WINDOW_MODES", "FALLBACK_INTERVAL_US"]
 
@@ -33,10 +36,24 @@ WINDOW_MODES = ("time", "count", "frames")
 FALLBACK_INTERVAL_US = 33_333
 
 
-@dataclass(frozen=True)
-class Window:
-    """One event window: ``events`` with t in [t_start, t_end) µs; ``index`` counts from 0;
-    ``i_start``/``i_end`` are the events' indices in the recording."""
+@dataclass(frozen=True, eq=False)
+class Window(Mapping):
+    """One event window, from the reader to the loss: what :func:`iter_windows` yields and the
+    env carries in ``info["window"]``.
+
+    index: the window's place (from 0) in its recording or episode; ``t_start``, ``t_end``: int
+    µs, the window ``[t_start, t_end)`` (an event stamped ``t_end`` is accepted as tau = 1);
+    ``i_start``, ``i_end``: the recording's event indices it was read from (before any crop);
+    ``events``: its events (:class:`~envs.events.Events`, with the sensor size of the frame they
+    are in); ``flow_gt`` (2, H, W) float32 pixels over the window and ``flow_gt_valid`` (H, W)
+    bool: the ground truth, where the recording has it (else None).
+
+    :meth:`batch` gives what the losses consume (``losses.window_loss(flow, window)``). As a
+    read-only mapping it holds ``x``, ``y``, ``t``, ``p`` (the event arrays) and ``t_start``,
+    ``t_end``: the window dict that ``losses.EventBatch.from_windows``, the metrics and the
+    ``act_on_window`` policies read (``len(window)`` counts those keys; ``len(window.events)``
+    the events).
+    """
 
     index: int
     t_start: int
@@ -44,10 +61,52 @@ class Window:
     i_start: int
     i_end: int
     events: Events
+    flow_gt: np.ndarray | None = None
+    flow_gt_valid: np.ndarray | None = None
 
     @property
     def duration_us(self) -> int:
         return self.t_end - self.t_start
+
+    @property
+    def sensor_size(self) -> tuple[int, int]:
+        """(height, width) of the frame the events and the ground truth are in."""
+        return self.events.sensor_size
+
+    def batch(self, device=None, dtype: torch.dtype = torch.float32) -> EventBatch:
+        """The window as a batch of one, what the losses take (x, y pixels, tau in [0, 1])."""
+        return EventBatch.from_windows([self], device=device, dtype=dtype)
+
+    # the window dict (x, y, t, p, t_start, t_end) as a read-only mapping
+    _KEYS = ("x", "y", "t", "p", "t_start", "t_end")
+
+    def __getitem__(self, key: str):
+        if key in ("x", "y", "t", "p"):
+            return getattr(self.events, key)
+        if key in ("t_start", "t_end"):
+            return getattr(self, key)
+        raise KeyError(key)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._KEYS)
+
+    def __len__(self) -> int:
+        return len(self._KEYS)
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Window):
+            return NotImplemented
+        arrays = [(getattr(self.events, k), getattr(other.events, k)) for k in ("x", "y", "t", "p")]
+        arrays += [(self.flow_gt, other.flow_gt), (self.flow_gt_valid, other.flow_gt_valid)]
+        return ((self.index, self.t_start, self.t_end, self.i_start, self.i_end, self.sensor_size)
+                == (other.index, other.t_start, other.t_end, other.i_start, other.i_end, other.sensor_size)
+                and all(a is b or (a is not None and b is not None and np.array_equal(a, b)) for a, b in arrays))
+
+    __hash__ = None  # mutable arrays inside
+
+    def __repr__(self) -> str:
+        gt = ", with ground truth" if self.flow_gt is not None else ""
+        return f"Window({self.index}: [{self.t_start}, {self.t_end}) us, {len(self.events)} events{gt})"
 
 
 def _check_mode(mode: str, size) -> None:

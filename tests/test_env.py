@@ -1,12 +1,16 @@
+import dataclasses
+
 import gymnasium
 import numpy as np
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
+from gymnasium.vector import AutoresetMode
 
 from envs.env import EventFlowEnv
 from envs.h5format import H5Reader
-from losses import EventBatch, hmc_loss
+from envs.windows import Window
+from losses import EventBatch, hmc_loss, window_loss, zero_flow_loss
 from tests.recordings import write_translating_recording
 
 
@@ -23,13 +27,13 @@ def test_check_env_on_h5_file(recording):
 def test_episode_delivers_every_event_once_in_order(recording):
     env = EventFlowEnv(recording, window="time", window_size=7_000)
     obs, info = env.reset(seed=0)
-    ts, bounds, truncated = [info["events"]["t"]], [(info["t_start"], info["t_end"])], False
+    ts, bounds, truncated = [info["window"]["t"]], [(info["window"].t_start, info["window"].t_end)], False
     while not truncated:
         obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
         assert not terminated
         if not truncated:
-            ts.append(info["events"]["t"])
-            bounds.append((info["t_start"], info["t_end"]))
+            ts.append(info["window"]["t"])
+            bounds.append((info["window"].t_start, info["window"].t_end))
     with H5Reader(recording) as reader:
         np.testing.assert_array_equal(np.concatenate(ts), reader.events_range(0, reader.num_events).t)
         assert bounds[0][0] == reader.t_start and bounds[-1][1] == reader.t_end
@@ -42,7 +46,7 @@ def test_reward_equals_hmc_on_info_events(recording):
     rng = np.random.default_rng(0)
     for _ in range(4):
         action = rng.normal(0, 2, env.action_space.shape).astype(np.float32)
-        window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+        window = info["window"]
         batch = EventBatch.from_windows([window])
         zero = hmc_loss(torch.zeros(1, *env.action_space.shape), batch, flow_scaling=env.flow_scaling)
         # the env's border rule: + 1.0 x zero-flow loss x share of splat weight pushed out, ramped over 16 px
@@ -54,11 +58,56 @@ def test_reward_equals_hmc_on_info_events(recording):
         assert info["reward_components"]["at"] == pytest.approx(float(expected.components["at"][0]), rel=1e-6)
 
 
+def test_training_batched_loss_is_minus_the_reward(tmp_path):
+    """The learner's batched path (the B envs' windows of ``info["window"]`` padded into one
+    EventBatch, their zero-flow loss once, ``window_loss`` with TrainConfig's weights and readings,
+    the WindowLoss objective) gives each window the env's -reward for the same flow, border rule
+    included; one window scored alone gives the same."""
+    from agents.learner import TrainConfig
+    from agents.objectives import RolloutWindow, loss_options, make_objective, windows_from_info
+
+    recordings = [write_translating_recording(tmp_path / f"r{i}.h5", np.random.default_rng(i), velocity=v)
+                  for i, v in enumerate(((200.0, 60.0), (-90.0, 300.0)))]
+    num_envs = 3  # windows of different lengths: the batch pads them
+    envs = gymnasium.vector.SyncVectorEnv(
+        [lambda i=i: EventFlowEnv(recordings, window="time", window_size=9_000 + 6_000 * i, random_start=True,
+                                  flips=True) for i in range(num_envs)],
+        autoreset_mode=AutoresetMode.SAME_STEP)  # as the learner's
+    cfg = TrainConfig(num_envs=num_envs)
+    height, width = envs.single_action_space.shape[1:]
+    flow_scaling = float(max(height, width))  # the learner's and the env's default
+    options = loss_options(cfg, flow_scaling)
+    objective = make_objective(cfg, flow_scaling)
+    rng = np.random.default_rng(3)
+    _, info = envs.reset(seed=0)
+    charged = False
+    for _ in range(5):
+        # per env a different constant push (0, 12 and 40 px: some events leave the frame) plus noise
+        push = np.array([0.0, 12.0, -40.0], np.float32).reshape(num_envs, 1, 1, 1)
+        flows = torch.from_numpy(push + rng.normal(0, 2, (num_envs, 2, height, width)).astype(np.float32))
+        windows = windows_from_info(info, num_envs)
+        assert all(isinstance(w, Window) for w in windows) and len({len(w.events) for w in windows}) > 1
+        batch = EventBatch.from_windows(windows)
+        zero = zero_flow_loss(flows, batch, cfg.weights, **options)
+        batched = window_loss(flows, batch, cfg.weights, zero_flow=zero.per_sample, **options)
+        trained, _ = objective([RolloutWindow([flows], batch, zero, info)])
+        paper = window_loss(flows, batch, dataclasses.replace(cfg.weights, border_penalty=0.0), **options)
+        charged |= bool((batched.per_sample > paper.per_sample * (1 + 1e-3)).any())
+        _, reward, _, _, info = envs.step(flows.numpy())
+        np.testing.assert_allclose(batched.per_sample.numpy(), -reward, rtol=1e-6)
+        assert float(trained) == pytest.approx(float(np.mean(-reward)), rel=1e-6)
+        for i, window in enumerate(windows):  # one at a time, with its own zero-flow reference
+            alone = window_loss(flows[i : i + 1], window, cfg.weights, **options)
+            assert float(alone.loss) == pytest.approx(-float(reward[i]), rel=1e-6)
+    assert charged  # the border rule was part of what matched
+    envs.close()
+
+
 def test_reward_parity_without_border_rule_is_the_paper_loss(recording):
     env = EventFlowEnv(recording, border_penalty=0.0)
     _, info = env.reset(seed=1)
     action = np.random.default_rng(1).normal(0, 3, env.action_space.shape).astype(np.float32)
-    window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+    window = info["window"]
     expected = hmc_loss(torch.from_numpy(action)[None], EventBatch.from_windows([window]), flow_scaling=env.flow_scaling)
     _, reward, *_ = env.step(action)
     assert reward == pytest.approx(-float(expected.loss), rel=1e-6)
@@ -98,7 +147,7 @@ def test_ground_truth_beats_zero_flow(recording):
     _, info = env.reset(seed=0)
     totals = {"gt": 0.0, "zero": 0.0}
     for _ in range(6):
-        window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+        window = info["window"]
         batch = EventBatch.from_windows([window])
         for name, flow in (("gt", info["flow_gt"]), ("zero", np.zeros_like(info["flow_gt"]))):
             totals[name] += float(hmc_loss(torch.from_numpy(flow)[None], batch, flow_scaling=env.flow_scaling).loss)
@@ -119,9 +168,9 @@ def test_flips_transform_events_and_ground_truth(recording):
     assert all(flipped._flips.values())
     w = plain.width
     h = plain.height
-    np.testing.assert_array_equal(b["events"]["x"], w - 1 - a["events"]["x"])
-    np.testing.assert_array_equal(b["events"]["y"], h - 1 - a["events"]["y"])
-    np.testing.assert_array_equal(b["events"]["p"], -a["events"]["p"])
+    np.testing.assert_array_equal(b["window"]["x"], w - 1 - a["window"]["x"])
+    np.testing.assert_array_equal(b["window"]["y"], h - 1 - a["window"]["y"])
+    np.testing.assert_array_equal(b["window"]["p"], -a["window"]["p"])
     np.testing.assert_array_equal(b["flow_gt"][:, ::-1, ::-1], -a["flow_gt"])
 
 
@@ -130,8 +179,8 @@ def test_crop_shifts_events_and_ground_truth(recording):
     cropped = EventFlowEnv(recording, crop=(5, 7, 20, 30))
     _, a = full.reset(options={"sequence": 0})
     _, b = cropped.reset(options={"sequence": 0})
-    keep = (a["events"]["x"] >= 7) & (a["events"]["x"] < 37) & (a["events"]["y"] >= 5) & (a["events"]["y"] < 25)
-    np.testing.assert_array_equal(b["events"]["x"], a["events"]["x"][keep] - 7)
+    keep = (a["window"]["x"] >= 7) & (a["window"]["x"] < 37) & (a["window"]["y"] >= 5) & (a["window"]["y"] < 25)
+    np.testing.assert_array_equal(b["window"]["x"], a["window"]["x"][keep] - 7)
     np.testing.assert_array_equal(b["flow_gt"], a["flow_gt"][:, 5:25, 7:37])
     assert cropped.action_space.shape == (2, 20, 30)
 
@@ -149,7 +198,7 @@ def test_random_crop_moves_per_episode_and_matches_a_fixed_crop(recording):
         fixed = EventFlowEnv(recording, crop=(top, left, 20, 30))
         _, c = fixed.reset(options={"sequence": 0})
         for key in ("x", "y", "t", "p"):
-            np.testing.assert_array_equal(b["events"][key], c["events"][key])
+            np.testing.assert_array_equal(b["window"][key], c["window"][key])
         np.testing.assert_array_equal(b["flow_gt"], a["flow_gt"][:, top : top + 20, left : left + 30])
         # a checkpointed episode continues with the same crop
         env.step(np.zeros(env.action_space.shape, np.float32))
@@ -158,7 +207,7 @@ def test_random_crop_moves_per_episode_and_matches_a_fixed_crop(recording):
         other.restore_episode_state(state)
         _, _, _, _, i1 = env.step(np.zeros(env.action_space.shape, np.float32))
         _, _, _, _, i2 = other.step(np.zeros(env.action_space.shape, np.float32))
-        np.testing.assert_array_equal(i1["events"]["x"], i2["events"]["x"])
+        np.testing.assert_array_equal(i1["window"]["x"], i2["window"]["x"])
     assert len(origins) > 3
     with pytest.raises(ValueError, match="random_crop"):
         EventFlowEnv(recording, random_crop=True)
@@ -169,10 +218,10 @@ def test_window_size_list_draws_one_size_per_episode(recording):
     seen = set()
     for seed in range(10):
         _, info = env.reset(seed=seed)
-        size = info["t_end"] - info["t_start"]
+        size = info["window"].t_end - info["window"].t_start
         assert size in (4_000, 9_000)
         _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
-        assert truncated or info["t_end"] - info["t_start"] == size  # one size per episode
+        assert truncated or info["window"].t_end - info["window"].t_start == size  # one size per episode
         seen.add(size)
     assert seen == {4_000, 9_000}
     with pytest.raises(ValueError, match="window_size"):
@@ -183,15 +232,15 @@ def test_same_seed_same_episode(recording, tmp_path):
     other = write_translating_recording(tmp_path / "other.h5", np.random.default_rng(9), velocity=(10.0, 5.0))
     env = EventFlowEnv([recording, other], window="time", window_size=10_000, random_start=True)
     first = [env.reset(seed=s)[1] for s in (3, 3)]
-    assert first[0]["sequence"] == first[1]["sequence"] and first[0]["t_start"] == first[1]["t_start"]
-    starts = {(info["sequence"], info["t_start"]) for info in (env.reset(seed=s)[1] for s in range(12))}
+    assert first[0]["sequence"] == first[1]["sequence"] and first[0]["window"].t_start == first[1]["window"].t_start
+    starts = {(info["sequence"], info["window"].t_start) for info in (env.reset(seed=s)[1] for s in range(12))}
     assert len(starts) > 3
 
 
 def test_options_choose_sequence_and_start(recording):
     env = EventFlowEnv(recording, window="time", window_size=10_000)
     _, info = env.reset(options={"sequence": "dots", "start": 55_000})
-    assert info["t_start"] == 55_000 and info["sequence"] == "dots"
+    assert info["window"].t_start == 55_000 and info["sequence"] == "dots"
     with pytest.raises(ValueError, match="unknown sequence 'nope'"):
         env.reset(options={"sequence": "nope"})
 
@@ -242,7 +291,7 @@ def test_make_and_make_vec(recording):
         assert obs["count_image"].shape == (2, 2, 48, 64)
         obs, reward, term, trunc, info = vec.step(np.zeros((2, 2, 48, 64), np.float32))
         assert reward.shape == (2,) and np.all(reward < 0)
-        assert all(len(info["events"][i]["x"]) == n for i, n in enumerate(len(info["events"][i]["t"]) for i in range(2)))
+        assert all(len(info["window"][i].events.x) == len(info["window"][i].events.t) for i in range(2))
         vec.close()
 
 
@@ -283,10 +332,10 @@ def test_recordings_of_different_sizes_need_a_crop():
 def test_explicit_window_list(recording):
     env = EventFlowEnv(recording)
     _, info = env.reset(options={"sequence": 0, "windows": [[30_000, 60_000], [60_000, 120_000]]})
-    assert (info["t_start"], info["t_end"]) == (30_000, 60_000)
+    assert (info["window"].t_start, info["window"].t_end) == (30_000, 60_000)
     np.testing.assert_allclose(info["flow_gt"][0], 200 * 0.03, rtol=1e-5)
     _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
-    assert (info["t_start"], info["t_end"]) == (60_000, 120_000) and not truncated
+    assert (info["window"].t_start, info["window"].t_end) == (60_000, 120_000) and not truncated
     valid = info["flow_gt_valid"]  # chained from two stored maps: valid where the path stays on the sensor
     assert 0.7 < valid.mean() < 1.0 and not valid[:, -1].any()  # x moves +6 px per map: the right border leaves
     np.testing.assert_allclose(info["flow_gt"][0][valid], 200 * 0.06, rtol=1e-5)

@@ -1,9 +1,11 @@
 import numpy as np
 import pytest
+import torch
 
 from envs.h5format import H5Reader, write_h5
 from envs.readers import ArrayReader
 from envs.windows import iter_windows, window_bounds, window_grid
+from losses import EventBatch
 from tests.conftest import random_events
 
 
@@ -97,3 +99,19 @@ def test_h5_windows_equal_memory_windows(rng, tmp_path):
             for wa, wb in zip(a, b):
                 np.testing.assert_array_equal(wa.events.t, wb.events.t)
                 np.testing.assert_array_equal(wa.events.p, wb.events.p)
+
+
+def test_a_window_is_the_window_dict_and_gives_the_losses_batch(rng):
+    ev = random_events(rng, 500, sensor_size=(20, 30), t_span=(1_000, 21_000))
+    (window,) = iter_windows(ArrayReader(ev, t_range=(1_000, 21_000)), "time", 20_000)
+    assert window.sensor_size == (20, 30) and window.flow_gt is None and len(window.events) == 500
+    as_dict = {**ev.as_dict(), "t_start": 1_000, "t_end": 21_000}
+    assert list(window) == ["x", "y", "t", "p", "t_start", "t_end"]
+    for key, value in as_dict.items():
+        np.testing.assert_array_equal(window[key], value)
+    batch, expected = window.batch(), EventBatch.from_windows([as_dict])
+    for got, want in zip(batch, expected):
+        torch.testing.assert_close(got, want)
+    assert window == list(iter_windows(ArrayReader(ev, t_range=(1_000, 21_000)), "time", 20_000))[0]
+    with pytest.raises(KeyError):
+        window["flow_gt"]  # the mapping is the window dict; the ground truth is an attribute
