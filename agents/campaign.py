@@ -102,7 +102,8 @@ def _size(payload: dict[str, Any]) -> int:
 
 
 #: the parts of a training checkpoint that hold the episodes in progress (the current windows'
-#: observations and events, and the recurrent state carried into the next unroll)
+#: observations and info, and the recurrent state carried into the next unroll; the windows'
+#: events are reloaded by the envs)
 EPISODE_KEYS = ("policy_state", "obs", "info")
 
 

@@ -2,15 +2,14 @@
 test-time refinement of a network's flow by the same solver.
 
 Both act on a window's *events*, not only on its observation image, so they take the window
-too: ``flow = policy.act_on_window(observation, window)`` with ``window`` a dict of numpy
-``x, y, t, p`` and ints ``t_start, t_end`` (what ``info["events"]`` plus the bounds give).
+too: ``flow = policy.act_on_window(observation, window)`` with ``window`` the env's
+``info["window"]`` (or any window dict of numpy ``x, y, t, p`` and ints ``t_start, t_end``).
 :func:`agents.evaluation.evaluate` and ``scripts/evaluate.py`` (``--cmax``, ``--refine K``)
 use them; in an env loop::
 
     policy = RefinedPolicy(RecurrentPolicy.from_pretrained(), steps=30)
     obs, info = env.reset()
-    window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
-    obs, reward, _, truncated, info = env.step(policy.act_on_window(obs, window))
+    obs, reward, _, truncated, info = env.step(policy.act_on_window(obs, info["window"]))
 
 The solver is :func:`losses.contrast_maximisation_flow`: a coarse grid of flow vectors,
 bilinearly upsampled, optimised with Adam on L_HMC (with the env's border rule) of the window's
@@ -19,13 +18,13 @@ events; coarse to fine in flow cells and in sensor pixels.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
 
-from envs.env import score_flow
-from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
+from losses import CMAX_WEIGHTS, EventBatch, LossWeights, contrast_maximisation_flow, window_loss, zero_flow_loss
 
 __all__ = ["CMaxSettings", "ContrastMaximisationPolicy", "RefinedPolicy", "FRAME_US"]
 
@@ -53,18 +52,24 @@ class CMaxSettings:
     steps: tuple[int, ...] = (40, 30, 30)
     lr_per_frame: float = 0.3
     lr_decay: float = 10.0
-    lambda_1: float = 1.0
-    lambda_2: float = 1e-2
-    alpha: float = 0.6
-    border_penalty: float = 1.0
-    border_ramp: float = BORDER_RAMP
+    lambda_1: float = CMAX_WEIGHTS.lambda_1
+    lambda_2: float = CMAX_WEIGHTS.lambda_2
+    alpha: float = CMAX_WEIGHTS.alpha
+    border_penalty: float = CMAX_WEIGHTS.border_penalty
+    border_ramp: float = CMAX_WEIGHTS.border_ramp
     flow_scaling: float = 32.0
     max_events: int = 60_000
     prior_weight: float = 0.0
 
-    def solve(self, window: dict, size: tuple[int, int], base: np.ndarray | None = None,
+    @property
+    def weights(self) -> LossWeights:
+        """The loss weights of the solve."""
+        return LossWeights(self.lambda_1, self.lambda_2, self.alpha, self.border_penalty, self.border_ramp)
+
+    def solve(self, window: Mapping, size: tuple[int, int], base: np.ndarray | None = None,
               device: str | torch.device = "cpu") -> np.ndarray:
-        """(2, H, W) float32 flow in pixels over ``window`` (dict of x, y, t, p, t_start, t_end).
+        """(2, H, W) float32 flow in pixels over ``window`` (the env's ``info["window"]``, or a
+        dict of x, y, t, p, t_start, t_end).
         ``base``: optional (2, H, W) flow that the solve corrects (default: solve from zero)."""
         height, width = size
         n = len(window["t"])
@@ -80,8 +85,7 @@ class CMaxSettings:
         flow = contrast_maximisation_flow(
             batch, height, width, grids=self.grids, steps=self.steps, lr=self.lr_per_frame * frames,
             sensor_scales=self.sensor_scales, lr_decay=self.lr_decay, flow_scaling=self.flow_scaling,
-            lambda_1=self.lambda_1, lambda_2=self.lambda_2, alpha=self.alpha, border_penalty=self.border_penalty,
-            border_ramp=self.border_ramp, base=offset, prior_weight=self.prior_weight if base is not None else 0.0,
+            weights=self.weights, base=offset, prior_weight=self.prior_weight if base is not None else 0.0,
         )
         return flow[0].cpu().numpy().astype(np.float32)
 
@@ -105,7 +109,7 @@ class ContrastMaximisationPolicy:
     def reset(self, mask=None) -> None:
         """Nothing to reset: every window is solved on its own."""
 
-    def act_on_window(self, obs, window: dict) -> np.ndarray:
+    def act_on_window(self, obs, window: Mapping) -> np.ndarray:
         size = tuple(np.asarray(obs[self.input_key]).shape[-2:])
         return self.settings.solve(window, size, device=self.device)
 
@@ -125,7 +129,7 @@ class RefinedPolicy:
     and prior then override ``steps`` and ``prior_weight``).
 
     accept: keep the refined flow only where it lowers the window's loss as the env scores it
-    (``envs.env.score_flow``: L_HMC, paper weights, with the border rule; flow scaling max(H, W))
+    (``losses.window_loss``: L_HMC, paper weights, with the border rule; flow scaling max(H, W))
     by at least the fraction ``accept`` of the network's; otherwise the network's flow stays
     (None: always the refined flow; 0: the refined flow unless it raises that loss). The idea:
     where the network is near the truth the solve still finds a slightly lower loss by inventing
@@ -161,7 +165,7 @@ class RefinedPolicy:
     def reset(self, mask=None) -> None:
         self.policy.reset(mask)
 
-    def act_on_window(self, obs, window: dict) -> np.ndarray:
+    def act_on_window(self, obs, window: Mapping) -> np.ndarray:
         inner = getattr(self.policy, "act_on_window", None)  # e.g. a SubWindowPolicy
         flow = inner(obs, window) if inner is not None else self.policy.act(obs)
         if self.steps == 0:
@@ -171,8 +175,11 @@ class RefinedPolicy:
         if self.accept is None or len(window["t"]) == 0:
             return refined
         batch = EventBatch.from_windows([window], device=self.policy.device)
-        before, after = (float(score_flow(torch.as_tensor(f, device=self.policy.device)[None], batch,
-                                          flow_scaling=float(max(size))).loss) for f in (flow, refined))
+        flows = [torch.as_tensor(f, device=self.policy.device)[None] for f in (flow, refined)]
+        scale = float(max(size))
+        zero = zero_flow_loss(flows[0], batch, flow_scaling=scale).per_sample  # the border rule's, once for both
+        with torch.no_grad():
+            before, after = (float(window_loss(f, batch, flow_scaling=scale, zero_flow=zero).loss) for f in flows)
         self.refined += 1
         if after <= (1.0 - self.accept) * before:
             self.accepted += 1

@@ -4,7 +4,8 @@ Each sequence is rolled from its first window to its last with the recurrent sta
 across windows and reset between sequences. Per window: AEE and outlier % against the ground
 truth where there is one (docs/method.md, "Metrics": pixels with valid ground truth and at least one
 event; the prediction scaled by ``dt_ratio`` when the input window differs from the
-ground-truth interval), L_HMC of the prediction and of zero flow, FWL and RSAT. Per sequence:
+ground-truth interval), L_HMC of the prediction as the env's reward scores it (the env's -reward:
+``losses.window_loss``, border rule included) and of zero flow, FWL and RSAT. Per sequence:
 the means over its windows (windows without events or ground truth are left out of the means
 they cannot contribute to).
 """
@@ -14,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -24,13 +26,13 @@ from tqdm import tqdm
 
 from envs.dataset import resolve_data
 from envs.env import EventFlowEnv, NoWindowsError
-from envs.representations import EventView, event_mask
+from envs.representations import event_mask
 from envs.visualize import count_image_to_rgb, flow_legend, flow_to_rgb, panel, save_animation, save_png
-from envs.windows import FALLBACK_INTERVAL_US, window_grid
-from losses import EventBatch, flow_error, fwl, hmc_loss, rsat, sample_flow, warped_event_images
+from envs.windows import FALLBACK_INTERVAL_US, Window, window_grid
+from losses import EventBatch, flow_error, fwl, rsat, sample_flow, warped_event_images, window_loss, zero_flow_loss
 
-__all__ = ["SequenceResult", "evaluate", "results_table", "results_json", "window_panel", "first_window_panel",
-           "windowing_of"]
+__all__ = ["SequenceResult", "evaluate", "env_loss", "results_table", "results_json", "window_panel",
+           "first_window_panel", "windowing_of"]
 
 METRICS = ("aee", "outlier_pct", "cosine", "hmc", "hmc_zero", "fwl", "rsat", "ms")
 
@@ -73,7 +75,7 @@ class SequenceResult:
                 **{k: self.mean(k) for k in self.keys()}}
 
 
-def _iwe_picture(flow: np.ndarray, window: dict, size) -> np.ndarray:
+def _iwe_picture(flow: np.ndarray, window: Mapping, size) -> np.ndarray:
     """Image of warped events at s = 1 (both polarities), as RGB."""
     b = EventBatch.from_windows([window])
     with torch.no_grad():
@@ -91,7 +93,7 @@ def _describe_windows(window: str, size: int, grid_kind: str | None) -> str:
     return f"{size} us" if window == "time" else f"{size} events"
 
 
-def _act(policy, obs: dict, window: dict, size: tuple[int, int]) -> np.ndarray:
+def _act(policy, obs: dict, window: Window, size: tuple[int, int]) -> np.ndarray:
     """One window's flow: zero flow (None), a window-solving policy, or a recurrent policy."""
     if policy is None:
         return np.zeros((2,) + size, np.float32)
@@ -147,12 +149,14 @@ def evaluate(
     windows_fn: reader -> (K, 2) µs ``[t_start, t_end)`` rows, the windows to evaluate (an
     evaluation protocol's valid range); default: all windows of the chosen mode.
     scorer_fn: reader -> score, a benchmark's scoring of that recording (``agents.benchmarks``):
-    ``score(flow, info, window, size, dt_ratio) -> (metrics, mask)`` with metrics a dict of floats
+    ``score(flow, info, window, size, dt_ratio) -> (metrics, mask)`` (window: ``info["window"]``)
+    with metrics a dict of floats
     ("aee" and any others, plus "n_pixels") and mask the (H, W) bool pixels scored; it replaces
     the default AEE / outlier % over pixels with events and valid ground truth, and is also
     called on windows without events. flow_sink: ``(reader, window, flow)`` called with every
-    window's predicted flow (window: t_start, t_end and the events), e.g. a benchmark submission
-    writer.
+    window's predicted flow (window: ``info["window"]``, its bounds and events), e.g. a benchmark
+    submission writer. L_HMC is the env's reward: ``window_loss`` with the env's weights and
+    ``flow_scaling`` (the border rule included).
     Per window the time the policy takes to produce its flow is measured (``ms``).
     shard: (rank, world): only sequences rank, rank + world, rank + 2 world, ... (the share of one
     process of a distributed run, which adds the results of all).
@@ -202,25 +206,23 @@ def _evaluate_sequence(env: EventFlowEnv, policy, index: int, total: int, *, win
     frames: list[np.ndarray] = []
     truncated = False
     while not truncated and (max_windows is None or result.windows < max_windows):
-        win = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+        win = info["window"]
         began = time.perf_counter()
         flow = _act(policy, obs, win, size)
         if result.windows:  # a sequence's first window pays for warm-up (kernel compilation, allocations)
             result.add("ms", 1e3 * (time.perf_counter() - began))
         if flow_sink is not None:
             flow_sink(reader, win, flow)
-        n_events = len(win["t"])
+        n_events = len(win.events)
         aee = None
         if n_events:
-            batch = EventBatch.from_windows([win])
-            with torch.no_grad():
-                for key, f in (("hmc", flow), ("hmc_zero", np.zeros_like(flow))):
-                    result.add(key, float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=env.flow_scaling).loss))
+            for key, value in env_loss(env, flow, win).items():
+                result.add(key, value)
             result.add("fwl", fwl(flow, win, size))
             result.add("rsat", rsat(flow, win, size))
         if "flow_gt" in info and (n_events or score is not None):
             if score is None:
-                scored = event_mask(EventView(win), size)
+                scored = event_mask(win.events, size)
                 err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], scored, dt_ratio=dt_ratio)
                 scored = scored & info["flow_gt_valid"]
             else:
@@ -247,7 +249,19 @@ def _evaluate_sequence(env: EventFlowEnv, policy, index: int, total: int, *, win
     return result
 
 
-def window_panel(count: np.ndarray, flow: np.ndarray, window: dict, flow_gt: np.ndarray | None = None,
+def env_loss(env: EventFlowEnv, flow: np.ndarray, window: Window) -> dict[str, float]:
+    """``{"hmc": .., "hmc_zero": ..}``: the window's loss under ``flow`` as ``env`` rewards it (its
+    loss, weights and flow scaling, border rule included: the env's -reward for that action) and
+    under zero flow. flow: (2, H, W) float32 pixels over the window."""
+    options = dict(loss=env.loss_name, flow_scaling=env.flow_scaling)
+    action = torch.from_numpy(np.asarray(flow, np.float32))[None]
+    zero = zero_flow_loss(action, window, env.loss_weights, **options).per_sample
+    with torch.no_grad():
+        loss = window_loss(action, window, env.loss_weights, zero_flow=zero, **options)
+    return {"hmc": float(loss.loss), "hmc_zero": float(zero[0])}
+
+
+def window_panel(count: np.ndarray, flow: np.ndarray, window: Mapping, flow_gt: np.ndarray | None = None,
                  aee: float | None = None) -> np.ndarray:
     """One labelled picture of a window: count image, predicted flow, ground truth (if any),
     warped events with zero and with the predicted flow, a colour-wheel legend; the caption
@@ -283,9 +297,9 @@ def first_window_panel(policy, data, *, crop=None, flow_scaling: float | None = 
             policy.reset()
         size = (env.height, env.width)
         for _ in range(max_windows):
-            win = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+            win = info["window"]
             flow = _act(policy, obs, win, size)
-            if len(win["t"]):
+            if len(win.events):
                 return window_panel(obs["count_image"], flow, win, info.get("flow_gt"))
             obs, _, _, truncated, info = env.step(flow)
             if truncated:
@@ -305,10 +319,10 @@ def results_table(named_results: dict[str, list[SequenceResult]], title: str = "
                   per_sequence: bool | None = None) -> str:
     """Markdown table, paper layout: one row per method; per sequence AEE / outlier % and the
     number of windows the AEE averages (with ``per_sequence``; default when there are at most 6
-    sequences), then the mean of the
-    sequences' AEE, the cosine, L_HMC and zero flow's over all windows, in how many sequences
-    the method's L_HMC is below zero flow's, FWL, RSAT and the milliseconds per window (each
-    sequence's first window, which pays for warm-up, not counted). Only the columns that hold a
+    sequences), then the mean of the sequences' AEE, the cosine, L_HMC (the env's -reward,
+    border rule included: :func:`env_loss`) and zero flow's over all windows, in how many
+    sequences the method's L_HMC is below zero flow's, FWL, RSAT and the milliseconds per window
+    (each sequence's first window, which pays for warm-up, not counted). Only the columns that hold a
     value are shown: without ground truth, no AEE, % outliers or cosine columns."""
     methods = list(named_results)
     sequences = [r.name for r in named_results[methods[0]]]

@@ -11,10 +11,12 @@ One update, read top to bottom (:meth:`Learner.update`):
 3. backpropagate it, clip the gradient norm, step the optimizer;
 4. detach the recurrent state (the next update continues the same sequences).
 
-The envs run with ``compute_reward=False``: the learner recomputes the same loss with
-gradients (including the env's border rule: ``border_penalty`` x the window's zero-flow loss x
-the share of events pushed out of the image, ramped over ``border_ramp`` pixels), so the env
-need not compute it twice.
+The envs run with ``compute_reward=False``: the learner computes the env's loss itself, with
+gradients, on the B windows of a step padded into one batch: ``losses.window_loss`` of the
+windows in ``info["window"]``, the border rule included (``border_penalty`` x the window's
+zero-flow loss x the share of events pushed out of the image, ramped over ``border_ramp``
+pixels); so each window's loss is the env's -reward for the same flow (the EventFlowEnv
+docstring says when), and the env need not compute it twice.
 
 Mixed precision (``amp``): the network's forward runs under autocast (bfloat16 by default on a
 CUDA device that supports it; float16 on CUDA with loss scaling), the losses in float32.
@@ -43,15 +45,17 @@ from gymnasium.vector import AutoresetMode
 
 from envs.env import EventFlowEnv
 from losses import (
-    BORDER_RAMP,
+    CMAX_WEIGHTS,
     EventBatch,
     LossWeights,
     check_border_ramp,
+    window_loss,
+    zero_flow_loss,
 )
 
 from .checkpoint import rng_state, set_rng_state
 from .distributed import average_gradients, gather_to_first
-from .objectives import RolloutWindow, make_objective, window_loss, windows_from_info
+from .objectives import RolloutWindow, loss_options, make_objective, windows_from_info
 from .options import (
     check_choices,
     non_negative_float,
@@ -157,15 +161,15 @@ class TrainConfig:
     """window: references at the window bounds; events: at the first and last event"""
     at_normalisation: Literal["event_pixels", "sum"] = "event_pixels"
     """L_AT over the pixels holding events, or sum: eq. 14's bare sum"""
-    lambda_1: float = option(1.0, type=non_negative_float)
+    lambda_1: float = option(LossWeights.lambda_1, type=non_negative_float)
     """weight of the event-count term in L_HMC (eq. 17)"""
-    lambda_2: float = option(1e-3, type=non_negative_float)
+    lambda_2: float = option(LossWeights.lambda_2, type=non_negative_float)
     """weight of the smoothness term (eq. 17)"""
-    alpha: float = option(0.6, type=positive_float)
+    alpha: float = option(LossWeights.alpha, type=positive_float)
     """Charbonnier exponent of the smoothness term (eq. 16)"""
-    border_penalty: float = 1.0
+    border_penalty: float = LossWeights.border_penalty
     """border rule weight: x zero-flow loss x share of events pushed out of the image (0: the paper's loss)"""
-    border_ramp: float = BORDER_RAMP
+    border_ramp: float = LossWeights.border_ramp
     """border rule ramp: an event d px beyond the image pays min(1, d / ramp) of its share (0: all of it)"""
     flow_scaling: float | None = option(None, type=positive_float)
     """pixels per network unit (default max(H, W))"""
@@ -175,7 +179,7 @@ class TrainConfig:
     """teacher: Adam steps per level"""
     teacher_lr: float = option(0.05, type=positive_float)
     """teacher: Adam step size (pixels)"""
-    teacher_lambda_2: float = option(1e-2, type=non_negative_float)
+    teacher_lambda_2: float = option(CMAX_WEIGHTS.lambda_2, type=non_negative_float)
     """teacher: smoothness weight"""
     teacher_pixels: Literal["events", "all"] = "events"
     """teacher: regress on pixels holding events, or on every pixel"""
@@ -216,8 +220,9 @@ PRESETS: dict[str, dict[str, Any]] = {
     # gives the paper's bare loss).
     "paper": {
         "model": "ev-mgrflownet", "width": "paper", "input": "count_image", "lr": 1e-4, "unroll": 10,
-        "loss": "hmc", "loss_mode": "accumulated", "loss_scales": "all", "lambda_1": 1.0, "lambda_2": 1e-3,
-        "alpha": 0.6, "grad_clip": 100.0, "decay": "none", "warmup_steps": 0,
+        "loss": "hmc", "loss_mode": "accumulated", "loss_scales": "all", "lambda_1": LossWeights.lambda_1,
+        "lambda_2": LossWeights.lambda_2, "alpha": LossWeights.alpha, "grad_clip": 100.0, "decay": "none",
+        "warmup_steps": 0,
     },
     # The project's recipe (docs/results.md), stage 1: distil the per-window contrast-maximisation
     # teacher of L_HMC from targets solved once (scripts/teacher_targets.py); the shipped
@@ -325,7 +330,7 @@ class Learner:
         self.rewarm_from: int | None = None  # the step Adam's moments restarted at (a campaign's slim state)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, self._lr_factor)
         self.step = 0
-        self.window_loss = window_loss(cfg, self.flow_scaling)
+        self.loss_options = loss_options(cfg, self.flow_scaling)
         self.objective = make_objective(cfg, self.flow_scaling, device=self.device, height=self.height,
                                         width=self.width, teacher=self.teacher)
         self.obs, self.info = self.envs.reset(seed=cfg.seed + 1000 * self.rank)
@@ -349,12 +354,14 @@ class Learner:
         for _ in range(cfg.unroll):  # 1. collect the rollout
             x = torch.as_tensor(self.obs[cfg.input], device=self.device)
             flows = self.policy(x)  # multi-scale, finest last, pixels per window
+            # the B envs' windows in one padded batch: each window's loss is the one it has alone
             batch = EventBatch.from_windows(windows_from_info(self.info, cfg.num_envs), device=self.device)
-            with torch.no_grad():  # the reference the border rule scales with, and a logged baseline
-                zero = self.window_loss(torch.zeros_like(flows[-1]), batch)
-                if cfg.loss_mode == "window" or cfg.loss == "teacher":  # the finest flow's loss: the env's reward
-                    finest = flows[-1].detach()
-                    logged_losses.append(self.window_loss(finest, batch, cfg.border_penalty * zero.per_sample).loss)
+            # the reference the border rule scales with, and a logged baseline
+            zero = zero_flow_loss(flows[-1], batch, cfg.weights, **self.loss_options)
+            if cfg.loss_mode == "window" or cfg.loss == "teacher":  # the finest flow's loss: the env's -reward
+                with torch.no_grad():
+                    logged_losses.append(window_loss(flows[-1].detach(), batch, cfg.weights, zero_flow=zero.per_sample,
+                                                     **self.loss_options).loss)
             rollout.append(RolloutWindow(flows, batch, zero, self.info))
             self.obs, _, terminated, truncated, self.info = self.envs.step(flows[-1].detach().cpu().numpy())
             done = np.logical_or(terminated, truncated)
@@ -399,7 +406,8 @@ class Learner:
             "policy_state": None if state is None else {k: v.detach().cpu() for k, v in state.items()},
             "env_states": list(self.envs.call("episode_state")),
             "obs": {k: np.array(v) for k, v in self.obs.items()},
-            "info": self.info,
+            # the current windows are left to the envs, which reload them on a resume
+            "info": {k: v for k, v in self.info.items() if k not in ("window", "_window")},
         }
 
     def state_dict(self) -> dict[str, Any]:
@@ -469,7 +477,12 @@ class Learner:
         self.policy.state = None if state is None else {k: v.to(self.device) for k, v in state.items()}
         if restore_episodes and episode.get("env_states") is not None:
             self.envs.call("restore_episode_state", episode["env_states"])
-            self.obs, self.info = episode["obs"], episode["info"]
+            self.obs, self.info = episode["obs"], dict(episode["info"])
+            windows = self.envs.call("current_window")
+            self.info["window"] = np.empty(len(windows), object)
+            for i, window in enumerate(windows):  # one by one: numpy would read a Window as a sequence
+                self.info["window"][i] = window
+            self.info["_window"] = np.ones(len(windows), bool)
 
     def close(self) -> None:
         self.envs.close()

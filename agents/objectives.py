@@ -7,22 +7,24 @@ One class per objective, each with one job: turn the L windows of a rollout into
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from envs.windows import Window
 from losses import (
     EventBatch,
     LossOutput,
     accumulated_hmc_loss,
-    at_loss,
     border_rule_weight,
     contrast_maximisation_flow,
     event_pixel_mask,
-    hmc_loss,
     to_full_resolution,
+    window_loss,
 )
 
 if TYPE_CHECKING:
@@ -30,7 +32,7 @@ if TYPE_CHECKING:
     from .teacher import TeacherTargets
 
 __all__ = ["RolloutWindow", "WindowLoss", "AccumulatedLoss", "TeacherLoss", "SupervisedLoss", "make_objective",
-           "window_loss"]
+           "loss_options", "windows_from_info"]
 
 
 @dataclass
@@ -38,8 +40,9 @@ class RolloutWindow:
     """One window of a rollout, for the B envs at once.
 
     flows: the network's multi-scale flows, finest last, (B, 2, h, w) pixels over the window, with
-    their graph; batch: the window's events; zero: the window loss of zero flow (no graph: the
-    reference the border rule scales with); info: the vector env's info of the window."""
+    their graph; batch: the B windows' events, padded into one batch; zero: their loss under zero
+    flow (``losses.zero_flow_loss``, no graph: the reference the border rule scales with); info:
+    the vector env's info of the window."""
 
     flows: list[torch.Tensor]
     batch: EventBatch
@@ -47,13 +50,13 @@ class RolloutWindow:
     info: dict
 
 
-def window_loss(cfg: TrainConfig, flow_scaling: float):
-    """The unsupervised loss of one window under ``cfg`` (L_HMC, eq. 17, or L_AT, eq. 14, with the
-    readings docs/method.md lists): ``loss(flows, batch, border_penalty) -> LossOutput``. The
-    teacher and supervised objectives log L_HMC."""
-    kind = "at" if cfg.loss == "at" else "hmc"
-    fn, options = {"hmc": hmc_loss, "at": at_loss}[kind], _loss_options(cfg, flow_scaling, kind)
-    return lambda flows, batch, border_penalty=0.0: fn(flows, batch, border_penalty=border_penalty, **options)
+def loss_options(cfg: TrainConfig, flow_scaling: float) -> dict:
+    """How ``losses.window_loss`` (and ``zero_flow_loss``) scores a window under ``cfg``, beside
+    its weights ``cfg.weights``: L_HMC (eq. 17), or L_AT (eq. 14) with ``loss="at"``, with the
+    readings docs/method.md lists. The teacher and supervised objectives log L_HMC. With the
+    defaults this is the env's reward."""
+    return {"loss": "at" if cfg.loss == "at" else "hmc", "flow_scaling": flow_scaling, "upsampling": cfg.upsampling,
+            "reference_times": cfg.reference_times, "at_normalisation": cfg.at_normalisation}
 
 
 def _loss_options(cfg: TrainConfig, flow_scaling: float, kind: str) -> dict:
@@ -73,14 +76,15 @@ def _scales(cfg: TrainConfig, flows: list) -> list:
 
 
 class WindowLoss:
-    """The mean over the L windows of each window's L_HMC / L_AT, with the border rule."""
+    """The mean over the L windows of each window's L_HMC / L_AT, with the border rule: the env's
+    -reward (``losses.window_loss``), for the B windows of a step at once."""
 
     def __init__(self, cfg: TrainConfig, flow_scaling: float, **_) -> None:
-        self.cfg, self.loss = cfg, window_loss(cfg, flow_scaling)
+        self.cfg, self.options = cfg, loss_options(cfg, flow_scaling)
 
     def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:
-        penalty = self.cfg.border_penalty
-        losses = [self.loss(_scales(self.cfg, w.flows), w.batch, penalty * w.zero.per_sample).loss for w in rollout]
+        losses = [window_loss(_scales(self.cfg, w.flows), w.batch, self.cfg.weights, zero_flow=w.zero.per_sample,
+                              **self.options).loss for w in rollout]
         return torch.stack(losses).mean(), {}
 
 
@@ -124,13 +128,12 @@ class SupervisedLoss:
         return torch.stack([self._window(w) for w in rollout]).mean(), {}
 
 
-def windows_from_info(info: dict, num_envs: int) -> list[dict]:
-    """Per-env window dicts (events + bounds) out of a vector env's stacked info."""
-    return [{**info["events"][i], "t_start": int(info["t_start"][i]), "t_end": int(info["t_end"][i])}
-            for i in range(num_envs)]
+def windows_from_info(info: dict, num_envs: int) -> list[Window]:
+    """The B envs' current windows out of a vector env's stacked info."""
+    return [info["window"][i] for i in range(num_envs)]
 
 
-def _subsample_window(window: dict, max_events: int) -> dict:
+def _subsample_window(window: Mapping, max_events: int) -> Mapping:
     """The window with at most ``max_events`` events, taken evenly along the (time-ordered) stream."""
     n = len(window["t"])
     if n <= max_events:
@@ -150,15 +153,14 @@ class TeacherLoss:
         self.cfg, self.flow_scaling, self.device = cfg, flow_scaling, device
         self.height, self.width, self.teacher = height, width, teacher
 
-    def _targets(self, windows: list[dict]) -> torch.Tensor:
+    def _targets(self, windows: list[Mapping]) -> torch.Tensor:
         cfg = self.cfg
         if cfg.teacher_max_events:
             windows = [_subsample_window(w, cfg.teacher_max_events) for w in windows]
         return contrast_maximisation_flow(
             EventBatch.from_windows(windows, device=self.device), self.height, self.width, grids=cfg.teacher_grids,
-            steps=cfg.teacher_steps, lr=cfg.teacher_lr, flow_scaling=self.flow_scaling, lambda_1=cfg.lambda_1,
-            lambda_2=cfg.teacher_lambda_2, alpha=cfg.alpha, border_penalty=cfg.border_penalty,
-            border_ramp=cfg.border_ramp,
+            steps=cfg.teacher_steps, lr=cfg.teacher_lr, flow_scaling=self.flow_scaling,
+            weights=dataclasses.replace(cfg.weights, lambda_2=cfg.teacher_lambda_2),
         )
 
     def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:

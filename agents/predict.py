@@ -5,7 +5,8 @@ The windows and observations are the env's (:class:`envs.env.EventFlowEnv`, as i
 :func:`agents.evaluation.evaluate`): ground-truth aligned ``frames`` (a recording without a
 ground-truth grid falls back to time windows of ``no_gt_window_us``), ``time`` or ``count``;
 the recurrent state is carried from each window to the next. Per window the summary gathers
-L_HMC of the prediction and of zero flow, FWL and RSAT (ratios against zero flow, so zero
+L_HMC of the prediction (the env's -reward, border rule included, as the evaluation's) and of
+zero flow, FWL and RSAT (ratios against zero flow, so zero
 flow scores 1 on both), and AEE / outlier % where the recording has ground truth.
 
 Output h5 (``FLOW_FORMAT``), written under a temporary name and renamed when complete (an
@@ -38,12 +39,11 @@ from typing import Any, Literal
 
 import h5py
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from envs.env import EventFlowEnv
 from envs.outputs import Output
-from envs.representations import EventView, event_mask
+from envs.representations import event_mask
 from envs.visualize import (
     animation_path,
     count_image_to_rgb,
@@ -53,9 +53,10 @@ from envs.visualize import (
     panel,
     save_animation,
 )
-from envs.windows import WINDOW_MODES, window_bounds
-from losses import EventBatch, flow_error, fwl, hmc_loss, rsat
+from envs.windows import WINDOW_MODES, Window, window_bounds
+from losses import flow_error, fwl, rsat
 
+from .evaluation import env_loss
 from .policy import RecurrentPolicy
 from .subwindows import SubWindowPolicy
 
@@ -273,19 +274,19 @@ def _predict(policy, stepper, recording, flow_out: Output, video_out: Output | N
             f.attrs["crop"] = info["crop"]
             policy.reset()
             for k in range(k_total):
-                win = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+                win = info["window"]
                 flow = stepper.act_on_window(obs, win)
-                n = len(win["t"])
+                n = len(win.events)
                 counts[k] = n
                 flow_ds[k] = flow.astype(np.float16)
                 if per_event and n:
-                    rows = flow[:, win["y"].astype(np.int64), win["x"].astype(np.int64)].T.astype(np.float16)
+                    rows = flow[:, win.events.y.astype(np.int64), win.events.x.astype(np.int64)].T.astype(np.float16)
                     event_ds.resize((events_total + n, 2))
                     event_ds[events_total:] = rows
                 events_total += n
-                _score_window(per_window, k, flow, win, info, (h, w), env.flow_scaling)
+                _score_window(per_window, k, flow, win, env)
                 if k in video_at:
-                    frames.append(_preview(obs["count_image"], flow, info["t_start"], info["t_end"], video_width,
+                    frames.append(_preview(obs["count_image"], flow, win.t_start, win.t_end, video_width,
                                            arrows=video_arrows))
                 bar.update(1)
                 obs, _, _, _, info = env.step(flow)
@@ -303,22 +304,21 @@ def _predict(policy, stepper, recording, flow_out: Output, video_out: Output | N
     return PredictResult(out_path, video_path, k_total, events_total, seconds, per_window)
 
 
-def _score_window(per_window: dict, k: int, flow: np.ndarray, win: dict, info: dict, size, flow_scaling: float) -> None:
+def _score_window(per_window: dict, k: int, flow: np.ndarray, win: Window, env: EventFlowEnv) -> None:
     """The evaluation's per-window metrics (agents/evaluation.py), stored at index k."""
-    if not len(win["t"]):
+    if not len(win.events):
         return
-    batch = EventBatch.from_windows([win])
-    with torch.no_grad():
-        for key, f in (("hmc", flow), ("hmc_zero", np.zeros_like(flow))):
-            per_window[key][k] = float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=flow_scaling).loss)
+    size = win.sensor_size
+    for key, value in env_loss(env, flow, win).items():
+        per_window[key][k] = value
     per_window["fwl"][k] = fwl(flow, win, size)
     per_window["rsat"][k] = rsat(flow, win, size)
-    if "flow_gt" in info:
-        mask = event_mask(EventView(win), size)
-        err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], mask)
+    if win.flow_gt is not None:
+        mask = event_mask(win.events, size)
+        err = flow_error(flow, win.flow_gt, win.flow_gt_valid, mask)
         if err["n_pixels"] > 0:
             per_window["aee"][k], per_window["outlier_pct"][k] = err["aee"], err["outlier_pct"]
-            zero = flow_error(np.zeros_like(flow), info["flow_gt"], info["flow_gt_valid"], mask)
+            zero = flow_error(np.zeros_like(flow), win.flow_gt, win.flow_gt_valid, mask)
             per_window["aee_zero"][k] = zero["aee"]
 
 

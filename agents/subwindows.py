@@ -9,8 +9,7 @@ pixel ends up after following the sub-window flows in turn::
 
     policy = SubWindowPolicy(RecurrentPolicy.from_pretrained(), splits=4)
     obs, info = env.reset()
-    window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
-    obs, reward, _, truncated, info = env.step(policy.act_on_window(obs, window))
+    obs, reward, _, truncated, info = env.step(policy.act_on_window(obs, info["window"]))
 
 The observation of each sub-window is built from its own events exactly as the env builds a
 window's (``envs.representations``), so ``splits=1`` gives the wrapped policy's flow unchanged.
@@ -19,6 +18,8 @@ ground-truth interval). Cost: N network steps per window.
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
 
 import numpy as np
 import torch
@@ -29,9 +30,10 @@ from envs.representations import EventView, image_input
 __all__ = ["SubWindowPolicy", "compose_flows", "sub_windows"]
 
 
-def sub_windows(window: dict, splits: int) -> list[dict]:
-    """``window`` (numpy x, y, t, p sorted by t; int t_start, t_end) cut into ``splits`` windows
-    of equal length (integer µs bounds), each ``[t_k, t_k+1)`` with its own events."""
+def sub_windows(window: Mapping, splits: int) -> list[dict]:
+    """``window`` (``info["window"]``, or a dict of numpy x, y, t, p sorted by t and int t_start,
+    t_end) cut into ``splits`` windows of equal length (integer µs bounds), each ``[t_k, t_k+1)``
+    with its own events."""
     if int(splits) < 1:
         raise ValueError(f"splits must be >= 1, got {splits}")
     t0, t1 = int(window["t_start"]), int(window["t_end"])
@@ -90,7 +92,7 @@ class SubWindowPolicy:
         return {self.input_key: image_input(self.input_key, EventView(window), window["t_start"], window["t_end"],
                                             size, self.voxel_bins)}
 
-    def act_on_window(self, obs, window: dict) -> np.ndarray:
+    def act_on_window(self, obs, window: Mapping) -> np.ndarray:
         if self.splits == 1:
             return self.policy.act(obs)
         size = tuple(np.asarray(obs[self.input_key]).shape[-2:])

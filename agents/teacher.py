@@ -41,8 +41,8 @@ import torch.nn.functional as F
 from envs.atomic import remove_stale_temporaries, temporary_path
 from envs.dataset import resolve_data
 from envs.env import EventFlowEnv
-from envs.windows import window_bounds
-from losses import BORDER_RAMP, EventBatch, contrast_maximisation_flow
+from envs.windows import Window, window_bounds
+from losses import CMAX_WEIGHTS, EventBatch, LossWeights, contrast_maximisation_flow
 
 __all__ = ["TeacherSettings", "TeacherTargets", "compute_teacher_targets", "count_windows", "TeacherCacheError",
            "score_targets", "derive_targets", "copy_targets", "merge_targets"]
@@ -64,20 +64,25 @@ class TeacherSettings:
     lr_per_frame: float = 0.05  # Adam step size in pixels, times the window's length in frames
     sensor_scales: tuple | None = None  # sensor-grid coarsening per level (None: sensor pixels throughout)
     lr_decay: float = 1.0  # the step size falls by this factor over the solve
-    lambda_1: float = 1.0
-    lambda_2: float = 1e-2
-    alpha: float = 0.6
-    border_penalty: float = 1.0
-    border_ramp: float = BORDER_RAMP
+    lambda_1: float = CMAX_WEIGHTS.lambda_1
+    lambda_2: float = CMAX_WEIGHTS.lambda_2
+    alpha: float = CMAX_WEIGHTS.alpha
+    border_penalty: float = CMAX_WEIGHTS.border_penalty
+    border_ramp: float = CMAX_WEIGHTS.border_ramp
     flow_scaling: float = 32.0  # the loss's smoothness normalisation (the training runs' value)
 
+    @property
+    def weights(self) -> LossWeights:
+        """The loss weights of the solve."""
+        return LossWeights(self.lambda_1, self.lambda_2, self.alpha, self.border_penalty, self.border_ramp)
 
-def _windows_of(env: EventFlowEnv, sequence: int) -> list[dict]:
+
+def _windows_of(env: EventFlowEnv, sequence: int) -> list[Window]:
     """Every window of one recording at the env's window size (no crop, no flips)."""
     _, info = env.reset(options={"sequence": sequence})
     out = []
     while True:
-        out.append({**info["events"], "t_start": int(info["t_start"]), "t_end": int(info["t_end"])})
+        out.append(info["window"])
         _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
         if truncated:
             return out
@@ -155,7 +160,7 @@ def compute_teacher_targets(
                 grids.extend(_solve_coarse(batch, H, W, settings, lr=settings.lr_per_frame * k))
                 if progress is not None:
                     progress(len(chunk), name)
-            bounds += [[w["t_start"], w["t_end"]] for w in windows]
+            bounds += [[w.t_start, w.t_end] for w in windows]
         for env in envs.values():
             env.close()
         arrays = {"name": np.array(name), "sensor_size": np.array((H, W), np.int64),
@@ -283,8 +288,7 @@ def _solve_coarse(batch: EventBatch, height: int, width: int, s: TeacherSettings
     """(B, 2, gh, gw) the last level's coarse flow (its upsampling is the target)."""
     flow = contrast_maximisation_flow(
         batch, height, width, grids=s.grids, steps=s.steps if isinstance(s.steps, int) else tuple(s.steps), lr=lr,
-        flow_scaling=s.flow_scaling, lambda_1=s.lambda_1, lambda_2=s.lambda_2, alpha=s.alpha,
-        border_penalty=s.border_penalty, border_ramp=s.border_ramp, return_coarse=True,
+        flow_scaling=s.flow_scaling, weights=s.weights, return_coarse=True,
         sensor_scales=s.sensor_scales, lr_decay=s.lr_decay,
     )
     return flow.cpu()
@@ -345,7 +349,8 @@ class TeacherTargets:
     def targets_from_info(self, info: dict, num_envs: int) -> torch.Tensor:
         """(num_envs, 2, h, w): the targets of a vector env's current windows (its stacked info)."""
         return torch.stack([
-            self.target(info["sequence"][i], info["t_start"][i], info["t_end"][i], info["crop"][i], info["flips"][i])
+            self.target(info["sequence"][i], info["window"][i].t_start, info["window"][i].t_end, info["crop"][i],
+                        info["flips"][i])
             for i in range(num_envs)
         ])
 
@@ -424,7 +429,7 @@ def score_targets(path: str | os.PathLike, data=None, *, max_windows: int | None
     the first that many windows of each recording and length; ``window_sizes``: these lengths
     (default: the file's). Returns
     ``{"1": {"aee": .., "aee_zero": .., "windows": ..}, ...}`` (keys: window lengths)."""
-    from envs.representations import EventView, event_mask
+    from envs.representations import event_mask
     from losses import flow_error
 
     targets = TeacherTargets(path)
@@ -435,13 +440,12 @@ def score_targets(path: str | os.PathLike, data=None, *, max_windows: int | None
         for k in sizes:
             env = EventFlowEnv(data, window="frames", window_size=k, compute_reward=False, sequences=[index])
             for window in _windows_of(env, 0)[:max_windows]:
-                gt = env.sources[0].reader().flow_between(window["t_start"], window["t_end"])
-                if gt is None or not len(window["t"]):
+                if window.flow_gt is None or not len(window.events):
                     continue
-                mask = event_mask(EventView(window), env.sensor_size)
-                target = targets.target(source.name, window["t_start"], window["t_end"]).numpy()
-                err = flow_error(target, gt[0], gt[1], mask)
-                zero = flow_error(np.zeros_like(target), gt[0], gt[1], mask)
+                mask = event_mask(window.events, env.sensor_size)
+                target = targets.target(source.name, window.t_start, window.t_end).numpy()
+                err = flow_error(target, window.flow_gt, window.flow_gt_valid, mask)
+                zero = flow_error(np.zeros_like(target), window.flow_gt, window.flow_gt_valid, mask)
                 if err["n_pixels"]:
                     acc = sums.setdefault(str(k), [0.0, 0.0, 0])
                     acc[0] += err["aee"]

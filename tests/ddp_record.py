@@ -18,7 +18,7 @@ from agents.commands import train  # noqa: E402
 from agents.objectives import windows_from_info  # noqa: E402
 
 
-def _digest(events: dict) -> str:
+def _digest(events) -> str:
     data = b"".join(np.ascontiguousarray(events[key]).tobytes() for key in ("x", "y", "t", "p"))
     return hashlib.sha1(data).hexdigest()[:16]
 
@@ -29,8 +29,8 @@ def main(argv: list[str]) -> int:
     seen: list[list] = []
 
     def recorded(info, num_envs):
-        seen.append([[str(info["sequence"][i]), int(info["t_start"][i]), int(info["t_end"][i]),
-                      _digest(info["events"][i])] for i in range(num_envs)])
+        seen.append([[str(info["sequence"][i]), int(info["window"][i].t_start), int(info["window"][i].t_end),
+                      _digest(info["window"][i])] for i in range(num_envs)])
         return windows_from_info(info, num_envs)
 
     update = learner_module.Learner.update

@@ -14,8 +14,8 @@ from agents.commands import evaluate as evaluate_script  # noqa: E402
 from agents.evaluation import evaluate, results_table
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
-from envs.env import EventFlowEnv, score_flow
-from losses import EventBatch, contrast_maximisation_flow, hmc_loss
+from envs.env import EventFlowEnv
+from losses import EventBatch, contrast_maximisation_flow, hmc_loss, window_loss
 from tests.recordings import translating_dots, write_translating_recording
 from tests.test_readers import _stream, write_hagenaars
 
@@ -56,7 +56,7 @@ def test_a_recording_without_ground_truth_gives_one_table_and_runs_in_the_env(tm
     path = write_hagenaars(tmp_path / "nogt.h5", x, y, t - t[0], p)
     env = gymnasium.make("EventFlow-v0", data=str(path))  # default window mode
     obs, info = env.reset(seed=0)
-    assert info["windowing"] == "time" and info["t_end"] - info["t_start"] == 33_333
+    assert info["windowing"] == "time" and info["window"].t_end - info["window"].t_start == 33_333
     env.close()
     evaluate_script.main(["--zero", "--data", str(path), "--out", str(tmp_path / "ev"), "--no-progress",
                           "--pictures", "0"])
@@ -133,7 +133,7 @@ def test_a_strong_prior_holds_the_refinement_to_the_networks_flow(rng):
 
 
 def test_the_acceptance_gate_keeps_the_refinement_only_where_the_loss_drops_enough(rng):
-    """accept = a: the refined flow where the env's loss (score_flow: L_HMC with the border rule,
+    """accept = a: the refined flow where the env's loss (window_loss: L_HMC with the border rule,
     flow scaling max(H, W)) falls by at least a of the network's, else the network's flow exactly;
     accept = 0 keeps only refinements that do not raise it. Checked against the rule computed
     here, from a start half way to a translation (a large drop), from the translation itself (a
@@ -143,7 +143,7 @@ def test_the_acceptance_gate_keeps_the_refinement_only_where_the_loss_drops_enou
     batch = EventBatch.from_windows([window])
 
     def loss(f):
-        return float(score_flow(torch.from_numpy(f)[None], batch, flow_scaling=64).loss)
+        return float(window_loss(torch.from_numpy(f)[None], batch, flow_scaling=64).loss)
 
     for fraction, expect_refined in ((0.5, True), (1.0, False), (0.0, False)):
         start = np.zeros((2, 48, 64), np.float32)
@@ -173,6 +173,32 @@ def test_table_counts_sequences_below_zero_flow(tmp_path, rng):
              "zero flow": evaluate(None, str(path), progress=False, max_windows=2)}
     table = results_table(named)
     assert "| zero flow |" in table and "0/1" in table and "ms/win" in table
+
+
+def test_the_l_hmc_column_is_the_envs_reward(tmp_path, rng):
+    """The evaluation's L_HMC (and its "seq. L_HMC < zero" count) is the mean of -reward from
+    stepping the env with the same flow, border rule included (not the plain L_HMC)."""
+    path = write_translating_recording(tmp_path / "tiny.h5", rng, sensor_size=(32, 32), duration_us=150_000)
+    flow = np.zeros((2, 32, 32), np.float32)
+    flow[0], flow[1] = 9.0, -4.0  # pushes some events out of the frame: the border rule charges it
+    (result,) = evaluate(_Constant(flow), str(path), progress=False)
+    env = EventFlowEnv(str(path))
+    _, info = env.reset(options={"sequence": 0})
+    losses, plain, zero, truncated = [], [], [], False
+    while not truncated:
+        window = info["window"]
+        _, reward, _, truncated, info = env.step(flow)
+        if len(window.events):
+            losses.append(-reward)
+            batch = window.batch()
+            plain.append(float(hmc_loss(torch.from_numpy(flow)[None], batch, flow_scaling=32).loss))
+            zero.append(float(hmc_loss(torch.zeros(1, 2, 32, 32), batch, flow_scaling=32).loss))
+    assert result.windows == len(losses) == 5 and result.counts["hmc"] == len(losses)
+    assert result.mean("hmc") == pytest.approx(np.mean(losses), rel=1e-6)
+    assert result.mean("hmc_zero") == pytest.approx(np.mean(zero), rel=1e-6)
+    assert result.mean("hmc") > np.mean(plain) * 1.01  # the border rule is in it
+    table = results_table({"flow": [result]})
+    assert f"| {np.mean(losses):.4f} | {np.mean(zero):.4f} | {int(np.mean(losses) < np.mean(zero))}/1 |" in table
 
 
 def test_env_refuses_mixed_sizes_but_evaluation_takes_them(tmp_path, rng):

@@ -30,7 +30,7 @@ def recording(tmp_path_factory):
 
 
 def _window(info: dict) -> dict:
-    return {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+    return info["window"]
 
 
 def train_and_evaluate(spec: str, recording, **model_kwargs) -> tuple[torch.nn.Module, list[float]]:

@@ -88,7 +88,7 @@ def _env_windows(path, count):
     obs, info = env.reset(options={"sequence": 0})
     out = []
     for _ in range(count):
-        out.append((obs, {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}))
+        out.append((obs, info["window"]))
         obs, _, _, _, info = env.step(np.zeros((2, env.height, env.width), np.float32))
     env.close()
     return out

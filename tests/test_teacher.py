@@ -65,7 +65,8 @@ def test_targets_land_in_the_env_frame_like_its_ground_truth(tmp_path):
     for seed in range(8):
         _, info = env.reset(seed=seed)
         for _ in range(2):
-            target = targets.target(info["sequence"], info["t_start"], info["t_end"], info["crop"], info["flips"])
+            window = info["window"]
+            target = targets.target(info["sequence"], window.t_start, window.t_end, info["crop"], info["flips"])
             assert target.shape == (2, 40, 48)
             np.testing.assert_allclose(target.numpy(), info["flow_gt"], rtol=0, atol=1e-5)
             seen_flips.add(tuple(bool(v) for v in info["flips"][:2]))
@@ -108,10 +109,10 @@ def test_computed_targets_are_the_solvers_flow_and_an_interrupted_run_resumes(tm
     env = EventFlowEnv(rec, window_size=2, compute_reward=False)
     _, info = env.reset(options={"sequence": 0})
     _, _, _, _, info = env.step(np.zeros((2, 24, 32), np.float32))
-    batch = EventBatch.from_windows([{**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}])
+    batch = EventBatch.from_windows([info["window"]])
     direct = contrast_maximisation_flow(batch, 24, 32, grids=TINY.grids, steps=TINY.steps, lr=2 * TINY.lr_per_frame,
-                                        flow_scaling=TINY.flow_scaling, lambda_2=TINY.lambda_2)[0]
-    stored = targets.target(info["sequence"], info["t_start"], info["t_end"])
+                                        flow_scaling=TINY.flow_scaling, weights=TINY.weights)[0]
+    stored = targets.target(info["sequence"], info["window"].t_start, info["window"].t_end)
     assert direct.abs().max() > 0.01  # the solver moved: the comparison is not zero against zero
     torch.testing.assert_close(stored, direct, rtol=1e-4, atol=1e-4)
 

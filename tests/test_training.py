@@ -36,7 +36,7 @@ def test_tiny_model_overfits_one_fixed_batch(recording):
     obs, info = env.reset(seed=0)
     windows, images = [], []
     for _ in range(3):
-        windows.append({**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]})
+        windows.append(info["window"])
         images.append(obs["count_image"])
         obs, *_, info = env.step(info["flow_gt"])
     torch.manual_seed(0)

@@ -41,14 +41,14 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 from agents.cmax import ContrastMaximisationPolicy  # noqa: E402
-from agents.evaluation import evaluate  # noqa: E402
+from agents.evaluation import env_loss, evaluate  # noqa: E402
 from agents.mirror import MIRRORS, ROTATION, MirrorPolicy  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
 from agents.subwindows import SubWindowPolicy, compose_flows, sub_windows  # noqa: E402
 from envs.dataset import resolve_data  # noqa: E402
-from envs.env import EventFlowEnv, score_flow  # noqa: E402
+from envs.env import EventFlowEnv  # noqa: E402
 from envs.representations import EventView, image_input  # noqa: E402
-from losses import hmc_loss  # noqa: E402
+from losses import window_loss  # noqa: E402
 from losses.events import EventBatch  # noqa: E402
 
 
@@ -109,7 +109,9 @@ class CombinedPolicy:
         if len(window["t"]) == 0:
             return flows[0]
         batch = EventBatch.from_windows([window])
-        losses = [float(score_flow(torch.as_tensor(f)[None], batch, flow_scaling=float(max(size))).loss) for f in flows]
+        with torch.no_grad():
+            losses = [float(window_loss(torch.as_tensor(f)[None], batch, flow_scaling=float(max(size))).loss)
+                      for f in flows]
         best = int(np.argmin(losses))
         self.picked[best] += 1
         return flows[best]
@@ -148,13 +150,11 @@ def truth_below_zero(data, dt: int, max_windows: int) -> tuple[int, int]:
         _, info = env.reset(options={"sequence": 0})
         sums = np.zeros(2)
         for _ in range(max_windows):
-            win = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
-            if len(win["t"]):
-                truth = np.where(info["flow_gt_valid"], info["flow_gt"], 0).astype(np.float32)
-                batch = EventBatch.from_windows([win])
-                with torch.no_grad():
-                    sums += [float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=env.flow_scaling).loss)
-                             for f in (truth, np.zeros_like(truth))]
+            win = info["window"]
+            if len(win.events):
+                truth = np.where(win.flow_gt_valid, win.flow_gt, 0).astype(np.float32)
+                losses = env_loss(env, truth, win)  # as the evaluation's L_HMC column
+                sums += [losses["hmc"], losses["hmc_zero"]]
             _, _, _, truncated, info = env.step(np.zeros((2, *env.sensor_size), np.float32))
             if truncated:
                 break

@@ -28,6 +28,7 @@ and cosine every 30 steps.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -39,7 +40,7 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 from envs.env import EventFlowEnv  # noqa: E402
-from losses import EventBatch, contrast_maximisation_flow, event_pixel_mask, hmc_loss  # noqa: E402
+from losses import CMAX_WEIGHTS, EventBatch, contrast_maximisation_flow, event_pixel_mask, hmc_loss  # noqa: E402
 
 SCALES = (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)
 
@@ -59,7 +60,7 @@ def windows(args) -> list[dict]:
 
 
 def batch_of(infos: list[dict]) -> tuple[EventBatch, torch.Tensor, torch.Tensor]:
-    b = EventBatch.from_windows([{**i["events"], "t_start": i["t_start"], "t_end": i["t_end"]} for i in infos])
+    b = EventBatch.from_windows([i["window"] for i in infos])
     gt = torch.from_numpy(np.stack([i["flow_gt"] for i in infos]))
     valid = torch.from_numpy(np.stack([i["flow_gt_valid"] for i in infos]))
     return b, gt, valid
@@ -126,7 +127,8 @@ def teacher(args) -> None:
     mask = valid & event_pixel_mask(b.x, b.y, b.mask, H, W)
     start = time.perf_counter()
     flow = contrast_maximisation_flow(b, H, W, grids=args.grids, steps=args.steps, lr=args.lr,
-                                      flow_scaling=args.flow_scaling, lambda_2=args.lambda_2)
+                                      flow_scaling=args.flow_scaling,
+                                      weights=dataclasses.replace(CMAX_WEIGHTS, lambda_2=args.lambda_2))
     seconds = time.perf_counter() - start
     aee = (flow - gt).norm(dim=1)[mask].mean().item()
     zero = gt.norm(dim=1)[mask].mean().item()
@@ -149,7 +151,7 @@ def targets(args) -> None:
             while True:
                 b, gt, valid = batch_of([info])
                 mask = (valid & event_pixel_mask(b.x, b.y, b.mask, *gt.shape[-2:]))[0]
-                flow = cache.target(info["sequence"], info["t_start"], info["t_end"])
+                flow = cache.target(info["sequence"], info["window"].t_start, info["window"].t_end)
                 err += (flow - gt[0]).norm(dim=0)[mask].sum().item()
                 zero += gt[0].norm(dim=0)[mask].sum().item()
                 cos += F.cosine_similarity(flow, gt[0], dim=0)[mask].sum().item()
@@ -212,7 +214,7 @@ def main(argv=None) -> int:
     p.add_argument("--grids", type=int, nargs="+", default=[4, 8])
     p.add_argument("--steps", type=int, default=None, help="teacher: Adam steps per level (40); overfit: steps (150)")
     p.add_argument("--lr", type=float, default=0.05)
-    p.add_argument("--lambda-2", type=float, default=1e-2)
+    p.add_argument("--lambda-2", type=float, default=CMAX_WEIGHTS.lambda_2)
     p.add_argument("--ramps", type=float, nargs="*", default=[2.0, 4.0, 8.0, 16.0],
                    help="border: ramp lengths (pixels) to compare with the plain rule")
     p.add_argument("--game-magnitudes", type=float, nargs="*", default=[2, 4, 8, 16, 32, 64, 128, 1000],

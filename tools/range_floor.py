@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 
 from envs.dataset import resolve_data  # noqa: E402
 from envs.env import EventFlowEnv  # noqa: E402
-from envs.representations import EventView, event_mask  # noqa: E402
+from envs.representations import event_mask  # noqa: E402
 from losses import flow_error  # noqa: E402
 
 
@@ -40,7 +40,7 @@ def main(argv=None) -> int:
             sums, n = np.zeros(1 + len(args.flow_scaling)), 0
             for _ in range(args.max_windows):
                 gt, valid = info["flow_gt"], info["flow_gt_valid"]
-                mask = event_mask(EventView(info["events"]), env.sensor_size)
+                mask = event_mask(info["window"].events, env.sensor_size)
                 zero = flow_error(np.zeros_like(gt), gt, valid, mask)
                 if zero["n_pixels"]:
                     floors = [flow_error(np.clip(gt, -s, s), gt, valid, mask)["aee"] for s in args.flow_scaling]

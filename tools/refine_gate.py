@@ -3,8 +3,9 @@
 
 For the first windows of every sequence of a split (dt = 1 and 4), the shipped network's flow
 and its refinement (``RefinedPolicy``, the network's flow fed back as in evaluation) are scored
-on the window's loss as the env scores it (``score_flow``: L_HMC with the border rule, which the
-gate ``RefinedPolicy(accept=A)`` uses), on plain L_HMC (evaluation's column, no border rule) and
+on the window's loss as the env scores it (``losses.window_loss``: L_HMC with the border rule,
+which the gate ``RefinedPolicy(accept=A)`` and the evaluation's column use), on plain L_HMC (no
+border rule) and
 on the AEE to the ground truth (pixels with events and valid truth). Prints the mean AEE of the
 network, the refinement, zero flow and of the gate (the refinement kept only where the loss
 falls by at least the fraction A) for several A, by either loss, from the same windows: one
@@ -36,9 +37,9 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
     from agents.cmax import RefinedPolicy
     from agents.policy import RecurrentPolicy
     from envs.dataset import resolve_data
-    from envs.env import EventFlowEnv, score_flow
-    from envs.representations import EventView, event_mask
-    from losses import EventBatch, flow_error, hmc_loss
+    from envs.env import EventFlowEnv
+    from envs.representations import event_mask
+    from losses import EventBatch, flow_error, hmc_loss, window_loss
 
     network = RecurrentPolicy.from_pretrained(pretrained)
     if spec.count(":") != 2:
@@ -54,7 +55,7 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
             network.reset()
             size = (env.height, env.width)
             for w in range(max_windows):
-                window = {**info["events"], "t_start": info["t_start"], "t_end": info["t_end"]}
+                window = info["window"]
                 flow = network.act(obs)  # the network's own flow drives its state, as in evaluation
                 if len(window["t"]) and "flow_gt" in info:
                     refined = refine.settings.solve(window, size, base=flow, device="cpu")
@@ -63,9 +64,9 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
                     scale = float(max(size))
                     with torch.no_grad():
                         plain = [float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=scale).loss) for f in flows]
-                        env_loss = [float(score_flow(torch.from_numpy(f)[None], batch, flow_scaling=scale).loss)
+                        env_loss = [float(window_loss(torch.from_numpy(f)[None], batch, flow_scaling=scale).loss)
                                     for f in flows]
-                    scored = event_mask(EventView(window), size)
+                    scored = event_mask(window.events, size)
                     errors = [flow_error(f, info["flow_gt"], info["flow_gt_valid"], scored) for f in flows]
                     if errors[0]["n_pixels"] > 0:  # no valid truth under the events: not scored (as in evaluation)
                         rows.append({"dt": dt, "sequence": index, "window": w, "env_loss": env_loss, "loss": plain,
