@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +29,9 @@ from envs.representations import event_mask
 from envs.visualize import count_image_to_rgb, flow_legend, flow_to_rgb, panel, save_animation, save_png
 from envs.windows import FALLBACK_INTERVAL_US, Window, window_grid
 from losses import EventBatch, flow_error, fwl, rsat, sample_flow, warped_event_images, window_loss, zero_flow_loss
+
+from .policy import FlowPolicy, ZeroFlowPolicy
+from .rollout import WindowStep, observation_options, rollout
 
 __all__ = ["SequenceResult", "evaluate", "env_loss", "results_table", "results_json", "window_panel",
            "first_window_panel", "windowing_of"]
@@ -93,22 +95,8 @@ def _describe_windows(window: str, size: int, grid_kind: str | None) -> str:
     return f"{size} us" if window == "time" else f"{size} events"
 
 
-def _act(policy, obs: dict, window: Window, size: tuple[int, int]) -> np.ndarray:
-    """One window's flow: zero flow (None), a window-solving policy, or a recurrent policy."""
-    if policy is None:
-        return np.zeros((2,) + size, np.float32)
-    if hasattr(policy, "act_on_window"):
-        return policy.act_on_window(obs, window)
-    return policy.act(obs)
-
-
-def _input_parts(policy) -> tuple[str, ...]:
-    key = "count_image" if policy is None else getattr(policy, "input_key", "count_image")
-    return ("count_image",) if key == "count_image" else ("count_image", key)
-
-
 def evaluate(
-    policy,
+    policy: FlowPolicy | None,
     data,
     *,
     window: str = "frames",
@@ -130,9 +118,10 @@ def evaluate(
 ) -> list[SequenceResult]:
     """Roll ``policy`` through every sequence of ``data``, each at its own sensor size.
 
-    policy: a :class:`RecurrentPolicy`, None (zero flow), or a policy that solves each window
-    from its events (``act_on_window(obs, window)``, e.g. ``agents.cmax.ContrastMaximisationPolicy``
-    or ``RefinedPolicy``).
+    policy: any flow policy (``agents.policy.FlowPolicy``: a :class:`RecurrentPolicy`, a policy
+    that solves each window from its events such as ``agents.cmax.ContrastMaximisationPolicy``,
+    a wrapper of ``agents.wrappers``, a plug-in's ``act(obs)``), or None (zero flow); rolled
+    through each sequence by ``agents.rollout.rollout``.
     Every recording is evaluated whole in its own sensor frame (the built-in networks pad the
     input to a multiple of 16 and crop their flow back), unless ``crop`` is given: then that
     crop of every recording (``(h, w)`` centred, or ``(top, left, h, w)``).
@@ -164,6 +153,7 @@ def evaluate(
     rank, world = shard
     if not 0 <= rank < world:
         raise ValueError(f"shard must be (rank, world) with 0 <= rank < world, got {shard}")
+    policy = ZeroFlowPolicy() if policy is None else policy
     sources = resolve_data(data, format=data_format, options=data_options)
     results = []
     total = len(sources)
@@ -171,8 +161,7 @@ def evaluate(
         # one env per recording: each in its own frame, nothing cropped unless asked
         env = EventFlowEnv(data, window=window, window_size=window_size, crop=crop, compute_reward=False,
                            flow_scaling=flow_scaling, data_format=data_format, data_options=data_options,
-                           observations=_input_parts(policy), sequences=[index],
-                           voxel_bins=getattr(policy, "voxel_bins", 5) if policy is not None else 5)
+                           sequences=[index], **observation_options(policy))
         try:
             results.append(_evaluate_sequence(
                 env, policy, index, total, window=window, windows_fn=windows_fn, dt_ratio=dt_ratio,
@@ -183,8 +172,8 @@ def evaluate(
     return results
 
 
-def _evaluate_sequence(env: EventFlowEnv, policy, index: int, total: int, *, window, windows_fn, dt_ratio,
-                       max_windows, pictures_dir, pictures_per_sequence, animation_windows, progress,
+def _evaluate_sequence(env: EventFlowEnv, policy: FlowPolicy, index: int, total: int, *, window, windows_fn,
+                       dt_ratio, max_windows, pictures_dir, pictures_per_sequence, animation_windows, progress,
                        scorer_fn=None, flow_sink=None) -> SequenceResult:
     size = (env.height, env.width)
     reader = env.sources[0].reader()
@@ -193,60 +182,65 @@ def _evaluate_sequence(env: EventFlowEnv, policy, index: int, total: int, *, win
     if windows_fn is not None:
         options["windows"] = windows_fn(reader)
     score = scorer_fn(reader) if scorer_fn is not None else None
-    name = env.sequence_names[0]
     described = _describe_windows(window, env.window_size, grid_kind)
+    result = SequenceResult(env.sequence_names[0], size=size, windowing=described)
     try:
-        obs, info = env.reset(options=options)
+        steps = rollout(policy, env, options=options, max_windows=max_windows)
     except NoWindowsError:  # too short for this window size: reported with 0 windows
-        return SequenceResult(name, size=size, windowing=described)
-    if policy is not None:
-        policy.reset()
-    result = SequenceResult(info["sequence"], size=size, windowing=described)
-    bar = tqdm(desc=f"eval {info['sequence']} ({index + 1}/{total})", unit="win", disable=not progress, leave=False)
+        return result
+    bar = tqdm(desc=f"eval {result.name} ({index + 1}/{total})", unit="win", disable=not progress, leave=False)
     frames: list[np.ndarray] = []
-    truncated = False
-    while not truncated and (max_windows is None or result.windows < max_windows):
-        win = info["window"]
-        began = time.perf_counter()
-        flow = _act(policy, obs, win, size)
-        if result.windows:  # a sequence's first window pays for warm-up (kernel compilation, allocations)
-            result.add("ms", 1e3 * (time.perf_counter() - began))
+    for step in steps:
+        if step.index:  # a sequence's first window pays for warm-up (kernel compilation, allocations)
+            result.add("ms", 1e3 * step.seconds)
         if flow_sink is not None:
-            flow_sink(reader, win, flow)
-        n_events = len(win.events)
-        aee = None
-        if n_events:
-            for key, value in env_loss(env, flow, win).items():
-                result.add(key, value)
-            result.add("fwl", fwl(flow, win, size))
-            result.add("rsat", rsat(flow, win, size))
-        if "flow_gt" in info and (n_events or score is not None):
-            if score is None:
-                scored = event_mask(win.events, size)
-                err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], scored, dt_ratio=dt_ratio)
-                scored = scored & info["flow_gt_valid"]
-            else:
-                err, scored = score(flow, info, win, size, dt_ratio)
-            if err["n_pixels"] > 0:
-                aee = err["aee"]
-                for key, value in err.items():
-                    if key != "n_pixels":
-                        result.add(key, value)
-                result.add("cosine", flow_cosine(flow, info["flow_gt"], scored))
-        if pictures_dir is not None and result.windows < pictures_per_sequence and n_events:
-            path = Path(pictures_dir) / f"{info['sequence']}_w{result.windows:03d}.png"
-            save_png(path, window_panel(obs["count_image"], flow, win, info.get("flow_gt"), aee=aee))
-        if pictures_dir is not None and result.windows < animation_windows:
-            scale = float(np.abs(info["flow_gt"]).max()) if "flow_gt" in info else None
-            frames.append(panel([("events", count_image_to_rgb(obs["count_image"])),
-                                 ("flow", flow_to_rgb(flow, scale))], caption=f"window {result.windows}"))
+            flow_sink(reader, step.window, step.flow)
+        aee = _score_window(result, env, step, score, dt_ratio)
+        if pictures_dir is not None and step.index < pictures_per_sequence and len(step.window.events):
+            path = Path(pictures_dir) / f"{result.name}_w{step.index:03d}.png"
+            save_png(path, window_panel(step.obs["count_image"], step.flow, step.window, step.info.get("flow_gt"),
+                                        aee=aee))
+        if pictures_dir is not None and step.index < animation_windows:
+            frames.append(_animation_frame(step))
         result.windows += 1
         bar.update(1)
-        obs, _, _, truncated, info = env.step(flow)
     bar.close()
     if frames:
         save_animation(Path(pictures_dir) / f"{result.name}.gif", frames, fps=10)
     return result
+
+
+def _score_window(result: SequenceResult, env: EventFlowEnv, step: WindowStep, score, dt_ratio: float) -> float | None:
+    """Add one window's metrics to ``result`` (module docstring); returns its AEE (None: not scored)."""
+    flow, win, info, size = step.flow, step.window, step.info, (env.height, env.width)
+    n_events = len(win.events)
+    if n_events:
+        for key, value in env_loss(env, flow, win).items():
+            result.add(key, value)
+        result.add("fwl", fwl(flow, win, size))
+        result.add("rsat", rsat(flow, win, size))
+    if "flow_gt" not in info or not (n_events or score is not None):
+        return None
+    if score is None:
+        scored = event_mask(win.events, size)
+        err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], scored, dt_ratio=dt_ratio)
+        scored = scored & info["flow_gt_valid"]
+    else:
+        err, scored = score(flow, info, win, size, dt_ratio)
+    if err["n_pixels"] == 0:
+        return None
+    for key, value in err.items():
+        if key != "n_pixels":
+            result.add(key, value)
+    result.add("cosine", flow_cosine(flow, info["flow_gt"], scored))
+    return err["aee"]
+
+
+def _animation_frame(step: WindowStep) -> np.ndarray:
+    """One frame of a sequence's GIF: count image and predicted flow (the ground truth's scale)."""
+    scale = float(np.abs(step.info["flow_gt"]).max()) if "flow_gt" in step.info else None
+    return panel([("events", count_image_to_rgb(step.obs["count_image"])), ("flow", flow_to_rgb(step.flow, scale))],
+                 caption=f"window {step.index}")
 
 
 def env_loss(env: EventFlowEnv, flow: np.ndarray, window: Window) -> dict[str, float]:
@@ -282,28 +276,21 @@ def window_panel(count: np.ndarray, flow: np.ndarray, window: Mapping, flow_gt: 
     return panel(tiles, caption)
 
 
-def first_window_panel(policy, data, *, crop=None, flow_scaling: float | None = None, data_format: str | None = None,
-                       data_options: dict | None = None, max_windows: int = 50) -> np.ndarray | None:
+def first_window_panel(policy: FlowPolicy | None, data, *, crop=None, flow_scaling: float | None = None,
+                       data_format: str | None = None, data_options: dict | None = None,
+                       max_windows: int = 50) -> np.ndarray | None:
     """:func:`window_panel` of the first window with events of the first sequence of ``data``
-    (``frames`` windows, the policy rolled from a fresh state): events, predicted flow with the
-    colour wheel, ground truth where present. None when none of its first ``max_windows``
-    windows holds events. Returns (H, W, 3) uint8."""
+    (``frames`` windows, the policy rolled from a fresh state; None: zero flow): events, predicted
+    flow with the colour wheel, ground truth where present. None when none of its first
+    ``max_windows`` windows holds events. Returns (H, W, 3) uint8."""
+    policy = ZeroFlowPolicy() if policy is None else policy
     env = EventFlowEnv(data, window="frames", crop=crop, compute_reward=False, flow_scaling=flow_scaling,
-                       data_format=data_format, data_options=data_options, observations=_input_parts(policy),
-                       sequences=[0], voxel_bins=getattr(policy, "voxel_bins", 5) if policy is not None else 5)
+                       data_format=data_format, data_options=data_options, sequences=[0],
+                       **observation_options(policy))
     try:
-        obs, info = env.reset(options={"sequence": 0})
-        if policy is not None:
-            policy.reset()
-        size = (env.height, env.width)
-        for _ in range(max_windows):
-            win = info["window"]
-            flow = _act(policy, obs, win, size)
-            if len(win.events):
-                return window_panel(obs["count_image"], flow, win, info.get("flow_gt"))
-            obs, _, _, truncated, info = env.step(flow)
-            if truncated:
-                break
+        for step in rollout(policy, env, options={"sequence": 0}, max_windows=max_windows):
+            if len(step.window.events):
+                return window_panel(step.obs["count_image"], step.flow, step.window, step.info.get("flow_gt"))
     except NoWindowsError:
         pass
     finally:

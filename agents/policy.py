@@ -1,4 +1,14 @@
-"""The stateful wrapper that turns a pure flow network into the environment's actor.
+"""The policy interface, and the stateful wrapper that turns a pure flow network into the
+environment's actor.
+
+A flow policy (:class:`FlowPolicy`) is anything with ``reset(mask=None)`` and
+``act(obs, window=None) -> flow``: the observation of a window and that window itself (its events,
+``info["window"]``), so a policy that solves the window from its events (contrast maximisation,
+refinement, sub-windows) is a policy like any other; one that needs only the observation ignores
+the window. A plug-in written against ``act(obs)`` alone still plugs in: :func:`as_flow_policy`
+passes it the observation only. ``agents.rollout.rollout`` drives any of them through an env;
+the wrappers that change how a policy acts (mirror, split, refine, ...) are in
+``agents/wrappers/``.
 
 The network is pure (``flows, state = model(x, state)``, see ``agents/protocol.py``); the
 wrapper holds the state between windows and offers what rollouts and truncated BPTT need::
@@ -16,6 +26,10 @@ and the state carried between windows stay float32 (:func:`autocast_dtype` reads
 """
 
 from __future__ import annotations
+
+import inspect
+from collections.abc import Mapping
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -50,6 +64,75 @@ def autocast_dtype(amp: str, device: torch.device | str) -> torch.dtype | None:
             raise ValueError(f"amp fp16 needs a CUDA device (this run: {device}); on CPU use --amp bf16 or off")
         return torch.float16
     return None
+
+
+@runtime_checkable
+class FlowPolicy(Protocol):
+    """What the rollout, the evaluation, predict and every wrapper act through.
+
+    ``reset(mask=None)``: start new sequences (all, or where the (B,) bool ``mask`` is True).
+    ``act(obs, window=None)``: the flow for one window, (2, H, W) float32 pixels of displacement
+    over the window; ``obs`` is the env's observation dict, ``window`` the env's
+    ``info["window"]`` (an ``envs.windows.Window``, or any dict of numpy ``x, y, t, p`` and int
+    ``t_start, t_end``). A policy that does not need the window ignores it; one that does
+    raises ValueError without it.
+
+    Optional attributes, read with these defaults: ``input_key`` ("count_image"), the
+    observation part it reads, and ``voxel_bins`` (5), that part's size when it is a voxel grid.
+    """
+
+    def reset(self, mask=None) -> None: ...
+
+    def act(self, obs, window: Mapping | None = None) -> np.ndarray: ...
+
+
+class ZeroFlowPolicy:
+    """Zero flow on every window: the baseline every method is measured against."""
+
+    input_key = "count_image"
+    voxel_bins = 5
+
+    def reset(self, mask=None) -> None:
+        """Nothing to reset."""
+
+    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+        return np.zeros((2, *np.shape(obs[self.input_key])[-2:]), np.float32)
+
+
+class ObservationOnlyPolicy:
+    """A plug-in whose ``act`` takes the observation alone (``act(obs)``), as a :class:`FlowPolicy`:
+    the window is not passed on. Every other attribute is the plug-in's."""
+
+    def __init__(self, policy) -> None:
+        self.policy = policy
+
+    def reset(self, mask=None) -> None:
+        if mask is None:
+            self.policy.reset()  # a plug-in's reset() may take no mask
+        else:
+            self.policy.reset(mask)
+
+    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+        return self.policy.act(obs)
+
+    def __getattr__(self, name: str):
+        if name == "policy":  # not set yet (copying, unpickling): no recursion
+            raise AttributeError(name)
+        return getattr(self.policy, name)
+
+
+def as_flow_policy(policy) -> FlowPolicy:
+    """``policy`` itself when its ``act`` takes the window, else (a plug-in's ``act(obs)``) wrapped
+    in :class:`ObservationOnlyPolicy`. The one place where the two kinds are told apart: by the
+    signature of ``act``, which takes a second positional argument or not."""
+    try:
+        parameters = inspect.signature(policy.act).parameters.values()
+    except (TypeError, ValueError):  # no signature to read (a builtin): assume the interface
+        return policy
+    positional = [p for p in parameters if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    if len(positional) >= 2 or any(p.kind == p.VAR_POSITIONAL for p in parameters):
+        return policy
+    return ObservationOnlyPolicy(policy)
 
 
 class RecurrentPolicy(nn.Module):
@@ -147,11 +230,12 @@ class RecurrentPolicy(nn.Module):
         return [flow.float() for flow in flows]
 
     @torch.no_grad()
-    def act(self, obs: dict | np.ndarray | Tensor) -> np.ndarray:
-        """Rollout step without gradients.
+    def act(self, obs: dict | np.ndarray | Tensor, window: Mapping | None = None) -> np.ndarray:
+        """Rollout step without gradients (:class:`FlowPolicy`).
 
         obs: an env observation dict with ``input_key`` ("count_image" (2, H, W) by default)
             for a single env, or (B, C, H, W) for a vector env; or that array itself.
+        window: not read (the network sees the observation only).
         Returns: the finest flow, float32 numpy, (2, H, W) or (B, 2, H, W), pixels over the window.
         """
         part = obs[self.input_key] if isinstance(obs, dict) else obs

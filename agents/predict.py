@@ -57,8 +57,9 @@ from envs.windows import WINDOW_MODES, Window, window_bounds
 from losses import flow_error, fwl, rsat
 
 from .evaluation import env_loss
-from .policy import RecurrentPolicy
-from .subwindows import SubWindowPolicy
+from .policy import FlowPolicy, RecurrentPolicy
+from .rollout import WindowStep, observation_options, rollout
+from .wrappers.subwindows import SubWindowPolicy
 
 __all__ = ["FLOW_FORMAT", "PredictResult", "load_policy", "predict", "summary_table"]
 
@@ -124,16 +125,77 @@ def load_policy(model: str | None = None, *, device: str = "cpu", width: str | i
     return RecurrentPolicy(net, device=device), {"kind": "untrained", "name": model, **kwargs}
 
 
-def _windows(env: EventFlowEnv, reader, window: str, start_us, end_us, no_gt_window_us) -> tuple[np.ndarray, str, int]:
-    """(K, 2) µs rows [t_start, t_end): the env's windows of the recording inside [start, end);
-    and the mode and size that cut them."""
+def _open_sequence(policy: FlowPolicy, recording, sequence: int | str, *, window, window_size, crop, data_format,
+                   data_options) -> tuple[EventFlowEnv, int]:
+    """The env over ``recording`` with ``policy``'s inputs, and the index of ``sequence`` in it
+    (ValueError naming the recording's sequences when there is none such)."""
+    env = EventFlowEnv(str(recording), data_format=data_format, data_options=data_options, window=window,
+                       window_size=window_size, crop=crop, compute_reward=False, **observation_options(policy))
+    names = env.sequence_names
+    if isinstance(sequence, str) and sequence not in names:
+        env.close()
+        raise ValueError(f"sequence {sequence!r} is not in {recording}; its sequences: {names}")
+    index = names.index(sequence) if isinstance(sequence, str) else int(sequence)
+    if not 0 <= index < len(names):
+        env.close()
+        raise ValueError(f"sequence {index} outside [0, {len(names)}) for {recording}")
+    return env, index
+
+
+def _windows(env: EventFlowEnv, reader, recording, window: str, start_s, end_s,
+             no_gt_window_us) -> tuple[np.ndarray, str, int]:
+    """(K, 2) µs rows [t_start, t_end): the env's windows of the recording inside [start_s, end_s)
+    (seconds from its start; None: its start / end); and the mode and size that cut them.
+    ValueError when there is none."""
+    start_us = None if start_s is None else reader.t_start + int(round(start_s * 1e6))
+    end_us = None if end_s is None else reader.t_start + int(round(end_s * 1e6))
     mode, size = window, env.window_size
     if window == "frames" and reader.flow_timestamps() is None:
         mode, size = "time", no_gt_window_us
     bounds = window_bounds(reader, mode, size, t_from=start_us)[:, :2]
     if end_us is not None:
         bounds = bounds[bounds[:, 1] <= end_us]
+    if len(bounds) == 0:
+        raise ValueError(f"{recording}: no {window} window of size {env.window_size} inside the span "
+                         f"[{start_s or 0}, {end_s if end_s is not None else 'end'}) s from the recording's start")
     return bounds, mode, size
+
+
+class _FlowFile:
+    """The output h5 (module docstring), written window by window into an open ``h5py.File``."""
+
+    def __init__(self, f: h5py.File, bounds: np.ndarray, size: tuple[int, int], *, per_event: bool,
+                 compression: int) -> None:
+        h, w = size
+        self.f, self.per_event = f, per_event
+        self.flow = f.create_dataset("flow", (len(bounds), 2, h, w), np.float16, chunks=(1, 2, h, w),
+                                     compression="gzip", compression_opts=compression, shuffle=True)
+        f.create_dataset("t_start", data=bounds[:, 0])
+        f.create_dataset("t_end", data=bounds[:, 1])
+        self.counts = np.zeros(len(bounds), np.int64)
+        self.events = 0  # events written so far
+        if per_event:
+            self.event_flow = f.create_dataset("event_flow", (0, 2), np.float16, maxshape=(None, 2),
+                                               chunks=(1 << 16, 2), compression="gzip", compression_opts=compression)
+
+    def write(self, k: int, flow: np.ndarray, window: Window) -> None:
+        """Window k's flow (2, H, W) pixels, and with ``per_event`` the flow at its events."""
+        n = len(window.events)
+        self.counts[k] = n
+        self.flow[k] = flow.astype(np.float16)
+        if self.per_event and n:
+            rows = flow[:, window.events.y.astype(np.int64), window.events.x.astype(np.int64)].T.astype(np.float16)
+            self.event_flow.resize((self.events + n, 2))
+            self.event_flow[self.events:] = rows
+        self.events += n
+
+    def finish(self, per_window: dict[str, np.ndarray]) -> None:
+        """The event counts (and offsets) and the per-window metrics, once every window is in."""
+        self.f.create_dataset("num_events", data=self.counts)
+        if self.per_event:
+            self.f.create_dataset("event_offsets", data=np.concatenate([[0], np.cumsum(self.counts)]).astype(np.int64))
+        for key, values in per_window.items():
+            self.f.create_dataset(f"metrics/{key}", data=values.astype(np.float32))
 
 
 def _preview(count: np.ndarray, flow: np.ndarray, t_start: int, t_end: int, max_width: int,
@@ -163,7 +225,7 @@ def _preview(count: np.ndarray, flow: np.ndarray, t_start: int, t_end: int, max_
 
 
 def predict(
-    policy: RecurrentPolicy,
+    policy: FlowPolicy,
     recording: str | os.PathLike,
     out_path: str | os.PathLike,
     *,
@@ -201,111 +263,105 @@ def predict(
     overwrite: replace an existing ``out_path`` (refused otherwise, and always when it is the
     recording itself), as ``scripts/convert.py`` does.
     split: step the network through this many equal sub-windows of every window and compose
-    their flows (``agents.subwindows``; for windows longer than the network's usual step).
+    their flows (``agents.wrappers.subwindows``; for windows longer than the network's usual step).
+    policy: any flow policy (``agents.policy.FlowPolicy``), rolled by ``agents.rollout.rollout``.
     """
+    _check_options(window, split)
+    with contextlib.ExitStack() as claims:  # every output claimed before any work (envs.outputs)
+        flow_out, video_out = _claim_outputs(claims, recording, out_path, video, overwrite)
+        env, index = _open_sequence(policy, recording, sequence, window=window, window_size=window_size, crop=crop,
+                                    data_format=data_format, data_options=data_options)
+        try:
+            reader = env.sources[index].reader()
+            bounds, mode, size = _windows(env, reader, recording, window, start_s, end_s, no_gt_window_us)
+            attributes = _file_attributes(recording, reader, (env.height, env.width), mode, size, provenance, split)
+            preview = _Preview(len(bounds), video_frames, video_width, video_arrows) if video_out else None
+            result = _run(SubWindowPolicy(policy, int(split)), env, {"sequence": index, "windows": bounds}, flow_out,
+                          attributes, per_event=per_event, compression=compression, progress=progress, preview=preview)
+        finally:  # an exception (KeyboardInterrupt included) discards the temporary: nothing under the final name
+            env.close()
+        if preview is not None and preview.frames:
+            result.video = save_animation(video_out.path, preview.frames, video_fps)
+        flow_out.commit()
+        return result
+
+
+def _check_options(window: str, split: int) -> None:
+    """ValueError naming the option for a window mode or split that :func:`predict` cannot run."""
     if window not in WINDOW_MODES:
         raise ValueError(f"window must be one of {WINDOW_MODES}, got {window!r}")
     if int(split) < 1:
         raise ValueError(f"split must be a number of sub-windows >= 1, got {split}")
-    stepper = SubWindowPolicy(policy, int(split))
+
+
+def _claim_outputs(claims: contextlib.ExitStack, recording, out_path, video, overwrite: bool
+                   ) -> tuple[Output, Output | None]:
+    """The flow file's and the preview's claims (``envs.outputs.Output``), held by ``claims``."""
     inputs = [("recording", recording)]
-    with contextlib.ExitStack() as claims:  # every output claimed before any work (envs.outputs)
-        flow_out = claims.enter_context(Output(out_path, inputs=inputs, overwrite=overwrite))
-        video_out = None
-        if video:
-            video_out = claims.enter_context(Output(animation_path(video), inputs=inputs, overwrite=overwrite))
-        return _predict(policy, stepper, recording, flow_out, video_out, window=window, window_size=window_size,
-                        start_s=start_s, end_s=end_s, crop=crop, sequence=sequence, data_format=data_format,
-                        data_options=data_options, per_event=per_event, video_fps=video_fps, video_frames=video_frames,
-                        video_width=video_width, video_arrows=video_arrows, provenance=provenance,
-                        no_gt_window_us=no_gt_window_us,
-                        progress=progress, compression=compression, split=split)
+    flow_out = claims.enter_context(Output(out_path, inputs=inputs, overwrite=overwrite))
+    video_out = None
+    if video:
+        video_out = claims.enter_context(Output(animation_path(video), inputs=inputs, overwrite=overwrite))
+    return flow_out, video_out
 
 
-def _predict(policy, stepper, recording, flow_out: Output, video_out: Output | None, *, window, window_size, start_s,
-             end_s, crop, sequence, data_format, data_options, per_event, video_fps, video_frames, video_width,
-             video_arrows, provenance, no_gt_window_us, progress, compression, split) -> PredictResult:
-    """:func:`predict` once its outputs are claimed: the flows go to ``flow_out``'s temporary,
-    committed when complete; the preview to ``video_out``'s path."""
-    out_path = flow_out.path
-    parts = ("count_image",) if policy.input_key == "count_image" else ("count_image", policy.input_key)
-    env = EventFlowEnv(str(recording), data_format=data_format, data_options=data_options, window=window,
-                       window_size=window_size, crop=crop, compute_reward=False, observations=parts,
-                       voxel_bins=policy.voxel_bins)
-    names = env.sequence_names
-    if isinstance(sequence, str) and sequence not in names:
-        env.close()
-        raise ValueError(f"sequence {sequence!r} is not in {recording}; its sequences: {names}")
-    index = names.index(sequence) if isinstance(sequence, str) else int(sequence)
-    if not 0 <= index < len(names):
-        env.close()
-        raise ValueError(f"sequence {index} outside [0, {len(names)}) for {recording}")
-    reader = env.sources[index].reader()
-    start_us = None if start_s is None else reader.t_start + int(round(start_s * 1e6))
-    end_us = None if end_s is None else reader.t_start + int(round(end_s * 1e6))
-    bounds, mode, size = _windows(env, reader, window, start_us, end_us, no_gt_window_us)
-    if len(bounds) == 0:
-        env.close()
-        raise ValueError(f"{recording}: no {window} window of size {env.window_size} inside the span "
-                         f"[{start_s or 0}, {end_s if end_s is not None else 'end'}) s from the recording's start")
-    k_total, (h, w) = len(bounds), (env.height, env.width)
-    video_at = set(np.linspace(0, k_total - 1, min(video_frames, k_total)).astype(int).tolist()) if video_out else set()
-    frames: list[np.ndarray] = []
-    per_window = {key: np.full(k_total, np.nan) for key in PER_WINDOW}
+def _file_attributes(recording, reader, sensor_size: tuple[int, int], mode: str, size: int, provenance: dict | None,
+                     split: int) -> dict:
+    """The output h5's attributes but ``crop`` (module docstring)."""
+    return dict(format=FLOW_FORMAT, version=1, sensor_size=sensor_size,
+                recording=str(Path(recording).resolve()) if Path(recording).exists() else str(recording),
+                reader=type(reader).__name__, window=mode, window_size=size,
+                model=json.dumps(provenance or {}, default=str), split=int(split),
+                units="flow: pixels of displacement over the window, channel 0 = x (right), 1 = y (down)")
 
-    bar = tqdm(total=k_total, desc=f"predict {reader.name}", unit="win", disable=not progress)
-    events_total, t0 = 0, time.perf_counter()
+
+class _Preview:
+    """The preview's frames: at most ``frames`` windows spread evenly over ``windows``
+    (:func:`_preview` of each)."""
+
+    def __init__(self, windows: int, frames: int, width: int, arrows: bool) -> None:
+        self.at = set(np.linspace(0, windows - 1, min(frames, windows)).astype(int).tolist())
+        self.width, self.arrows = width, arrows
+        self.frames: list[np.ndarray] = []
+
+    def add(self, step: WindowStep) -> None:
+        if step.index in self.at:
+            self.frames.append(_preview(step.obs["count_image"], step.flow, step.window.t_start, step.window.t_end,
+                                        self.width, arrows=self.arrows))
+
+
+def _run(actor: FlowPolicy, env: EventFlowEnv, options: dict, flow_out: Output, attributes: dict, *, per_event: bool,
+         compression: int, progress: bool, preview: _Preview | None) -> PredictResult:
+    """Roll ``actor`` through the windows ``options`` give (``env.reset`` options), write their
+    flows to ``flow_out``'s temporary file (with ``attributes``), score each window and add the
+    preview's frames. Returns the result, without its video."""
+    bounds = options["windows"]
+    per_window = {key: np.full(len(bounds), np.nan) for key in PER_WINDOW}
+    bar = tqdm(total=len(bounds), desc=f"predict {env.sequence_names[options['sequence']]}", unit="win",
+               disable=not progress)
+    t0 = time.perf_counter()
     try:
         with h5py.File(flow_out.temporary, "w") as f:
-            f.attrs.update(format=FLOW_FORMAT, version=1, sensor_size=(h, w),
-                           recording=str(Path(recording).resolve()) if Path(recording).exists() else str(recording),
-                           reader=type(reader).__name__, window=mode, window_size=size,
-                           model=json.dumps(provenance or {}, default=str), split=int(split),
-                           units="flow: pixels of displacement over the window, channel 0 = x (right), 1 = y (down)")
-            flow_ds = f.create_dataset("flow", (k_total, 2, h, w), np.float16, chunks=(1, 2, h, w),
-                                       compression="gzip", compression_opts=compression, shuffle=True)
-            f.create_dataset("t_start", data=bounds[:, 0])
-            f.create_dataset("t_end", data=bounds[:, 1])
-            counts = np.zeros(k_total, np.int64)
-            if per_event:
-                event_ds = f.create_dataset("event_flow", (0, 2), np.float16, maxshape=(None, 2), chunks=(1 << 16, 2),
-                                            compression="gzip", compression_opts=compression)
-            obs, info = env.reset(options={"sequence": index, "windows": bounds})
-            f.attrs["crop"] = info["crop"]
-            policy.reset()
-            for k in range(k_total):
-                win = info["window"]
-                flow = stepper.act_on_window(obs, win)
-                n = len(win.events)
-                counts[k] = n
-                flow_ds[k] = flow.astype(np.float16)
-                if per_event and n:
-                    rows = flow[:, win.events.y.astype(np.int64), win.events.x.astype(np.int64)].T.astype(np.float16)
-                    event_ds.resize((events_total + n, 2))
-                    event_ds[events_total:] = rows
-                events_total += n
-                _score_window(per_window, k, flow, win, env)
-                if k in video_at:
-                    frames.append(_preview(obs["count_image"], flow, win.t_start, win.t_end, video_width,
-                                           arrows=video_arrows))
+            f.attrs.update(attributes)
+            flows = _FlowFile(f, bounds, (env.height, env.width), per_event=per_event, compression=compression)
+            for step in rollout(actor, env, options=options):
+                if step.index == 0:
+                    f.attrs["crop"] = step.info["crop"]  # where the env's frame sits in the sensor
+                flows.write(step.index, step.flow, step.window)
+                _score_window(per_window, step, env)
+                if preview is not None:
+                    preview.add(step)
                 bar.update(1)
-                obs, _, _, _, info = env.step(flow)
-            f.create_dataset("num_events", data=counts)
-            if per_event:
-                f.create_dataset("event_offsets", data=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64))
-            for key, values in per_window.items():
-                f.create_dataset(f"metrics/{key}", data=values.astype(np.float32))
+            flows.finish(per_window)
         seconds = time.perf_counter() - t0
-    finally:  # an exception (KeyboardInterrupt included) discards the temporary: nothing under the final name
+    finally:
         bar.close()
-        env.close()
-    video_path = save_animation(video_out.path, frames, video_fps) if video_out and frames else None
-    flow_out.commit()
-    return PredictResult(out_path, video_path, k_total, events_total, seconds, per_window)
+    return PredictResult(flow_out.path, None, len(bounds), flows.events, seconds, per_window)
 
 
-def _score_window(per_window: dict, k: int, flow: np.ndarray, win: Window, env: EventFlowEnv) -> None:
-    """The evaluation's per-window metrics (agents/evaluation.py), stored at index k."""
+def _score_window(per_window: dict, step: WindowStep, env: EventFlowEnv) -> None:
+    """The evaluation's per-window metrics (agents/evaluation.py), stored at the step's index."""
+    k, flow, win = step.index, step.flow, step.window
     if not len(win.events):
         return
     size = win.sensor_size

@@ -44,6 +44,9 @@ from envs.env import EventFlowEnv
 from envs.windows import Window, window_bounds
 from losses import CMAX_WEIGHTS, EventBatch, LossWeights, contrast_maximisation_flow
 
+from .policy import ZeroFlowPolicy
+from .rollout import rollout
+
 __all__ = ["TeacherSettings", "TeacherTargets", "compute_teacher_targets", "count_windows", "TeacherCacheError",
            "score_targets", "derive_targets", "copy_targets", "merge_targets"]
 
@@ -79,13 +82,7 @@ class TeacherSettings:
 
 def _windows_of(env: EventFlowEnv, sequence: int) -> list[Window]:
     """Every window of one recording at the env's window size (no crop, no flips)."""
-    _, info = env.reset(options={"sequence": sequence})
-    out = []
-    while True:
-        out.append(info["window"])
-        _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
-        if truncated:
-            return out
+    return [step.window for step in rollout(ZeroFlowPolicy(), env, options={"sequence": sequence})]
 
 
 def count_windows(data, window_sizes: Sequence[int], max_windows: int | None = None) -> int:
@@ -147,41 +144,51 @@ def compute_teacher_targets(
                 with np.load(part) as done:
                     progress(len(done["bounds"]), name)
             continue
-        # one env per recording and window length: each recording in its own frame
-        envs = {k: EventFlowEnv(data, window="frames", window_size=k, compute_reward=False, sequences=[index])
-                for k in sizes}
-        H, W = envs[sizes[0]].sensor_size
-        bounds, grids = [], []
-        for k in sizes:  # one solve per window length: each has its own step size
-            windows = _windows_of(envs[k], 0)[:max_windows]
-            for start in range(0, len(windows), batch_size):
-                chunk = windows[start : start + batch_size]
-                batch = EventBatch.from_windows(chunk, device=device)
-                grids.extend(_solve_coarse(batch, H, W, settings, lr=settings.lr_per_frame * k))
-                if progress is not None:
-                    progress(len(chunk), name)
-            bounds += [[w.t_start, w.t_end] for w in windows]
-        for env in envs.values():
-            env.close()
-        arrays = {"name": np.array(name), "sensor_size": np.array((H, W), np.int64),
-                  "bounds": np.array(bounds, np.int64).reshape(-1, 2),
-                  "grid": torch.stack(grids).numpy().astype(np.float32)}
+        arrays = _solve_recording(data, index, name, sizes, settings, batch_size=batch_size, device=device,
+                                  progress=progress, max_windows=max_windows)
         _replace_with(part, lambda tmp, arrays=arrays: tmp.write_bytes(_npz_bytes(arrays)))
 
-    def assemble(tmp: Path) -> None:
-        with h5py.File(tmp, "w") as f:
-            f.attrs["config"] = json.dumps(config)
-            for index in range(len(names)):
-                with np.load(parts / f"{index:05d}.npz") as part:
-                    group = f.create_group(str(part["name"]))
-                    group.attrs["sensor_size"] = tuple(int(v) for v in part["sensor_size"])
-                    group["bounds"] = part["bounds"]
-                    group["grid"] = part["grid"]
-            f.attrs["complete"] = True
-
-    _replace_with(out, assemble)
+    _replace_with(out, lambda tmp: _assemble(tmp, config, parts, len(names)))
     shutil.rmtree(parts)
     return out
+
+
+def _assemble(path: Path, config: dict, parts: Path, count: int) -> None:
+    """Write the target file (module docstring) at ``path`` from the ``count`` part files in ``parts``."""
+    with h5py.File(path, "w") as f:
+        f.attrs["config"] = json.dumps(config)
+        for index in range(count):
+            with np.load(parts / f"{index:05d}.npz") as part:
+                group = f.create_group(str(part["name"]))
+                group.attrs["sensor_size"] = tuple(int(v) for v in part["sensor_size"])
+                group["bounds"] = part["bounds"]
+                group["grid"] = part["grid"]
+        f.attrs["complete"] = True
+
+
+def _solve_recording(data, index: int, name: str, sizes: list[int], settings: TeacherSettings, *, batch_size: int,
+                     device: str, progress, max_windows: int | None) -> dict[str, np.ndarray]:
+    """The solved targets of recording ``index`` of ``data`` at every window length of ``sizes``
+    (frames), as the arrays of its part file: name, sensor_size, bounds (K, 2), grid (K, 2, gh, gw)."""
+    # one env per recording and window length: each recording in its own frame
+    envs = {k: EventFlowEnv(data, window="frames", window_size=k, compute_reward=False, sequences=[index])
+            for k in sizes}
+    H, W = envs[sizes[0]].sensor_size
+    bounds, grids = [], []
+    for k in sizes:  # one solve per window length: each has its own step size
+        windows = _windows_of(envs[k], 0)[:max_windows]
+        for start in range(0, len(windows), batch_size):
+            chunk = windows[start : start + batch_size]
+            batch = EventBatch.from_windows(chunk, device=device)
+            grids.extend(_solve_coarse(batch, H, W, settings, lr=settings.lr_per_frame * k))
+            if progress is not None:
+                progress(len(chunk), name)
+        bounds += [[w.t_start, w.t_end] for w in windows]
+    for env in envs.values():
+        env.close()
+    return {"name": np.array(name), "sensor_size": np.array((H, W), np.int64),
+            "bounds": np.array(bounds, np.int64).reshape(-1, 2),
+            "grid": torch.stack(grids).numpy().astype(np.float32)}
 
 
 def copy_targets(source: str | os.PathLike, out: str | os.PathLike, dtype=None) -> Path:

@@ -51,7 +51,7 @@ class Window(Mapping):
     :meth:`batch` gives what the losses consume (``losses.window_loss(flow, window)``). As a
     read-only mapping it holds ``x``, ``y``, ``t``, ``p`` (the event arrays) and ``t_start``,
     ``t_end``: the window dict that ``losses.EventBatch.from_windows``, the metrics and the
-    ``act_on_window`` policies read (``len(window)`` counts those keys; ``len(window.events)``
+    policies that solve a window from its events (``act(obs, window)``) read (``len(window)`` counts those keys; ``len(window.events)``
     the events).
     """
 

@@ -30,7 +30,7 @@ class FixedFlow:
     def reset(self):
         pass
 
-    def act_on_window(self, obs, window):
+    def act(self, obs, window=None):
         return self.flow_fn(window).astype(np.float32)
 
 

@@ -9,11 +9,12 @@ import pytest
 import torch
 
 import envs  # noqa: F401  (registers EventFlow-v0)
-from agents.cmax import CMaxSettings, ContrastMaximisationPolicy, RefinedPolicy
+from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
 from agents.commands import evaluate as evaluate_script  # noqa: E402
 from agents.evaluation import evaluate, results_table
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
+from agents.wrappers import RefinedPolicy
 from envs.env import EventFlowEnv
 from losses import EventBatch, contrast_maximisation_flow, hmc_loss, window_loss
 from tests.recordings import translating_dots, write_translating_recording
@@ -81,7 +82,7 @@ def _translation_window(rng, velocity=(150.0, -60.0), size=(48, 64)):
 
 def test_cmax_finds_an_analytic_translation(rng):
     window, truth = _translation_window(rng)
-    flow = ContrastMaximisationPolicy().act_on_window({"count_image": np.zeros((2, 48, 64))}, window)
+    flow = ContrastMaximisationPolicy().act({"count_image": np.zeros((2, 48, 64))}, window)
     mean = flow.reshape(2, -1).mean(1)
     assert np.abs(mean - truth).max() < 0.6, (mean, truth)  # 5 px and 2 px of motion, found within 0.6 px
 
@@ -107,10 +108,10 @@ def test_refinement_lowers_the_loss_honours_zero_steps_and_converges(rng, solver
     start = np.zeros((2, 48, 64), np.float32)
     start[0], start[1] = truth[0] * 0.5, truth[1] * 0.5  # a network half way there
     obs = {"count_image": np.zeros((2, 48, 64), np.float32)}
-    assert np.array_equal(RefinedPolicy(_Constant(start), steps=0, solver=solver).act_on_window(obs, window), start)
+    assert np.array_equal(RefinedPolicy(_Constant(start), steps=0, solver=solver).act(obs, window), start)
     policy = RefinedPolicy(_Constant(start), steps=steps, solver=solver)
     assert policy.steps == steps
-    refined = policy.act_on_window(obs, window)
+    refined = policy.act(obs, window)
     batch = EventBatch.from_windows([window])
 
     def loss(f):
@@ -125,7 +126,7 @@ def test_a_strong_prior_holds_the_refinement_to_the_networks_flow(rng):
     start = np.zeros((2, 48, 64), np.float32)
     start[0], start[1] = truth[0] * 0.5, truth[1] * 0.5
     obs = {"count_image": np.zeros((2, 48, 64), np.float32)}
-    moved = {w: np.abs(RefinedPolicy(_Constant(start), steps=60, prior_weight=w).act_on_window(obs, window)
+    moved = {w: np.abs(RefinedPolicy(_Constant(start), steps=60, prior_weight=w).act(obs, window)
                        - start).mean() for w in (0.0, 1e4)}
     assert moved[1e4] < 0.05 * moved[0.0] and moved[0.0] > 0.5  # held near the start, and free without
     with pytest.raises(ValueError, match="prior_weight must be >= 0 and needs a base flow"):
@@ -148,14 +149,14 @@ def test_the_acceptance_gate_keeps_the_refinement_only_where_the_loss_drops_enou
     for fraction, expect_refined in ((0.5, True), (1.0, False), (0.0, False)):
         start = np.zeros((2, 48, 64), np.float32)
         start[0], start[1] = truth[0] * fraction, truth[1] * fraction
-        refined = RefinedPolicy(_Constant(start), steps=60).act_on_window(obs, window)
+        refined = RefinedPolicy(_Constant(start), steps=60).act(obs, window)
         drop = 1 - loss(refined) / loss(start)
         gated = RefinedPolicy(_Constant(start), steps=60, accept=0.15)
-        out = gated.act_on_window(obs, window)
+        out = gated.act(obs, window)
         assert (drop >= 0.15) == expect_refined, drop
         assert np.array_equal(out, refined if expect_refined else start)
         assert (gated.accepted, gated.refined) == (int(expect_refined), 1)
-        kept = RefinedPolicy(_Constant(start), steps=60, accept=0.0).act_on_window(obs, window)
+        kept = RefinedPolicy(_Constant(start), steps=60, accept=0.0).act(obs, window)
         assert np.array_equal(kept, refined if drop >= 0 else start)
     with pytest.raises(ValueError, match=r"accept must be a fraction in \[0, 1\), got 1.5"):
         RefinedPolicy(_Constant(start), accept=1.5)
@@ -216,7 +217,7 @@ def test_the_time_per_window_leaves_out_each_sequences_warm_up_window(tmp_path, 
         def reset(self):
             self.first = True
 
-        def act_on_window(self, obs, window):
+        def act(self, obs, window=None):
             if self.first:
                 time.sleep(0.3)
                 self.first = False

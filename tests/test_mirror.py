@@ -1,4 +1,4 @@
-"""agents.mirror: a policy's flow averaged over mirrored inputs, each mirror with its own state."""
+"""agents.wrappers.mirror: a policy's flow averaged over mirrored inputs, each mirror with its own state."""
 
 import copy
 
@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from agents.commands import evaluate as evaluate_script
-from agents.mirror import ROTATION, MirrorPolicy
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
+from agents.wrappers.mirror import ROTATION, MirrorPolicy
 from tests.recordings import write_translating_recording
 
 

@@ -126,3 +126,40 @@ def test_register_model_by_name():
 def test_bad_specs_fail_with_clear_errors(spec, error, message):
     with pytest.raises(error, match=message):
         make_model(spec)
+
+
+class ObservationOnlyPolicy:
+    """A user's policy written against ``act(obs)`` alone (no window), with a reset that takes no mask."""
+
+    def __init__(self, policy: RecurrentPolicy) -> None:
+        self.policy, self.flows = policy, []
+
+    def reset(self) -> None:
+        self.policy.reset()
+
+    def act(self, obs):
+        self.flows.append(self.policy.act(obs))
+        return self.flows[-1]
+
+
+def test_a_policy_plugin_with_act_obs_rolls_evaluates_and_wraps_as_the_network_does(recording):
+    """The policy interface is act(obs, window=None); a plug-in's act(obs) is adapted wherever a
+    policy is taken: the rollout, the evaluation, the wrappers."""
+    from agents.evaluation import evaluate
+    from agents.rollout import rollout
+    from agents.wrappers import GainPolicy
+
+    torch.manual_seed(0)
+    network = RecurrentPolicy(make_model(PLUGIN, in_channels=2, flow_scaling=8.0))
+    plugin = ObservationOnlyPolicy(network)
+    env = EventFlowEnv(recording, window="time", window_size=20_000, compute_reward=False)
+    flows = [step.flow for step in rollout(plugin, env, options={"sequence": 0}, max_windows=3)]
+    direct = [step.flow for step in rollout(network, env, options={"sequence": 0}, max_windows=3)]
+    env.close()
+    assert all(np.array_equal(a, b) for a, b in zip(flows, direct)) and len(flows) == 3
+    (mine,) = evaluate(plugin, recording, window="time", window_size=20_000, max_windows=3, progress=False)
+    (theirs,) = evaluate(network, recording, window="time", window_size=20_000, max_windows=3, progress=False)
+    assert mine.windows == 3 and mine.mean("hmc") == theirs.mean("hmc")
+    (doubled,) = evaluate(GainPolicy(plugin, 2.0), recording, window="time", window_size=20_000, max_windows=3,
+                          progress=False)
+    assert doubled.windows == 3 and np.isfinite(doubled.mean("hmc"))

@@ -68,7 +68,7 @@ def test_predict_writes_the_flows_the_evaluation_produces(tmp_path, plugin_path,
 
 
 def test_predict_split_writes_the_flows_the_split_evaluation_produces(tmp_path, plugin_path):
-    from agents.subwindows import SubWindowPolicy
+    from agents.wrappers import SubWindowPolicy
 
     policy, sunk = tiny_policy(), []
     runs = evaluate(SubWindowPolicy(policy, 3), "synthetic-mini", window_size=2, max_windows=4, progress=False,

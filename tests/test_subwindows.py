@@ -1,4 +1,4 @@
-"""agents.subwindows: windows cut into sub-windows, flows composed, the network stepped through them."""
+"""agents.wrappers.subwindows: windows cut into sub-windows, flows composed, the network stepped through them."""
 
 import json
 
@@ -9,7 +9,7 @@ import torch
 from agents.commands import evaluate as evaluate_script
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
-from agents.subwindows import SubWindowPolicy, compose_flows, sub_windows
+from agents.wrappers.subwindows import SubWindowPolicy, compose_flows, sub_windows
 from envs.env import EventFlowEnv
 from tests.recordings import write_translating_recording
 
@@ -104,7 +104,7 @@ def test_sub_window_inputs_are_the_envs_and_one_split_is_the_network_itself(tmp_
             wrapped.input_key = key
             assert np.array_equal(wrapped.observation(window, (32, 48))[key], obs[key])
         wrapped.input_key = "voxel_grid"
-        assert np.array_equal(wrapped.act_on_window(obs, window), plain.act(obs))
+        assert np.array_equal(wrapped.act(obs, window), plain.act(obs))
 
 
 def test_the_network_steps_through_the_sub_windows_with_its_state(tmp_path, rng):
@@ -112,7 +112,7 @@ def test_the_network_steps_through_the_sub_windows_with_its_state(tmp_path, rng)
     wrapped, by_hand = SubWindowPolicy(_net(), splits=2), _net()
     for obs, window in _env_windows(path, 3):
         flows = [by_hand.act(wrapped.observation(part, (32, 48))) for part in sub_windows(window, 2)]
-        assert np.allclose(wrapped.act_on_window(obs, window), compose_flows(flows), atol=1e-6)
+        assert np.allclose(wrapped.act(obs, window), compose_flows(flows), atol=1e-6)
     wrapped.reset()
     assert wrapped.policy.state is None
 

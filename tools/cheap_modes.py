@@ -10,16 +10,17 @@ Modes (one row each):
 
 - ``net``: the network, one step per window.
 - ``mirror:4`` / ``mirror:2`` / ``mirror:lr``: averaged over mirrored copies of its input
-  (agents/mirror.py): all four mirrors, the input and its half turn, the input and its
+  (agents/wrappers/mirror.py): all four mirrors, the input and its half turn, the input and its
   left-right mirror.
-- ``split``: stepped through one sub-window per frame of the window (agents/subwindows.py).
+- ``split``: stepped through one sub-window per frame of the window (agents/wrappers/subwindows.py).
 - ``coarse:F``: the window's events binned on an F-times coarser sensor grid (each F x F block
   of pixels one pixel, the input divided by F^2 so that a block holds what one pixel did), the
   flow upsampled bilinearly and multiplied by F: F^2 times fewer pixels, and F times the output
-  range in sensor pixels. ``coarse:F:split``: the same stepped through the window's frames.
-- ``gain:G``: the network's flow times G (a calibration of its magnitude).
+  range in sensor pixels (agents/wrappers/coarse.py). ``coarse:F:split``: the same stepped
+  through the window's frames.
+- ``gain:G``: the network's flow times G (a calibration of its magnitude; agents/wrappers/gain.py).
 - ``avg:A+B`` / ``pick:A+B``: the mean of the modes' flows / the one whose L_HMC on the window
-  (the env's loss, border rule) is lowest; a mode may be ``zero`` here.
+  (the env's loss, border rule) is lowest; a mode may be ``zero`` here (agents/wrappers/combine.py).
 - ``cmax``: per-window contrast maximisation (agents/cmax.py), the reference.
 
 ``--truth`` adds the ground truth's own row (AEE 0): in how many sequences its L_HMC, computed
@@ -38,83 +39,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-import torch.nn.functional as F  # noqa: E402
 
 from agents.cmax import ContrastMaximisationPolicy  # noqa: E402
 from agents.evaluation import env_loss, evaluate  # noqa: E402
-from agents.mirror import MIRRORS, ROTATION, MirrorPolicy  # noqa: E402
-from agents.policy import RecurrentPolicy  # noqa: E402
-from agents.subwindows import SubWindowPolicy, compose_flows, sub_windows  # noqa: E402
+from agents.policy import RecurrentPolicy, ZeroFlowPolicy  # noqa: E402
+from agents.rollout import rollout  # noqa: E402
+from agents.wrappers import (  # noqa: E402
+    MIRRORS,
+    ROTATION,
+    CoarsePolicy,
+    CombinedPolicy,
+    GainPolicy,
+    MirrorPolicy,
+    SubWindowPolicy,
+)
 from envs.dataset import resolve_data  # noqa: E402
 from envs.env import EventFlowEnv  # noqa: E402
-from envs.representations import EventView, image_input  # noqa: E402
-from losses import window_loss  # noqa: E402
-from losses.events import EventBatch  # noqa: E402
-
-
-class CoarsePolicy(SubWindowPolicy):
-    """The wrapped policy on events binned ``factor`` x ``factor`` (see the module's help)."""
-
-    def __init__(self, policy, factor: int, splits: int = 1) -> None:
-        super().__init__(policy, splits)
-        self.factor = int(factor)
-
-    def act_on_window(self, obs, window: dict) -> np.ndarray:
-        height, width = np.asarray(obs[self.input_key]).shape[-2:]
-        f = self.factor
-        size = (-(-height // f), -(-width // f))
-        flows = []
-        for part in sub_windows(window, self.splits):
-            binned = {"x": np.asarray(part["x"]) // f, "y": np.asarray(part["y"]) // f, "t": part["t"], "p": part["p"]}
-            image = image_input(self.input_key, EventView(binned), part["t_start"], part["t_end"], size,
-                                self.voxel_bins) / float(f * f)
-            flows.append(self.policy.act({self.input_key: image}))
-        flow = torch.as_tensor(compose_flows(flows))[None]
-        up = F.interpolate(flow, size=(size[0] * f, size[1] * f), mode="bilinear", align_corners=False)
-        return (up[0, :, :height, :width] * f).numpy()
-
-
-class GainPolicy:
-    def __init__(self, policy, gain: float) -> None:
-        self.policy, self.gain = policy, float(gain)
-        self.input_key, self.voxel_bins, self.device = policy.input_key, policy.voxel_bins, "cpu"
-
-    def reset(self, mask=None) -> None:
-        self.policy.reset(mask)
-
-    def act(self, obs) -> np.ndarray:
-        return self.policy.act(obs) * self.gain
-
-
-class CombinedPolicy:
-    """Several modes on each window: their mean flow, or the flow with the lowest env loss."""
-
-    def __init__(self, modes: list, how: str) -> None:
-        self.modes, self.how = modes, how
-        first = next(m for m in modes if m is not None)
-        self.input_key, self.voxel_bins, self.device = first.input_key, first.voxel_bins, "cpu"
-        self.picked = [0] * len(modes)
-
-    def reset(self, mask=None) -> None:
-        for mode in self.modes:
-            if mode is not None:
-                mode.reset()
-
-    def act_on_window(self, obs, window: dict) -> np.ndarray:
-        size = np.asarray(obs[self.input_key]).shape[-2:]
-        flows = [np.zeros((2, *size), np.float32) if m is None else
-                 m.act_on_window(obs, window) if hasattr(m, "act_on_window") else m.act(obs) for m in self.modes]
-        if self.how == "avg":
-            return np.mean(flows, axis=0).astype(np.float32)
-        if len(window["t"]) == 0:
-            return flows[0]
-        batch = EventBatch.from_windows([window])
-        with torch.no_grad():
-            losses = [float(window_loss(torch.as_tensor(f)[None], batch, flow_scaling=float(max(size))).loss)
-                      for f in flows]
-        best = int(np.argmin(losses))
-        self.picked[best] += 1
-        return flows[best]
 
 
 def build(mode: str, name: str, dt: int):
@@ -147,17 +87,13 @@ def truth_below_zero(data, dt: int, max_windows: int) -> tuple[int, int]:
     below = scored = 0
     for index in range(len(resolve_data(data))):
         env = EventFlowEnv(data, window="frames", window_size=dt, compute_reward=False, sequences=[index])
-        _, info = env.reset(options={"sequence": 0})
         sums = np.zeros(2)
-        for _ in range(max_windows):
-            win = info["window"]
+        for step in rollout(ZeroFlowPolicy(), env, options={"sequence": 0}, max_windows=max_windows):
+            win = step.window
             if len(win.events):
                 truth = np.where(win.flow_gt_valid, win.flow_gt, 0).astype(np.float32)
                 losses = env_loss(env, truth, win)  # as the evaluation's L_HMC column
                 sums += [losses["hmc"], losses["hmc_zero"]]
-            _, _, _, truncated, info = env.step(np.zeros((2, *env.sensor_size), np.float32))
-            if truncated:
-                break
         env.close()
         below += int(sums[0] < sums[1])
         scored += int(sums[1] > 0)

@@ -34,8 +34,9 @@ THRESHOLDS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4)
 def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], spec: str, out: Path | None):
     import torch
 
-    from agents.cmax import RefinedPolicy
     from agents.policy import RecurrentPolicy
+    from agents.rollout import observation_options, rollout
+    from agents.wrappers import RefinedPolicy
     from envs.dataset import resolve_data
     from envs.env import EventFlowEnv
     from envs.representations import event_mask
@@ -50,13 +51,11 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
     for dt in dts:
         for index in range(len(resolve_data(data))):
             env = EventFlowEnv(data, window="frames", window_size=dt, compute_reward=False, sequences=[index],
-                               observations=(network.input_key, "count_image"), voxel_bins=network.voxel_bins)
-            obs, info = env.reset(options={"sequence": 0})
-            network.reset()
+                               **observation_options(network))
             size = (env.height, env.width)
-            for w in range(max_windows):
-                window = info["window"]
-                flow = network.act(obs)  # the network's own flow drives its state, as in evaluation
+            # the network's own flow drives its state, as in evaluation
+            for step in rollout(network, env, options={"sequence": 0}, max_windows=max_windows):
+                window, info, flow, w = step.window, step.info, step.flow, step.index
                 if len(window["t"]) and "flow_gt" in info:
                     refined = refine.settings.solve(window, size, base=flow, device="cpu")
                     flows = (flow, refined, np.zeros_like(flow))
@@ -74,9 +73,6 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
                         if out is not None:
                             with out.open("a") as f:
                                 f.write(json.dumps(rows[-1]) + "\n")
-                obs, _, _, truncated, info = env.step(flow)
-                if truncated:
-                    break
             env.close()
     return rows
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env python
-"""Compare test-time refinement settings (agents/cmax.py, RefinedPolicy) of a shipped model on
-a split: AEE, L_HMC and time per window at dt = 1 and dt = 4, first windows of every sequence.
+"""Compare test-time refinement settings (agents/wrappers/refine.py, RefinedPolicy) of a shipped
+model on a split: AEE, L_HMC and time per window at dt = 1 and dt = 4, first windows of every sequence.
 
     python tools/tune_refine.py --data synthetic-dr-val --max-windows 5 \\
         --refine fine:30:0 cmax:100:0 cmax:100:1 cmax:100:10 cmax:100:0:0.05
@@ -21,9 +21,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from compare_cmax import print_comparison  # noqa: E402
 
-from agents.cmax import ContrastMaximisationPolicy, RefinedPolicy  # noqa: E402
+from agents.cmax import ContrastMaximisationPolicy  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
 from agents.pretrained import DEFAULT_PRETRAINED  # noqa: E402
+from agents.wrappers import RefinedPolicy  # noqa: E402
 
 
 def main(argv=None) -> int:
