@@ -57,13 +57,16 @@ from .checkpoint import rng_state, set_rng_state
 from .distributed import average_gradients, gather_to_first
 from .objectives import RolloutWindow, loss_options, make_objective, windows_from_info
 from .options import (
+    ModelWidth,
+    SensorSizeOptions,
+    Windows,
     check_choices,
     non_negative_float,
     non_negative_int,
+    one_or_list,
     option,
     positive_float,
     positive_int,
-    sensor_size_option,
     to_argv,
 )
 from .policy import RecurrentPolicy, autocast_dtype
@@ -71,16 +74,6 @@ from .registry import make_model, width_kwargs
 from .teacher import TeacherTargets
 
 __all__ = ["TrainConfig", "Learner", "make_vector_env", "PRESETS", "preset_config", "preset_options"]
-
-
-def _width(text: str | int) -> str | int:
-    """'paper', 'cpu' or an integer base width (given as digits on the command line)."""
-    return int(text) if str(text).isdigit() else text
-
-
-def _one_or_list(values):
-    """Several command-line values as a list, one as itself (a field value passes unchanged)."""
-    return values[0] if isinstance(values, list) and len(values) == 1 else values
 
 
 def _key_values(items) -> dict:
@@ -100,15 +93,14 @@ def _key_values(items) -> dict:
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(ModelWidth, Windows, SensorSizeOptions):
     """Everything a training run depends on (saved in every checkpoint). Each field is one option
     of ``scripts/train.py`` (agents/options.py writes the command line from this class); the
-    string under a field is its help."""
+    string under a field is its help. ``width``, the windows (``window``, ``window_size``) and
+    ``sensor_size`` are option groups the commands share (agents.options)."""
 
     model: str = "ev-mgrflownet"
     """registry name (ev-mgrflownet, ev-flownet, convgru-ev-flownet, xlif-ev-flownet, unet-*) or pkg.module:factory"""
-    width: str | int = option("cpu", type=_width)
-    """'paper' (base width 32), 'cpu' (8) or an integer base width"""
     model_kwargs: dict = option(flag="--model-kwarg", action="append", metavar="KEY=VALUE", convert=_key_values,
                                 default_factory=dict)
     """extra model argument, e.g. use_st_convgru=false (repeatable)"""
@@ -116,14 +108,8 @@ class TrainConfig:
     """the paper's count image (eq. 2), a voxel grid (--voxel-bins), or EV-FlowNet's counts and timestamps"""
     voxel_bins: int = option(5, type=positive_int)
     """time bins of the voxel-grid input"""
-    data: Any = option("synthetic-train", nargs="+", convert=_one_or_list)
+    data: Any = option("synthetic-train", nargs="+", convert=one_or_list)
     """synthetic split name, recording files or directories"""
-    sensor_size: tuple[int, int] | Literal["auto"] | None = sensor_size_option()
-    """H W (pixels, height first) or auto: the sensor size of recordings whose header gives none (Prophesee RAW / DAT, text); auto: the smallest known sensor holding every event, with a warning; files that store their geometry keep it"""
-    window: Literal["frames", "time", "count"] = "frames"
-    """how a window is cut: ground-truth frames, a time span or an event count"""
-    window_size: int | list[int] | None = option(None, nargs="+", type=positive_int, convert=_one_or_list)
-    """frames: grid steps (1); time: us (10000); count: events (15000); several values: one drawn per episode"""
     crop: tuple[int, ...] | None = option(None, type=non_negative_int)
     """H W (centred) or TOP LEFT H W"""
     random_crop: bool = False
@@ -252,7 +238,7 @@ def preset_options(name: str) -> list[str]:
 
 def data_options(cfg: TrainConfig) -> dict:
     """The reader options of the run's recordings (``sensor_size``, for files without geometry)."""
-    return {} if cfg.sensor_size is None else {"sensor_size": cfg.sensor_size}
+    return cfg.data_options()
 
 
 def make_vector_env(cfg: TrainConfig, *, rank: int = 0, world: int = 1, data=None, flips=None):

@@ -3,6 +3,7 @@ checks, the presets, and every console command's --help."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import re
 import subprocess
@@ -14,7 +15,7 @@ import pytest
 from agents.commands import train as train_command
 from agents.commands.evaluate import EvaluateOptions
 from agents.learner import PRESETS, TrainConfig, preset_config, preset_options
-from agents.options import choices_of, field_docs
+from agents.options import WindowSize, choices_of, field_docs, parse_options
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -38,9 +39,54 @@ def test_a_bad_value_of_every_choice_field_raises_naming_the_field_and_the_allow
 
 def test_every_choice_field_is_a_literal_and_every_field_has_its_help():
     assert {"loss", "loss_mode", "vector", "decay", "input", "window", "teacher_pixels"} <= set(choices_of(TrainConfig))
-    for cls in (TrainConfig, EvaluateOptions):
+    for cls in (TrainConfig, EvaluateOptions, WindowSize):
         docs = field_docs(cls)
         assert all(docs.get(name) for name in cls.__dataclass_fields__), set(cls.__dataclass_fields__) - set(docs)
+
+
+def command_modules() -> list[str]:
+    """Every command of agents/commands: the console commands cli.py lists and every module a
+    scripts/ file runs."""
+    names = set(re.findall(r'_program\("(\w+)"\)', (ROOT / "agents" / "commands" / "cli.py").read_text()))
+    for script in (ROOT / "scripts").glob("*.py"):
+        names |= set(re.findall(r"from agents\.commands\.(\w+) import main", script.read_text()))
+    return sorted(names)
+
+
+def test_the_window_length_has_one_name_across_the_commands(tmp_path):
+    """--window-size (frames per window with --window frames; --dt, the paper's name, is the same
+    option) in train, evaluate, predict and teacher_targets, declared once (agents.options.WindowSize)."""
+    from agents.commands import evaluate, predict, teacher_targets
+
+    for module in (train_command, evaluate, predict, teacher_targets):
+        parser = module.build_parser()
+        flags = [action.option_strings for action in parser._actions if action.dest == "window_size"]
+        assert flags == [["--window-size", "--dt"]], (module.__name__, flags)
+        assert {"dt", "window_sizes"}.isdisjoint(action.dest for action in parser._actions)
+    for name in command_modules():
+        for cls in vars(importlib.import_module(f"agents.commands.{name}")).values():
+            if isinstance(cls, type) and dataclasses.is_dataclass(cls) and cls is not WindowSize \
+                    and "window_size" in cls.__dataclass_fields__:
+                assert "window_size" not in vars(cls).get("__annotations__", {}), f"{cls.__name__} declares it again"
+                assert issubclass(cls, WindowSize)
+    assert "window_size" not in vars(TrainConfig).get("__annotations__", {}) and issubclass(TrainConfig, WindowSize)
+
+    evaluate_options = parse_options(evaluate.EvaluateOptions, ["--dt", "1", "4"], evaluate.build_parser())
+    assert evaluate_options.window_sizes() == [1, 4] == parse_options(
+        evaluate.EvaluateOptions, ["--window-size", "1", "4"], evaluate.build_parser()).window_sizes()
+    assert train_command.config_from_args(train_command.parse_args(["--dt", "1", "2"])).window_size == [1, 2]
+    assert parse_options(teacher_targets.TeacherTargetsOptions, ["--out", "t.h5", "--window-size", "2"],
+                         teacher_targets.build_parser()).window_sizes() == [2]
+    assert parse_options(predict.PredictOptions, ["rec.h5", "--window", "time", "--window-size", "5000"],
+                         predict.build_parser()).window_size == 5000
+
+
+def test_predict_takes_one_window_size(capsys):
+    from agents.commands import predict
+
+    with pytest.raises(SystemExit) as stop:
+        predict.main(["rec.h5", "--window-size", "1", "4"])
+    assert stop.value.code == 2 and "--window-size: predict runs one window size, got 1 4" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("name", sorted(PRESETS))

@@ -18,30 +18,49 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from dataclasses import dataclass
 
-from agents.options import SENSOR_SIZE_HELP, SensorSize, positive_int
+from agents.options import RecordingOptions, command_parser, option, options_from_args, positive_int
 from envs.outputs import Output
-from envs.readers import FORMATS, open_recording
+from envs.readers import open_recording
 from envs.readers.convert import convert_recording
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("input", help="recording file or folder")
-    parser.add_argument("output", help="project h5 file to write")
-    parser.add_argument("--format", choices=FORMATS, default=None, help="input format (default: detect)")
-    parser.add_argument("--crop", nargs="+", default=None, help="MVSEC crop: center256 or TOP LEFT HEIGHT WIDTH")
-    parser.add_argument("--flow-dir", default=None, help="DSEC: folder of the flow PNGs")
-    parser.add_argument("--flow-timestamps", default=None, help="DSEC: forward_timestamps.txt")
-    parser.add_argument("--no-rectify", action="store_true", help="DSEC: keep the raw (unrectified) pixels")
-    parser.add_argument("--sensor-size", action=SensorSize, default=None, help=SENSOR_SIZE_HELP)
-    parser.add_argument("--flow-dt", type=positive_int, default=1, help="grid steps per stored ground-truth map")
-    parser.add_argument("--no-flow", action="store_true", help="do not store ground truth")
-    parser.add_argument("--no-frames", action="store_true", help="do not store frames")
-    parser.add_argument("--chunk-events", type=positive_int, default=1 << 20, help="events per read/write step (> 0)")
-    parser.add_argument("--overwrite", action="store_true", help="replace OUTPUT if it exists (never the input itself)")
-    args = parser.parse_args(argv)
+@dataclass(kw_only=True)
+class ConvertOptions(RecordingOptions):
+    """What scripts/convert.py reads and writes (one option per field; the recordings group:
+    agents.options)."""
 
+    input: str = option(positional=True)
+    """recording file or folder"""
+    output: str = option(positional=True)
+    """project h5 file to write"""
+    crop: list[str] | None = None
+    """MVSEC crop: center256 or TOP LEFT HEIGHT WIDTH"""
+    flow_dir: str | None = None
+    """DSEC: folder of the flow PNGs"""
+    flow_timestamps: str | None = None
+    """DSEC: forward_timestamps.txt"""
+    no_rectify: bool = False
+    """DSEC: keep the raw (unrectified) pixels"""
+    flow_dt: int = option(1, type=positive_int)
+    """grid steps per stored ground-truth map"""
+    no_flow: bool = False
+    """do not store ground truth"""
+    no_frames: bool = False
+    """do not store frames"""
+    chunk_events: int = option(1 << 20, type=positive_int)
+    """events per read/write step (> 0)"""
+    overwrite: bool = False
+    """replace OUTPUT if it exists (never the input itself)"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(ConvertOptions, __doc__)
+
+
+def main(argv=None) -> int:
+    args = options_from_args(ConvertOptions, build_parser().parse_args(argv))
     options = {}
     if args.crop:
         options["crop"] = args.crop[0] if len(args.crop) == 1 else tuple(int(v) for v in args.crop)
@@ -51,8 +70,7 @@ def main(argv=None) -> int:
         options["flow_timestamps"] = args.flow_timestamps
     if args.no_rectify:
         options["rectify"] = False
-    if args.sensor_size is not None:
-        options["sensor_size"] = args.sensor_size
+    options.update(args.data_options())
     # OUTPUT claimed before the input is opened (a Prophesee file is indexed on open): a bad OUTPUT
     # fails at once
     claim = Output(args.output, inputs=[("recording", args.input)], overwrite=args.overwrite)

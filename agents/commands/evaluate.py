@@ -4,13 +4,13 @@ L_HMC against zero flow's, FWL and RSAT, per sequence; Markdown table + JSON + P
 Examples:
   python scripts/evaluate.py --pretrained --zero                                   # the shipped model
   python scripts/evaluate.py --checkpoint runs/mgr/checkpoint.pt --zero            # synthetic-test
-  python scripts/evaluate.py --checkpoint ckpt.pt --data rec1.h5 rec2.h5 --dt 4
+  python scripts/evaluate.py --checkpoint ckpt.pt --data rec1.h5 rec2.h5 --window-size 4
   python scripts/evaluate.py --model mypkg.models:build --data synthetic-test     # untrained plug-in
-  python scripts/evaluate.py --checkpoint ckpt.pt --mvsec /data/mvsec --dt 1      # MVSEC protocol
-  python scripts/evaluate.py --checkpoint ckpt.pt --mvsec /data/mvsec --mvsec-grid gt --dt 1   # 20 Hz mode
-  python scripts/evaluate.py --checkpoint ckpt.pt --protocol dsec --data seq/events/left/events.h5 \
+  python scripts/evaluate.py --checkpoint ckpt.pt --mvsec /data/mvsec --window-size 1   # MVSEC protocol
+  python scripts/evaluate.py --checkpoint ckpt.pt --mvsec /data/mvsec --mvsec-grid gt --window-size 1   # 20 Hz
+  python scripts/evaluate.py --checkpoint ckpt.pt --protocol dsec --data seq/events/left/events.h5 \\
       --dsec-flow train_optical_flow/seq/flow/forward                             # DSEC dense scores
-  python scripts/evaluate.py --checkpoint ckpt.pt --protocol dsec --data test_events/interlaken_00_b \
+  python scripts/evaluate.py --checkpoint ckpt.pt --protocol dsec --data test_events/interlaken_00_b \\
       --dsec-test-timestamps test_forward_optical_flow_timestamps --dsec-submission runs/dsec_submission
   python scripts/evaluate.py --pretrained --zero --cmax --data synthetic-stress    # with the model-free row
   python scripts/evaluate.py --pretrained --refine 30 --data rec.h5                # + test-time refinement
@@ -20,16 +20,17 @@ Each recording is evaluated whole at its own sensor size (the networks pad to a 
 and crop their flow back) unless --crop is given. Each sequence is rolled from its first window
 with the recurrent state carried across windows and reset between sequences. Windows (--window
 frames, the default) follow the ground-truth grid where a recording has one, else its APS frame
-times, else fixed 30 Hz intervals, --dt of them per window (default 1 and 4 when a recording has
-ground truth, else 1); each table's title names the windowing. With --window time/count, give
---dt-ratio (ground-truth interval / input window) if they differ.
+times, else fixed 30 Hz intervals, --window-size of them per window (default 1 and 4 when a
+recording has ground truth, else 1; --dt, the paper's name, is the same option), a table for
+each; each table's title names the windowing. With --window time/count, give --dt-ratio
+(ground-truth interval / input window) if they differ.
 
 --mvsec scores MVSEC as published (docs/protocols.md): the valid ranges index the 20 Hz
-ground-truth times, windows of --dt image frames (or 20 Hz steps with --mvsec-grid gt) inside them,
-Zhu's ground truth (--mvsec-gt chain to chain the maps), the car's hood out of outdoor_day1, dt = 4
-at stride 4 and at stride 1 (overlapping) unless --stride says which; each AEE shows its window
-count. --protocol dsec scores DSEC densely (EPE, 1PE, 2PE, 3PE, angular error on every valid
-ground-truth pixel) and, with --dsec-submission, writes the benchmark's PNGs.
+ground-truth times, windows of --window-size (dt) image frames (or 20 Hz steps with --mvsec-grid
+gt) inside them, Zhu's ground truth (--mvsec-gt chain to chain the maps), the car's hood out of
+outdoor_day1, dt = 4 at stride 4 and at stride 1 (overlapping) unless --stride says which; each
+AEE shows its window count. --protocol dsec scores DSEC densely (EPE, 1PE, 2PE, 3PE, angular
+error on every valid ground-truth pixel) and, with --dsec-submission, writes the benchmark's PNGs.
 
 --cmax adds per-window contrast maximisation of the same loss (no network, no ground truth;
 agents/cmax.py): the reference a learned model must beat. --refine K adds, for each model, a
@@ -50,23 +51,26 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import torch
-
 import agents.pretrained as pretrained_module
 from agents.checkpoint import load_model
 from agents.evaluation import evaluate, results_json, results_table, windowing_of
 from agents.mirror import MIRROR_SETS, MirrorPolicy
 from agents.options import (
-    add_options,
+    DeviceOptions,
+    ModelWidth,
+    Progress,
+    RecordingOptions,
+    Windows,
     check_choices,
+    command_parser,
+    default_device,
     fraction,
     non_negative_float,
     non_negative_int,
     option,
-    options_from_args,
+    parse_options,
     positive_float,
     positive_int,
-    sensor_size_option,
 )
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model, width_kwargs
@@ -75,9 +79,10 @@ from envs.outputs import Output
 
 
 @dataclass
-class EvaluateOptions:
+class EvaluateOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progress):
     """What scripts/evaluate.py evaluates, on what, and where it writes (one option per field;
-    the string under a field is its help)."""
+    the string under a field is its help; the windows, recordings and device are the groups every
+    command shares, agents.options)."""
 
     checkpoint: list[str] = option(nargs="*", default_factory=list)
     """checkpoint(s) written by scripts/train.py"""
@@ -87,8 +92,6 @@ class EvaluateOptions:
     """row names for the checkpoints (default: file stem / parent dir)"""
     model: str | None = None
     """evaluate an untrained model (registry name or package.module:factory)"""
-    width: str = "cpu"
-    """the untrained model's width: 'paper', 'cpu' or an integer base width"""
     zero: bool = False
     """add the zero-flow baseline row"""
     cmax: bool = False
@@ -107,10 +110,6 @@ class EvaluateOptions:
     """also evaluate each model (and split row) averaged over its flows on mirrored copies of the input (agents/mirror.py): N = 4 (alone: --mirror), the input mirrored left-right, up-down and both, 4 network steps per window; N = 2, the input and its rotation by 180 degrees, 2 steps"""
     data: list[str] = option(default_factory=lambda: ["synthetic-test"])
     """synthetic split, recording files or directories"""
-    format: str | None = None
-    """force a reader (evflow-h5, mvsec, dsec, hagenaars, ecd-text, aedat4, prophesee-raw, prophesee-dat)"""
-    sensor_size: tuple[int, int] | Literal["auto"] | None = sensor_size_option()
-    """H W (pixels, height first) or auto: the sensor size of recordings whose header gives none (Prophesee RAW / DAT, text); auto: the smallest known sensor holding every event, with a warning; files that store their geometry keep it"""
     mvsec: str | None = option(None, metavar="DIR")
     """run the MVSEC protocol on the four sequences in DIR"""
     stride: list[int] | None = option(None, type=positive_int)
@@ -133,12 +132,6 @@ class EvaluateOptions:
     """DSEC: folder of <sequence>.csv test timestamps (or one CSV): the windows to predict"""
     dsec_submission: str | None = option(None, metavar="DIR")
     """DSEC: write <sequence>/<file_index:06d>.png flows in the benchmark's layout here"""
-    window: Literal["frames", "time", "count"] = "frames"
-    """how a window is cut: ground-truth frames, a time span or an event count"""
-    dt: list[int] | None = option(None, type=positive_int)
-    """grid steps per window (frames mode); default: 1 and 4 with ground truth, else 1"""
-    window_size: int | None = option(None, type=positive_int)
-    """time: us; count: events"""
     dt_ratio: float = option(1.0, type=positive_float)
     """scale predictions by (ground-truth interval / input window)"""
     crop: list[int] | None = option(None, type=non_negative_int)
@@ -155,19 +148,13 @@ class EvaluateOptions:
     """windows per sequence drawn as a labelled PNG panel (0: none)"""
     animate: int = option(0, metavar="N", type=non_negative_int)
     """per sequence, a GIF of count image + predicted flow over its first N windows (0: none)"""
-    device: str = "cpu"
-    """torch device"""
-    no_progress: bool = False
-    """no progress bar"""
 
     def __post_init__(self) -> None:
         check_choices(self)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_options(p, EvaluateOptions, defaults={"device": "cuda" if torch.cuda.is_available() else "cpu"})
-    return p
+    return command_parser(EvaluateOptions, __doc__, defaults={"device": default_device()})
 
 
 def mvsec_runs(folder: Path, protocol) -> list:
@@ -241,21 +228,17 @@ def build_policies(args) -> dict:
     return policies
 
 
-def data_options(args) -> dict:
-    """The reader options every recording of the command opens with (``--sensor-size``)."""
-    return {"sensor_size": args.sensor_size} if args.sensor_size is not None else {}
-
-
 def protocol_settings(args, data) -> list:
     """(key, window size, protocol or None) per table: MVSEC dt and stride combinations, DSEC, or
     the plain windows of --window."""
     from agents.benchmarks import DSECProtocol, MVSECProtocol
 
+    sizes = args.window_sizes()
     if args.protocol == "dsec":
-        return [("dsec", args.dt[0] if args.dt else 1, DSECProtocol(test_timestamps=args.dsec_test_timestamps))]
+        return [("dsec", sizes[0] if sizes else 1, DSECProtocol(test_timestamps=args.dsec_test_timestamps))]
     if args.mvsec:
         settings = []
-        for dt in args.dt or [1, 4]:
+        for dt in sizes or [1, 4]:
             for stride in args.stride or ([4, 1] if dt == 4 else [dt]):
                 protocol = MVSECProtocol(dt=dt, stride=stride, grid=args.mvsec_grid, ground_truth=args.mvsec_gt,
                                          outdoor_cut=args.outdoor_cut, hood=not args.no_hood,
@@ -263,9 +246,11 @@ def protocol_settings(args, data) -> list:
                 settings.append((f"dt{dt}" if stride == dt else f"dt{dt}_stride{stride}", dt, protocol))
         return settings
     if args.window == "frames":
-        truth = has_ground_truth(data, args.format, data_options(args))
-        return [(f"dt{dt}", dt, None) for dt in args.dt or ([1, 4] if truth else [1])]
-    return [(args.window, args.window_size, None)]
+        truth = has_ground_truth(data, args.format, args.data_options())
+        return [(f"dt{dt}", dt, None) for dt in sizes or ([1, 4] if truth else [1])]
+    if sizes is None or len(sizes) == 1:
+        return [(args.window, args.window_size, None)]
+    return [(f"{args.window}{size}", size, None) for size in sizes]
 
 
 def has_ground_truth(data, fmt, options: dict | None = None) -> bool:
@@ -284,7 +269,8 @@ def check_folder_unused(folder: Path, option: str, overwrite: bool) -> None:
 
 
 def main(argv=None) -> int:
-    args = options_from_args(EvaluateOptions, build_parser().parse_args(argv))
+    args = parse_options(EvaluateOptions, argv, build_parser())
+    args.set_threads()
     if args.refine_accept is not None and not args.refine:
         raise SystemExit("--refine-accept gates a refinement: give --refine K too")
     if args.split is not None and args.split != "dt" and not (args.split.isdigit() and int(args.split) >= 1):
@@ -324,10 +310,10 @@ def evaluate_settings(args) -> tuple[str, dict]:
         if args.mvsec:
             runs = mvsec_runs(Path(args.mvsec), protocol)
         elif protocol is not None:  # DSEC
-            options = {**data_options(args), **({"flow_dir": args.dsec_flow} if args.dsec_flow else {})}
+            options = {**args.data_options(), **({"flow_dir": args.dsec_flow} if args.dsec_flow else {})}
             runs = [(data, args.format, options, protocol.windows, protocol.scorer)]
         else:
-            runs = [(data, args.format, data_options(args), None, None)]
+            runs = [(data, args.format, args.data_options(), None, None)]
         named = {name: [] for name in policies}
         if args.split == "dt":  # one sub-window per ground-truth interval of this table
             for policy in policies.values():

@@ -28,13 +28,21 @@ import argparse
 import contextlib
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from agents.options import (
-    SENSOR_SIZE_HELP,
-    SensorSize,
+    DeviceOptions,
+    ModelWidth,
+    Progress,
+    RecordingOptions,
+    Windows,
+    check_choices,
+    command_parser,
     non_negative_float,
     non_negative_int,
+    option,
+    options_from_args,
     positive_float,
     positive_int,
 )
@@ -42,51 +50,62 @@ from agents.predict import load_policy, predict, summary_dict, summary_table
 from envs.outputs import Output
 
 
+@dataclass(kw_only=True)
+class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progress):
+    """What scripts/predict.py runs on which recording, and what it writes (one option per field;
+    the string under a field is its help; the shared groups: agents.options)."""
+
+    recording: str = option(positional=True)
+    """recording file (or folder / synthetic split, with --sequence)"""
+    model: str | None = None
+    """shipped name, checkpoint file, or registry name / package.module:factory"""
+    out: str | None = None
+    """flow h5 to write (default: runs/predict/<recording>.flow.h5)"""
+    video: str | None = None
+    """preview path, .gif or .mp4 (default: beside --out, .gif)"""
+    no_video: bool = False
+    """no preview"""
+    overwrite: bool = False
+    """replace --out, --video and --json if they exist (never the recording itself)"""
+    video_frames: int = option(150, type=positive_int)
+    """windows shown, spread over the run"""
+    fps: float = option(10.0, type=positive_float)
+    """frames per second of the preview"""
+    arrows: bool = False
+    """preview: also sparse arrows over the flow at the events"""
+    no_gt_window: int = option(33_333, type=positive_int)
+    """us; --window frames on a recording without a ground-truth grid"""
+    start: float | None = option(None, type=non_negative_float)
+    """seconds from the recording's start"""
+    end: float | None = option(None, type=positive_float)
+    """seconds from the recording's start"""
+    crop: list[int] | None = option(None, type=non_negative_int)
+    """H W (centred) or TOP LEFT H W"""
+    sequence: str = "0"
+    """which recording of a folder / split (index or name)"""
+    split: int = option(1, type=positive_int, metavar="N")
+    """step the network through N equal sub-windows of each window and compose their flows (long windows of fast motion; N network steps per window)"""
+    per_event: bool = False
+    """also store the flow at every event"""
+    json: str | None = None
+    """also write the summary as JSON here"""
+
+    def __post_init__(self) -> None:
+        check_choices(self)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("recording", help="recording file (or folder / synthetic split, with --sequence)")
-    p.add_argument("--model", default=None, help="shipped name, checkpoint file, or registry name / package.module:factory")
-    p.add_argument("--width", default="cpu", help="width of an untrained registry model")
-    p.add_argument("--out", default=None, help="flow h5 to write (default: runs/predict/<recording>.flow.h5)")
-    p.add_argument("--video", default=None, help="preview path, .gif or .mp4 (default: beside --out, .gif)")
-    p.add_argument("--no-video", action="store_true")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace --out, --video and --json if they exist (never the recording itself)")
-    p.add_argument("--video-frames", type=positive_int, default=150, help="windows shown, spread over the run")
-    p.add_argument("--fps", type=positive_float, default=10.0)
-    p.add_argument("--arrows", action="store_true", help="preview: also sparse arrows over the flow at the events")
-    p.add_argument("--window", default="frames", choices=["frames", "time", "count"],
-                   help="frames: ground-truth aligned where the recording has a grid, else time windows of --no-gt-window")
-    p.add_argument("--no-gt-window", type=positive_int, default=33_333, help="us; frames mode on a recording without ground truth")
-    p.add_argument("--window-size", type=positive_int, default=None,
-                   help="frames: grid steps (1); time: us (10000); count: events (15000)")
-    p.add_argument("--start", type=non_negative_float, default=None, help="seconds from the recording's start")
-    p.add_argument("--end", type=positive_float, default=None, help="seconds from the recording's start")
-    p.add_argument("--crop", type=non_negative_int, nargs="+", default=None, help="H W (centred) or TOP LEFT H W")
-    p.add_argument("--sequence", default="0", help="which recording of a folder / split (index or name)")
-    p.add_argument("--format", default=None, help="force a reader (see envs.readers.FORMATS)")
-    p.add_argument("--sensor-size", action=SensorSize, default=None, help=SENSOR_SIZE_HELP)
-    p.add_argument("--split", type=positive_int, default=1, metavar="N",
-                   help="step the network through N equal sub-windows of each window and compose their flows "
-                        "(long windows of fast motion; N network steps per window)")
-    p.add_argument("--per-event", action="store_true", help="also store the flow at every event")
-    p.add_argument("--json", default=None, help="also write the summary as JSON here")
-    p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1...")
-    p.add_argument("--threads", type=positive_int, default=None,
-                   help="torch CPU threads (default: torch's choice; 1 on a busy machine)")
-    p.add_argument("--no-progress", action="store_true")
-    return p
+    return command_parser(PredictOptions, __doc__)
 
 
 def main(argv=None) -> int:  # opens as the other commands do: parse, then set torch's threads
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = options_from_args(PredictOptions, parser.parse_args(argv))
     if args.start is not None and args.end is not None and args.end <= args.start:
         parser.error(f"--end {args.end} must be after --start {args.start} (seconds from the recording's start)")
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
+    if isinstance(args.window_size, list):
+        parser.error(f"--window-size: predict runs one window size, got {' '.join(map(str, args.window_size))}")
+    args.set_threads()
     stem = Path(args.recording).name.split(".")[0] or "recording"
     out = Path(args.out) if args.out else Path("runs") / "predict" / f"{stem}.flow.h5"
     video = None if args.no_video else (Path(args.video) if args.video else out.with_name(out.name.split(".")[0] + ".gif"))
@@ -100,7 +119,7 @@ def main(argv=None) -> int:  # opens as the other commands do: parse, then set t
         result = predict(
             policy, args.recording, out, window=args.window, window_size=args.window_size, start_s=args.start,
             end_s=args.end, crop=args.crop, sequence=sequence, data_format=args.format, per_event=args.per_event,
-            data_options={"sensor_size": args.sensor_size} if args.sensor_size is not None else None,
+            data_options=args.data_options() or None,
             video=video, video_fps=args.fps, video_frames=args.video_frames, video_arrows=args.arrows, provenance=provenance,
             no_gt_window_us=args.no_gt_window, progress=not args.no_progress, overwrite=args.overwrite, split=args.split,
         )

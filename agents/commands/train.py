@@ -56,14 +56,22 @@ from agents.checkpoint import load_checkpoint, save_checkpoint
 from agents.distributed import all_reduce_sums
 from agents.evaluation import evaluate, first_window_panel
 from agents.learner import PRESETS, Learner, TrainConfig, data_options
-from agents.options import add_options, non_negative_float, non_negative_int, option, options_from_args, positive_int
+from agents.options import (
+    Progress,
+    add_options,
+    non_negative_float,
+    non_negative_int,
+    option,
+    options_from_args,
+    positive_int,
+)
 from agents.policy import RecurrentPolicy
 from agents.tensorboard_log import TensorBoardLog, require_tensorboard
 from envs.atomic import remove_stale_temporaries, temporary_path
 
 
 @dataclass
-class RunOptions:
+class RunOptions(Progress):
     """How long and where a run goes, not what it learns (free to change on --resume)."""
 
     preset: str | None = option(None, choices=sorted(PRESETS))
@@ -90,8 +98,6 @@ class RunOptions:
     """jsonl: the curves in OUT/metrics.jsonl (always written; the docs' curves come from it); tensorboard: also in OUT/tensorboard/, the step and validation scalars and a flow panel at each validation (needs the 'tensorboard' extra)"""
     overwrite: bool = False
     """start a new run in an OUT that holds an earlier run's checkpoint or metrics (they are replaced)"""
-    no_progress: bool = False
-    """no progress bar"""
 
 
 #: options that say how long and where a run goes, not what it learns: free to change on --resume
@@ -103,7 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     """scripts/train.py's command line: a TrainConfig field per option, then the RunOptions."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_options(p, TrainConfig, groups=GROUPS, defaults={"device": "cuda" if torch.cuda.is_available() else "cpu"})
-    add_options(p.add_argument_group("run options"), RunOptions)
+    add_options(p, RunOptions, groups={"preset": "run options"})
     return p
 
 
