@@ -56,7 +56,7 @@ def command_modules() -> list[str]:
 def test_the_window_length_has_one_name_across_the_commands(tmp_path):
     """--window-size (frames per window with --window frames; --dt, the paper's name, is the same
     option) in train, evaluate, predict and teacher_targets, declared once (agents.options.WindowSize)."""
-    from agents.commands import evaluate, predict, teacher_targets
+    from agents.commands import campaign, evaluate, predict, teacher_targets
 
     for module in (train_command, evaluate, predict, teacher_targets):
         parser = module.build_parser()
@@ -79,6 +79,8 @@ def test_the_window_length_has_one_name_across_the_commands(tmp_path):
                          teacher_targets.build_parser()).window_sizes() == [2]
     assert parse_options(predict.PredictOptions, ["rec.h5", "--window", "time", "--window-size", "5000"],
                          predict.build_parser()).window_size == 5000
+    parsed = campaign.build_parser().parse_args(["new", "c", "--export", "m", "--val-dt", "2"])
+    assert parsed.val_window_size == [2]
 
 
 def test_predict_takes_one_window_size(capsys):
@@ -87,6 +89,21 @@ def test_predict_takes_one_window_size(capsys):
     with pytest.raises(SystemExit) as stop:
         predict.main(["rec.h5", "--window-size", "1", "4"])
     assert stop.value.code == 2 and "--window-size: predict runs one window size, got 1 4" in capsys.readouterr().err
+
+
+def test_old_spellings_keep_working_and_numbers_are_checked(capsys):
+    """Options renamed or newly checked by the move to option dataclasses: the old spelling still
+    parses; a bad number is refused naming the option, as everywhere else."""
+    from agents.commands import generate, teacher_targets
+
+    with pytest.raises(SystemExit):
+        teacher_targets.build_parser().parse_args(["--out", "t.h5", "--batch-size", "0"])
+    assert "argument --batch-size: expected a positive integer, got 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        generate.build_parser().parse_args(["--split", "synthetic-mini"])
+    assert "one of the arguments --out --cache is required" in capsys.readouterr().err
+    options = generate.parse_args(["--split", "synthetic-mini", "--cache"])
+    assert options.cache and options.out is None and options.format == "evflow-h5"
 
 
 @pytest.mark.parametrize("name", sorted(PRESETS))

@@ -29,9 +29,20 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
-from agents.campaign import CAMPAIGNS_DIR, STATE_BUDGET, Campaign, CampaignSpec, machine, plot_curve
+from agents.campaign import STATE_BUDGET, Campaign, CampaignSpec, machine, plot_curve
+from agents.options import (
+    DeviceOptions,
+    check_choices,
+    command_parser,
+    option,
+    options_from_args,
+    positive_float,
+    positive_int,
+)
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout
 PYTHON = sys.executable
@@ -63,7 +74,7 @@ def _evaluate(args: list[str], out: Path, device: str) -> dict:
 
 
 def _eval_data_args(spec: CampaignSpec) -> list[str]:
-    return ["--data", *_expand(spec.val_data), "--dt", *map(str, spec.val_dt),
+    return ["--data", *_expand(spec.val_data), "--window-size", *map(str, spec.val_dt),
             *(["--max-windows", str(spec.val_windows)] if spec.val_windows else [])]
 
 
@@ -134,7 +145,7 @@ def cmd_new(args, rest: list[str]) -> int:
 
     parse_args([*rest, "--out", str(campaign.work / "train")])  # a recipe train.py would refuse fails here
     spec = CampaignSpec(name=args.name, export=args.export, train=rest, init=args.init, val_data=args.val_data,
-                        val_dt=args.val_dt, val_windows=args.val_windows, reference=args.reference,
+                        val_dt=args.val_window_size, val_windows=args.val_windows, reference=args.reference,
                         interval_minutes=args.interval_minutes, state_budget_mb=args.state_budget_mb, note=args.note)
     spec.write(campaign.spec_path)
     print(f"wrote {campaign.spec_path}; start it with: python scripts/campaign.py resume {args.name} --background")
@@ -343,59 +354,110 @@ def cmd_plot(args) -> int:
     return 0
 
 
+@dataclass(kw_only=True)
+class CampaignOptions:
+    """The campaign a subcommand acts on (every subcommand takes these)."""
+
+    name: str = option(positional=True)
+    """the campaign (a folder of --campaigns-dir)"""
+    campaigns_dir: Path | None = None
+    """where campaigns live (default: agents/campaigns of this checkout)"""
+    runs: Path = Path("runs") / "campaigns"
+    """working folder of the runs"""
+
+
+@dataclass(kw_only=True)
+class NewOptions(CampaignOptions):
+    """``new``: the campaign's description (train.py's options of its recipe follow ``--``)."""
+
+    export: str = option(required=True)
+    """shipped model name its improved weights are exported to"""
+    init: str | None = None
+    """weights the first stretch starts from (shipped name or checkpoint)"""
+    val_data: list[str] = option(nargs="*", default_factory=lambda: ["../shared/devval/*.h5"])
+    """validation data (split names or file patterns relative to the checkout; none: no validation)"""
+    val_window_size: list[int] = option(default_factory=lambda: [1, 4], type=positive_int, aliases=("--val-dt",),
+                                        metavar="N")
+    """the validation's window lengths in ground-truth frames (evaluate.py --window-size): the score is the mean over them"""
+    val_windows: int | None = option(None, type=positive_int)
+    """windows per validation sequence (default: all)"""
+    reference: Literal["cmax", "zero"] = "cmax"
+    """the score's reference row"""
+    interval_minutes: float = option(20.0, type=positive_float)
+    """training between state writes"""
+    state_budget_mb: float = option(STATE_BUDGET / 2**20, type=positive_float)
+    """the most the committed resume state may weigh (Adam's moments are dropped to fit)"""
+    note: str = ""
+    """what the campaign is, for the provenance"""
+    force: bool = False
+    """replace an existing description"""
+
+    def __post_init__(self) -> None:
+        check_choices(self)
+
+
+@dataclass(kw_only=True)
+class ResumeOptions(CampaignOptions, DeviceOptions):
+    """``resume``: how long this stretch trains, where (--threads: of the training process)."""
+
+    hours: float | None = option(None, type=positive_float)
+    """stop after this long (default: until its steps)"""
+    minutes: float | None = option(None, type=positive_float)
+    """stop after this many minutes"""
+    weights_dir: str | None = None
+    """where improved weights go (default agents/weights)"""
+    background: bool = False
+    """detach; progress in runs/campaigns/NAME/campaign.log"""
+    quiet: bool = False
+    """no per-step progress bar (the background's log)"""
+
+
+@dataclass(kw_only=True)
+class StopOptions(CampaignOptions):
+    """``stop``: how long to wait for the state to be written."""
+
+    timeout: float = option(900.0, type=positive_float)
+    """seconds to wait for the campaign to save and exit"""
+
+
+@dataclass(kw_only=True)
+class PrepareOptions(CampaignOptions):
+    """``prepare``: how many processes simulate."""
+
+    workers: int = option(os.cpu_count() or 1, type=positive_int)
+    """simulate in this many processes"""
+
+
+#: subcommand -> (its options, its one-line help)
+SUBCOMMANDS = {
+    "new": (NewOptions, "describe a campaign: NAME, options, then -- and train.py's options"),
+    "resume": (ResumeOptions, "continue (or start) a campaign"),
+    "stop": (StopOptions, "SIGTERM a running campaign and wait until its state is written"),
+    "prepare": (PrepareOptions, "simulate the recipe's synthetic training data ahead, in parallel"),
+    "status": (CampaignOptions, "step, training hours and the validation curve"),
+    "plot": (CampaignOptions, "draw curve.png from curve.jsonl"),
+}
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
-
-    def common(q):
-        q.add_argument("name", help="the campaign (a folder of --campaigns-dir)")
-        q.add_argument("--campaigns-dir", type=Path, default=CAMPAIGNS_DIR,
-                       help="where campaigns live (default: agents/campaigns of this checkout)")
-        q.add_argument("--runs", type=Path, default=Path("runs") / "campaigns",
-                       help="working folder of the runs (default runs/campaigns)")
-        return q
-
-    q = common(sub.add_parser("new", help="describe a campaign: NAME, options, then -- and train.py's options"))
-    q.add_argument("--export", required=True, help="shipped model name its improved weights are exported to")
-    q.add_argument("--init", default=None, help="weights the first stretch starts from (shipped name or checkpoint)")
-    q.add_argument("--val-data", nargs="*", default=["../shared/devval/*.h5"],
-                   help="validation data (split names or file patterns relative to the checkout; none: no validation)")
-    q.add_argument("--val-dt", nargs="+", type=int, default=[1, 4])
-    q.add_argument("--val-windows", type=int, default=None, help="windows per validation sequence (default: all)")
-    q.add_argument("--reference", choices=("cmax", "zero"), default="cmax", help="the score's reference row")
-    q.add_argument("--interval-minutes", type=float, default=20.0, help="training between state writes")
-    q.add_argument("--state-budget-mb", type=float, default=STATE_BUDGET / 2**20,
-                   help="the most the committed resume state may weigh (Adam's moments are dropped to fit)")
-    q.add_argument("--note", default="")
-    q.add_argument("--force", action="store_true", help="replace an existing description")
-
-    q = common(sub.add_parser("resume", help="continue (or start) a campaign"))
-    q.add_argument("--hours", type=float, default=None, help="stop after this long (default: until its steps)")
-    q.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
-    q.add_argument("--device", default="cpu", help="torch device (cuda on a GPU machine)")
-    q.add_argument("--threads", type=int, default=None, help="CPU threads of the training process")
-    q.add_argument("--weights-dir", default=None, help="where improved weights go (default agents/weights)")
-    q.add_argument("--background", action="store_true", help="detach; progress in runs/campaigns/NAME/campaign.log")
-    q.add_argument("--quiet", action="store_true", help="no per-step progress bar (the background's log)")
-
-    q = common(sub.add_parser("stop", help="SIGTERM a running campaign and wait until its state is written"))
-    q.add_argument("--timeout", type=float, default=900.0)
-    q = common(sub.add_parser("prepare", help="simulate the recipe's synthetic training data ahead, in parallel"))
-    q.add_argument("--workers", type=int, default=os.cpu_count() or 1)
-    common(sub.add_parser("status", help="step, training hours and the validation curve"))
-    common(sub.add_parser("plot", help="draw curve.png from curve.jsonl"))
+    for command, (cls, summary) in SUBCOMMANDS.items():
+        command_parser(cls, parser=sub.add_parser(command, help=summary, description=summary))
     return p
 
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     cut = argv.index("--") if "--" in argv else len(argv)
-    args = build_parser().parse_args(argv[:cut])
-    if args.command != "new" and cut < len(argv):
+    parsed = build_parser().parse_args(argv[:cut])
+    command = parsed.command
+    args = options_from_args(SUBCOMMANDS[command][0], parsed)
+    if command != "new" and cut < len(argv):
         raise SystemExit("only 'new' takes train.py options after --")
-    if args.command == "new":
+    if command == "new":
         return cmd_new(args, argv[cut + 1 :])
-    return {"resume": cmd_resume, "prepare": cmd_prepare, "stop": cmd_stop, "status": cmd_status, "plot": cmd_plot}[args.command](args)
+    return {"resume": cmd_resume, "prepare": cmd_prepare, "stop": cmd_stop, "status": cmd_status, "plot": cmd_plot}[command](args)
 
 
 if __name__ == "__main__":

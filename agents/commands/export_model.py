@@ -21,24 +21,43 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 from agents.checkpoint import load_checkpoint, upgrade_checkpoint
+from agents.options import command_parser, option, options_from_args
 from agents.pretrained import export_pretrained
 
 
+@dataclass(kw_only=True)
+class ExportOptions:
+    """What scripts/export_model.py ships (or upgrades) and the provenance it records."""
+
+    checkpoint: list[str] = option(positional=True, nargs="+")
+    """the training checkpoint (several with --upgrade)"""
+    name: str | None = None
+    """the shipped model's name (required unless --upgrade)"""
+    upgrade: bool = False
+    """convert old-format checkpoints in place to the safe format, then stop (trusted files only)"""
+    command: str = ""
+    """the command(s) that trained it"""
+    eval: str | None = None
+    """results.json of scripts/evaluate.py on the model"""
+    note: str = ""
+    """what the model is, for the provenance"""
+    dir: str | None = None
+    """where the weights go (default: agents/weights/)"""
+    metrics: str | None = None
+    """the run's metrics.jsonl (default: beside the checkpoint)"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(ExportOptions, __doc__)
+
+
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("checkpoint", nargs="+", help="the training checkpoint (several with --upgrade)")
-    p.add_argument("--name", default=None, help="the shipped model's name (required unless --upgrade)")
-    p.add_argument("--upgrade", action="store_true",
-                   help="convert old-format checkpoints in place to the safe format, then stop (trusted files only)")
-    p.add_argument("--command", default="", help="the command(s) that trained it")
-    p.add_argument("--eval", default=None, help="results.json of scripts/evaluate.py on the model")
-    p.add_argument("--note", default="")
-    p.add_argument("--dir", default=None, help="default: agents/weights/")
-    p.add_argument("--metrics", default=None, help="the run's metrics.jsonl (default: beside the checkpoint)")
-    args = p.parse_args(argv)
+    p = build_parser()
+    args = options_from_args(ExportOptions, p.parse_args(argv))
     if args.upgrade:
         for path in args.checkpoint:
             print(f"upgraded {upgrade_checkpoint(path)}")

@@ -19,9 +19,12 @@ so that training does not wait on the simulator. Existing files are skipped unle
 from __future__ import annotations
 
 import argparse
+import textwrap
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
+from agents.options import Progress, command_parser, option, options_from_args, positive_int
 from envs.simulator.export import OUTPUT_FORMATS
 from envs.synthetic import SERIES, SPLITS, generate_split, list_sequences
 
@@ -35,22 +38,37 @@ def split_name(text: str) -> str:
     return text
 
 
-def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        description="Simulate a named synthetic split into files (events, frames, exact flow).",
-        epilog="Splits: " + "; ".join(f"{name} ({len(specs)} sequences)" for name, specs in SPLITS.items())
-        + "; " + ", ".join(f"{name}:N" for name in SERIES) + " (a series' first N sequences, any N)",
+@dataclass(kw_only=True)
+class GenerateOptions(Progress):
+    """Which split scripts/generate_synthetic.py simulates, and where it writes."""
+
+    split: str = option(required=True, type=split_name)
+    """which split to generate"""
+    out: Path | None = option(None, exclusive="where", required=True)
+    """output folder (created); outputs are named after the sequences"""
+    cache: bool = option(False, exclusive="where")
+    """fill the disk cache that training reads ($EVFLOW_CACHE)"""
+    format: str = option("evflow-h5", choices=OUTPUT_FORMATS)
+    """output format"""
+    num: int | None = option(None, type=positive_int)
+    """only the first N sequences of the split"""
+    workers: int = option(1, type=positive_int)
+    """simulate in this many processes"""
+    overwrite: bool = False
+    """re-simulate files that already exist"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(
+        GenerateOptions, __doc__,
+        epilog=textwrap.fill("Splits: " + "; ".join(f"{name} ({len(specs)} sequences)" for name, specs in SPLITS.items())
+                             + "; " + ", ".join(f"{name}:N" for name in SERIES) + " (a series' first N sequences, any N)",
+                             width=79, break_on_hyphens=False),
     )
-    parser.add_argument("--split", required=True, type=split_name, help="which split to generate")
-    where = parser.add_mutually_exclusive_group(required=True)
-    where.add_argument("--out", type=Path, help="output folder (created); outputs are named after the sequences")
-    where.add_argument("--cache", action="store_true", help="fill the disk cache that training reads ($EVFLOW_CACHE)")
-    parser.add_argument("--format", default="evflow-h5", choices=OUTPUT_FORMATS, help="output format (default evflow-h5)")
-    parser.add_argument("--num", type=int, default=None, help="only the first N sequences of the split")
-    parser.add_argument("--workers", type=int, default=1, help="simulate in this many processes (default 1)")
-    parser.add_argument("--overwrite", action="store_true", help="re-simulate files that already exist")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return parser.parse_args(argv)
+
+
+def parse_args(argv=None) -> GenerateOptions:
+    return options_from_args(GenerateOptions, build_parser().parse_args(argv))
 
 
 def main(argv=None) -> int:

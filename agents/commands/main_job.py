@@ -30,11 +30,23 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from agents.commands import evaluate as evaluate_command
 from agents.commands import train as train_command
 from agents.learner import preset_options
+from agents.options import (
+    DeviceOptions,
+    check_choices,
+    command_parser,
+    default_device,
+    non_negative_float,
+    non_negative_int,
+    option,
+    options_from_args,
+)
 from agents.pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info
 
 #: The project's recipe (docs/results.md: how far it gets; docs/history/: how it was found), as train.py
@@ -52,6 +64,32 @@ TEACHER_MODEL = DEFAULT_PRETRAINED  # stage 1 (the cached-teacher run T3), shipp
 EVAL_SPLITS = ["synthetic-test", "synthetic-stress"]
 EVAL_WINDOWS = 3  # the contrast-maximisation row costs seconds per window
 TRAIN_SPLIT = "synthetic-train"  # the demo's data (TrainConfig's default)
+
+
+@dataclass
+class MainOptions(DeviceOptions):
+    """What scripts/main.py evaluates and how long its demo trains (train.py's own options for
+    the demo follow ``--``)."""
+
+    demo_minutes: float = option(3.0, type=non_negative_float)
+    """length of the training demo (0: skip)"""
+    demo_stage: Literal["hmc", "teacher"] = "hmc"
+    """hmc: stage 2 (L_HMC) from the shipped stage-1 model; teacher: stage 1 from scratch"""
+    out: str = "runs/main"
+    """where eval/, demo/ and demo-eval/ go"""
+    eval_data: list[str] = option(default_factory=lambda: list(EVAL_SPLITS))
+    """splits or recordings evaluated in step 1 (each its own table)"""
+    eval_windows: int = option(EVAL_WINDOWS, type=non_negative_int)
+    """windows per sequence in step 1 (0: all; the contrast-maximisation row costs seconds each)"""
+    no_cmax: bool = False
+    """leave the contrast-maximisation row out of step 1"""
+
+    def __post_init__(self) -> None:
+        check_choices(self)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(MainOptions, __doc__, defaults={"device": default_device()})
 
 
 def demo_summary(metrics: Path) -> None:
@@ -95,23 +133,13 @@ def prepare_data(splits: list[str]) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--demo-minutes", type=float, default=3.0, help="length of the training demo (0: skip)")
-    parser.add_argument("--demo-stage", choices=["hmc", "teacher"], default="hmc",
-                        help="hmc: stage 2 (L_HMC) from the shipped stage-1 model; teacher: stage 1 from scratch")
-    parser.add_argument("--out", default="runs/main")
-    parser.add_argument("--eval-data", nargs="+", default=EVAL_SPLITS,
-                        help="splits or recordings evaluated in step 1 (each its own table)")
-    parser.add_argument("--eval-windows", type=int, default=EVAL_WINDOWS,
-                        help="windows per sequence in step 1 (0: all; the contrast-maximisation row costs seconds each)")
-    parser.add_argument("--no-cmax", action="store_true", help="leave the contrast-maximisation row out of step 1")
-    parser.add_argument("--device", default=None)
     argv = list(sys.argv[1:] if argv is None else argv)
     cut = argv.index("--") if "--" in argv else len(argv)
-    args = parser.parse_args(argv[:cut])
+    args = options_from_args(MainOptions, build_parser().parse_args(argv[:cut]))
+    args.set_threads()  # step 1 and the demo run in this process
     extra = argv[cut + 1 :]
     out = Path(args.out)
-    device = ["--device", args.device] if args.device else []
+    device = ["--device", args.device]
     print("[main] 0/3 preparing the synthetic data this job uses (simulated once, then read from the cache)", flush=True)
     prepare_data([*args.eval_data, TRAIN_SPLIT] if args.demo_minutes > 0 else list(args.eval_data))
 
@@ -148,7 +176,7 @@ def main(argv=None) -> int:
                            "--out", str(out / "demo"), "--val-data", "", "--no-progress", "--overwrite", *device, *extra])
         demo_summary(out / "demo" / "metrics.jsonl")
         evaluate_command.main(["--checkpoint", str(out / "demo" / "checkpoint.pt"), "--name", "demo model", "--zero",
-                              "--data", args.eval_data[0], "--dt", "1", "4", "--max-windows", "15", "--pictures", "0",
+                              "--data", args.eval_data[0], "--window-size", "1", "4", "--max-windows", "15", "--pictures", "0",
                               "--out", str(out / "demo-eval"), "--no-progress", "--overwrite", *device])
 
     print("\n[main] 3/3 the full training of the recipe (resumable; --device cuda on a GPU):")

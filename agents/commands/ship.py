@@ -25,10 +25,46 @@ import json
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+
+from agents.options import command_parser, option, options_from_args, positive_float, positive_int
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout
 CODE = ROOT  # the checkout whose train.py / evaluate.py run (--code: a fixed snapshot)
+
+
+@dataclass(kw_only=True)
+class ShipOptions:
+    """What scripts/ship.py trains, validates and ships (train.py's options of the recipe follow
+    ``--``)."""
+
+    name: str = option(required=True)
+    """the shipped model's name (agents/weights/NAME.pt/.json)"""
+    out: str = option(required=True)
+    """run folder (train/ checkpoint, val/ evaluations, ship.jsonl)"""
+    init: str | None = None
+    """weights to start from the first time (checkpoint or shipped name)"""
+    hours: float = option(1.0, type=positive_float)
+    """stop after this long (a chunk in progress finishes)"""
+    chunk_minutes: float = option(10.0, type=positive_float)
+    """training between validations"""
+    val_data: str = "synthetic-dr-val"
+    """held-out validation data (never a training or test split: it picks the model)"""
+    val_windows: int = option(8, type=positive_int)
+    """windows per validation sequence"""
+    val_split: str | None = option(None, metavar="N|dt")
+    """validate the model stepped through sub-windows (scripts/evaluate.py --split), e.g. dt"""
+    note: str = ""
+    """what the run is, for the provenance"""
+    weights_dir: str | None = None
+    """where to ship (default: agents/weights of this checkout)"""
+    code: str | None = None
+    """run training and validation from this checkout (e.g. a git worktree of a fixed commit, so edits to this one cannot disturb a long run); weights are still shipped into this one"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(ShipOptions, __doc__)
 
 
 def validation_score(checkpoint: Path, data: str, windows: int, out: Path, split: str | None = None) -> tuple[float, dict]:
@@ -39,6 +75,7 @@ def validation_score(checkpoint: Path, data: str, windows: int, out: Path, split
     cmd = [sys.executable, str(CODE / "scripts" / "evaluate.py"), "--checkpoint", str(checkpoint), "--name", "model",
            "--zero", "--data", data, "--dt", "1", "4", "--max-windows", str(windows), "--pictures", "0",
            "--no-progress", "--out", str(out), "--overwrite", *(["--split", split] if split else [])]  # its own folder
+    # --dt: --window-size's other name, which the evaluate.py of an older --code snapshot also knows
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
     results = json.loads((out / "results.json").read_text())
     row = results if not split else results["baselines"][f"model + split {split}"]
@@ -59,22 +96,7 @@ def shipped_score(name: str, weights_dir: Path) -> float:
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     cut = argv.index("--") if "--" in argv else len(argv)
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--name", required=True, help="the shipped model's name (agents/weights/NAME.pt/.json)")
-    p.add_argument("--out", required=True, help="run folder (train/ checkpoint, val/ evaluations, ship.jsonl)")
-    p.add_argument("--init", default=None, help="weights to start from the first time (checkpoint or shipped name)")
-    p.add_argument("--hours", type=float, default=1.0, help="stop after this long (a chunk in progress finishes)")
-    p.add_argument("--chunk-minutes", type=float, default=10.0)
-    p.add_argument("--val-data", default="synthetic-dr-val")
-    p.add_argument("--val-windows", type=int, default=8, help="windows per validation sequence")
-    p.add_argument("--val-split", default=None, metavar="N|dt",
-                   help="validate the model stepped through sub-windows (scripts/evaluate.py --split), e.g. dt")
-    p.add_argument("--note", default="", help="what the run is, for the provenance")
-    p.add_argument("--weights-dir", default=None, help="where to ship (default: agents/weights of this checkout)")
-    p.add_argument("--code", default=None,
-                   help="run training and validation from this checkout (e.g. a git worktree of a fixed commit, so "
-                        "edits to this one cannot disturb a long run); weights are still shipped into this one")
-    args = p.parse_args(argv[:cut])
+    args = options_from_args(ShipOptions, build_parser().parse_args(argv[:cut]))
     global CODE
     CODE = Path(args.code).resolve() if args.code else ROOT
     sys.path.insert(0, str(CODE))
