@@ -3,6 +3,7 @@ checks, the presets, and every console command's --help."""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import importlib
 import re
@@ -15,7 +16,7 @@ import pytest
 from agents.commands import train as train_command
 from agents.commands.evaluate import EvaluateOptions
 from agents.learner import PRESETS, TrainConfig, preset_config, preset_options
-from agents.options import WindowSize, choices_of, field_docs, parse_options
+from agents.options import OPTION_FIELD, WindowSize, choices_of, field_docs, parse_options
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -51,6 +52,32 @@ def command_modules() -> list[str]:
     for script in (ROOT / "scripts").glob("*.py"):
         names |= set(re.findall(r"from agents\.commands\.(\w+) import main", script.read_text()))
     return sorted(names)
+
+
+def parser_actions(parser: argparse.ArgumentParser):
+    """Every option and argument of ``parser`` and of its subcommands' parsers, -h aside."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for subparser in action.choices.values():
+                yield from parser_actions(subparser)
+        elif not isinstance(action, argparse._HelpAction):
+            yield action
+
+
+@pytest.mark.parametrize("name", command_modules())
+def test_every_command_builds_its_parser_from_an_options_dataclass(name, capsys):
+    """One mechanism: each option of each command is a field of its options dataclass, added by
+    agents.options.add_options (which marks the action with its field), with the help written
+    under the field; none is added by hand."""
+    module = importlib.import_module(f"agents.commands.{name}")
+    actions = list(parser_actions(module.build_parser()))
+    assert actions, name
+    for action in actions:
+        assert getattr(action, OPTION_FIELD, None) == action.dest, f"{name}: {action.option_strings or action.dest}"
+        assert action.help, f"{name}: {action.option_strings or action.dest} has no help"
+    with pytest.raises(SystemExit) as stop:
+        module.main(["--help"])
+    assert stop.value.code == 0 and "usage:" in capsys.readouterr().out
 
 
 def test_the_window_length_has_one_name_across_the_commands(tmp_path):

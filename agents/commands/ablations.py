@@ -29,40 +29,58 @@ import dataclasses
 import os
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+
+from agents.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped
+from agents.options import (
+    DeviceOptions,
+    command_parser,
+    default_device,
+    non_negative_int,
+    option,
+    options_from_args,
+    positive_int,
+)
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout
 
-import torch
 
-from agents.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped
+@dataclass
+class AblationsOptions(DeviceOptions):
+    """Which configurations scripts/ablations.py runs, at what budget, and where the rows go."""
+
+    out: str = "runs/ablations"
+    """run folder (targets, checkpoints, evaluations)"""
+    record: str = "docs/ablations"
+    """folder of the rows, budget, tables and curves (in the repository: commit it)"""
+    report: str = "docs/results.md"
+    """file whose ablation markers get the tables ('' for none)"""
+    seeds: list[int] = option(default_factory=lambda: [0, 1, 2], type=non_negative_int)
+    """the full model's seeds; the first is every configuration's, the second the adaptive one's"""
+    only: list[str] | None = option(None, choices=list(CONFIGURATIONS))
+    """run only these configurations"""
+    teacher_steps: int = option(Budget.teacher_steps, type=non_negative_int)
+    """teacher stage steps (the documented budget)"""
+    finetune_steps: int = option(Budget.finetune_steps, type=non_negative_int)
+    """fine-tuning stage steps (0: none)"""
+    eval_windows: int | None = option(None, type=positive_int)
+    """windows per evaluated sequence (default: all)"""
+    targets_hmc: str | None = None
+    """existing L_HMC teacher targets of the training split to reuse"""
+    targets_at: str | None = None
+    """existing L_AT teacher targets (lambda_1 = 0) to reuse"""
+    tables_only: bool = False
+    """only regenerate the tables and curves from the rows"""
 
 
 def build_parser() -> argparse.ArgumentParser:
-    d = Budget()
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", default="runs/ablations", help="run folder (targets, checkpoints, evaluations)")
-    p.add_argument("--record", default="docs/ablations",
-                   help="folder of the rows, budget, tables and curves (in the repository: commit it)")
-    p.add_argument("--report", default="docs/results.md", help="file whose ablation markers get the tables ('' for none)")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
-                   help="the full model's seeds; the first is every configuration's, the second the adaptive one's")
-    p.add_argument("--only", nargs="+", default=None, choices=list(CONFIGURATIONS), help="run only these configurations")
-    p.add_argument("--teacher-steps", type=int, default=d.teacher_steps, help="teacher stage steps (documented budget)")
-    p.add_argument("--finetune-steps", type=int, default=d.finetune_steps, help="fine-tuning stage steps (0: none)")
-    p.add_argument("--eval-windows", type=int, default=None, help="windows per evaluated sequence (default: all)")
-    p.add_argument("--targets-hmc", default=None, help="existing L_HMC teacher targets of the training split to reuse")
-    p.add_argument("--targets-at", default=None, help="existing L_AT teacher targets (lambda_1 = 0) to reuse")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    p.add_argument("--tables-only", action="store_true", help="only regenerate the tables and curves from the rows")
-    return p
+    return command_parser(AblationsOptions, __doc__, defaults={"device": default_device()})
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = options_from_args(AblationsOptions, build_parser().parse_args(argv))
+    args.set_threads()
     budget = dataclasses.replace(Budget(), teacher_steps=args.teacher_steps, finetune_steps=args.finetune_steps,
                                  eval_windows=args.eval_windows)
     targets = {loss: path for loss, path in (("hmc", args.targets_hmc), ("at", args.targets_at)) if path}

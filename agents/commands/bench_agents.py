@@ -25,10 +25,12 @@ import argparse
 import statistics
 import sys
 import time
+from dataclasses import dataclass
 
 import torch
 
 from agents import WIDTHS, make_model
+from agents.options import DeviceOptions, command_parser, option, options_from_args, positive_int
 from agents.summary import forward_flops
 
 SECTION = "agents"
@@ -200,20 +202,29 @@ def _print_row(section: str, row_name: str, value: float, unit: str) -> None:
     print(f"{section:8s} {row_name:70s} {value:10.2f} {unit}", flush=True)
 
 
+@dataclass
+class BenchAgentsOptions(DeviceOptions):
+    """Which networks scripts/bench_agents.py times, and how often."""
+
+    reps: int = option(2, type=positive_int)
+    """timed windows per row (best is reported)"""
+    widths: list[str] = option(default_factory=lambda: ["paper", "cpu"], choices=sorted(WIDTHS))
+    """the named widths timed"""
+    variants: bool = False
+    """also EV-MGRFlowNet's two ablations"""
+    nchw: bool = False
+    """also every model in NCHW with torch's gate arithmetic"""
+    parts: bool = False
+    """only EV-MGRFlowNet's own pieces, timed alone (forward warp, ST-ConvGRU pair update)"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(BenchAgentsOptions, __doc__)
+
+
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--reps", type=int, default=2, help="timed windows per row (best is reported)")
-    parser.add_argument("--widths", nargs="+", default=["paper", "cpu"], choices=["paper", "cpu"])
-    parser.add_argument("--variants", action="store_true", help="also EV-MGRFlowNet's two ablations")
-    parser.add_argument("--nchw", action="store_true", help="also every model in NCHW with torch's gate arithmetic")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    parser.add_argument("--parts", action="store_true",
-                        help="only EV-MGRFlowNet's own pieces, timed alone (forward warp, ST-ConvGRU pair update)")
-    args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = options_from_args(BenchAgentsOptions, build_parser().parse_args(argv))
+    args.set_threads()
     if args.parts:
         time_parts(_print_row, reps=max(args.reps, 20))
         return 0

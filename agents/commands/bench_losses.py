@@ -17,9 +17,11 @@ import argparse
 import statistics
 import sys
 import time
+from dataclasses import dataclass
 
 import torch
 
+from agents.options import DeviceOptions, command_parser, option, options_from_args, positive_int
 from losses import EventBatch, LossWeights, hmc_loss
 
 SECTION = "losses"
@@ -194,16 +196,23 @@ def _print_row(section, row_name, value, unit):
     print(f"[{section}] {row_name:<55s} {text}", flush=True)
 
 
+@dataclass
+class BenchLossesOptions(DeviceOptions):
+    """How big and how often scripts/bench_losses.py times the losses."""
+
+    quick: bool = False
+    """10x fewer events, fewer repeats"""
+    repeats: int | None = option(None, type=positive_int)
+    """timed repeats per row (default: the section's own)"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(BenchLossesOptions, __doc__)
+
+
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="10x fewer events, fewer repeats")
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
-    ap.add_argument("--repeats", type=int, default=None)
-    args = ap.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = options_from_args(BenchLossesOptions, build_parser().parse_args(argv))
+    args.set_threads()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {args.device}")
     run(_print_row, quick=args.quick, device=args.device, repeats=args.repeats)
     return 0

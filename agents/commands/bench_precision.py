@@ -25,12 +25,14 @@ import statistics
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from agents import make_model
+from agents.options import DeviceOptions, command_parser, option, options_from_args, positive_int
 
 SECTION = "precision"
 
@@ -136,15 +138,23 @@ def _print_row(section: str, row: str, value: float, unit: str) -> None:
     print(f"{section:<11} | {row:<75} | {value:10.3f} {unit}", flush=True)
 
 
+@dataclass
+class BenchPrecisionOptions(DeviceOptions):
+    """How many A/B pairs scripts/bench_precision.py times."""
+
+    pairs: int = option(30, type=positive_int)
+    """A/B pairs of the network rows"""
+    update_pairs: int = option(8, type=positive_int)
+    """A/B pairs of the training-update row"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(BenchPrecisionOptions, __doc__)
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pairs", type=int, default=30, help="A/B pairs of the network rows")
-    parser.add_argument("--update-pairs", type=int, default=8, help="A/B pairs of the training-update row")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
-    args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = options_from_args(BenchPrecisionOptions, build_parser().parse_args(argv))
+    args.set_threads()
     run(_print_row, pairs=args.pairs, update_pairs=args.update_pairs, device=args.device)
     return 0
 

@@ -28,11 +28,13 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from agents.commands.bench_readers import peak_rss_mb, window_starts
+from agents.options import command_parser, option, options_from_args, positive_float, positive_int
 
 SENSOR = (720, 1280)
 DEFAULT_EVENTS = 20_000_000
@@ -171,18 +173,32 @@ def _print_row(section: str, row: str, value: float, unit: str) -> None:
     print(f"{section:<11} | {row:<60} | {value:12.3f} {unit}", flush=True)
 
 
+@dataclass
+class BenchPropheseeOptions:
+    """How big a recording scripts/bench_prophesee.py writes, and which sections it times."""
+
+    events: int = option(DEFAULT_EVENTS, type=positive_int)
+    """events in the synthetic RAW file"""
+    rate: float = option(DEFAULT_RATE, type=positive_float)
+    """events per second"""
+    max_windows: int = option(2000, type=positive_int)
+    """windows read (spread evenly)"""
+    sections: list[str] = option(default_factory=lambda: ["prophesee", "predict"], choices=["prophesee", "predict"])
+    """prophesee: RAW reading at 1280x720; predict: agents/predict.py end to end"""
+    workdir: str | None = None
+    """where the synthetic file goes (default: system temp)"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(BenchPropheseeOptions, __doc__)
+
+
 def main(argv=None) -> int:  # as bench_readers': "--child" measures one file in a fresh process
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "--child":
         print(json.dumps(_child(argv[1], argv[2], int(argv[3]))))
         return 0
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--events", type=int, default=DEFAULT_EVENTS)
-    parser.add_argument("--rate", type=float, default=DEFAULT_RATE, help="events per second")
-    parser.add_argument("--max-windows", type=int, default=2000)
-    parser.add_argument("--sections", nargs="+", default=["prophesee", "predict"], choices=["prophesee", "predict"])
-    parser.add_argument("--workdir", default=None)
-    args = parser.parse_args(argv)
+    args = options_from_args(BenchPropheseeOptions, build_parser().parse_args(argv))
     run(_print_row, args.events, args.rate, args.max_windows, args.sections, args.workdir)
     return 0
 

@@ -29,9 +29,12 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from agents.options import command_parser, option, options_from_args, positive_float, positive_int
 
 SECTION = "readers"
 DEFAULT_EVENTS = 10_000_000  # ~1-2 minutes on 2 cores; 10^8 is the full memory check
@@ -208,18 +211,32 @@ def _print_row(section: str, row_name: str, value: float, unit: str) -> None:
     print(f"{section:8s} {row_name:70s} {value:10.2f} {unit}", flush=True)
 
 
+@dataclass
+class BenchReadersOptions:
+    """How big the synthetic files of scripts/bench_readers.py are, and which formats it times."""
+
+    events: int = option(DEFAULT_EVENTS, type=positive_int)
+    """events per synthetic file (10^8 for the memory check)"""
+    rate: float = option(DEFAULT_RATE, type=positive_float)
+    """events per second"""
+    max_windows: int = option(2000, type=positive_int)
+    """10 ms windows read per file (spread evenly)"""
+    formats: list[str] | None = option(None, choices=sorted({case[0] for case in CASES}))
+    """only these formats (default: every one)"""
+    workdir: str | None = None
+    """where the synthetic files go (default: system temp)"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(BenchReadersOptions, __doc__)
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "--child":
         print(json.dumps(_child(argv[1], argv[2], int(argv[3]))))
         return 0
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--events", type=int, default=DEFAULT_EVENTS, help="events per synthetic file (10^8 for the memory check)")
-    parser.add_argument("--rate", type=float, default=DEFAULT_RATE, help="events per second")
-    parser.add_argument("--max-windows", type=int, default=2000, help="10 ms windows read per file (spread evenly)")
-    parser.add_argument("--formats", nargs="+", default=None, choices=sorted({c[0] for c in CASES}))
-    parser.add_argument("--workdir", default=None, help="where the synthetic files go (default: system temp)")
-    args = parser.parse_args(argv)
+    args = options_from_args(BenchReadersOptions, build_parser().parse_args(argv))
     run(_print_row, num_events=args.events, rate=args.rate, max_windows=args.max_windows,
         formats=args.formats, workdir=args.workdir)
     return 0

@@ -17,10 +17,13 @@ whole cost of a sequence), one process.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import sys
 import time
+from dataclasses import dataclass
 
+from agents.options import command_parser, options_from_args
 from envs.simulator import SceneConfig, simulate
 from envs.simulator.randomize import TRAIN_FACTORS, draw_scene
 
@@ -67,9 +70,21 @@ def _print_row(section: str, row_name: str, value: float, unit: str) -> None:
     print(f"{section:<12} {row_name:<48} {value:>10.3f} {unit}")
 
 
+@dataclass
+class BenchSimulatorOptions:
+    """Which rows scripts/bench_simulator.py times."""
+
+    dr: bool = False
+    """only synthetic-dr-train generation per sensor size"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(BenchSimulatorOptions, __doc__)
+
+
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if "--dr" in argv:  # only the randomised split's rows
+    args = options_from_args(BenchSimulatorOptions, build_parser().parse_args(argv))
+    if args.dr:  # only the randomised split's rows
         run_dr(_print_row)
     else:
         run(_print_row)

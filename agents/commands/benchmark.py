@@ -20,10 +20,13 @@ import argparse
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from agents.options import DeviceOptions, command_parser, option, options_from_args
 
 #: the repository (scripts/, tests/ for the recordings the training rows write)
 ROOT = Path(__file__).resolve().parents[2]
@@ -158,17 +161,26 @@ def bench_training(quick: bool, tiny: bool = False, device: str = "cpu") -> None
                    "windows/s")
 
 
+@dataclass
+class BenchmarkOptions(DeviceOptions):
+    """Which sections scripts/benchmark.py times, and how hard (--device: the losses, agents,
+    training and precision sections)."""
+
+    only: list[str] = option(default_factory=lambda: list(SECTIONS), choices=SECTIONS)
+    """the sections to time"""
+    quick: bool = False
+    """fewer repetitions and smaller inputs"""
+    tiny: bool = False
+    """the smallest sizes and one repetition: checks that every section runs (the numbers mean nothing)"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(BenchmarkOptions, __doc__)
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--only", nargs="+", choices=SECTIONS, default=list(SECTIONS))
-    parser.add_argument("--quick", action="store_true", help="fewer repetitions and smaller inputs")
-    parser.add_argument("--tiny", action="store_true",
-                        help="the smallest sizes and one repetition: checks that every section runs (the numbers mean nothing)")
-    parser.add_argument("--device", default="cpu", help="torch device of the losses, agents, training and precision sections")
-    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
-    args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = options_from_args(BenchmarkOptions, build_parser().parse_args(argv))
+    args.set_threads()
     quick, tiny = args.quick or args.tiny, args.tiny
     print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads, device {args.device}", flush=True)
     for section in args.only:

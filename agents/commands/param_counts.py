@@ -8,19 +8,29 @@ Usage: ``python scripts/param_counts.py [--widths paper cpu] [--flops H W]`` (pa
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 
 from agents import WIDTHS
+from agents.options import command_parser, option, options_from_args, positive_int
 from agents.summary import flops_table, parameter_table
 
 
+@dataclass
+class ParamCountsOptions:
+    """Which widths scripts/param_counts.py tabulates, and at which input size the arithmetic."""
+
+    widths: list[str] = option(default_factory=lambda: ["paper", "cpu"], choices=sorted(WIDTHS))
+    """the named widths (agents.WIDTHS) to count, one column each"""
+    flops: tuple[int, int] | None = option(None, nargs=2, type=positive_int, metavar=("H", "W"))
+    """also print the GFLOP of one window at this input size"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return command_parser(ParamCountsOptions, __doc__)
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--widths", nargs="+", default=["paper", "cpu"], choices=sorted(WIDTHS))
-    parser.add_argument("--flops", nargs=2, type=int, metavar=("H", "W"), default=None,
-                        help="also print the GFLOP of one window at this input size")
-    args = parser.parse_args(argv)
-    if args.flops and min(args.flops) < 1:
-        parser.error(f"--flops: H and W must be positive, got {args.flops[0]} {args.flops[1]}")
+    args = options_from_args(ParamCountsOptions, build_parser().parse_args(argv))
     tables = {width: dict(parameter_table(width)) for width in args.widths}
     labels = list(next(iter(tables.values())))
     header = " | ".join(f"{w} (c={WIDTHS[w]})" for w in args.widths)
