@@ -66,8 +66,15 @@ def _loss_options(cfg: TrainConfig, flow_scaling: float, kind: str) -> dict:
 
 
 def _endpoint_error(flow: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """Mean endpoint error of (B, 2, H, W) ``flow`` against ``target``, weighted by (B, 1, H, W) ``weight``."""
-    return ((flow - target).norm(dim=1, keepdim=True) * weight).sum() / weight.sum().clamp_min(1)
+    """Mean endpoint error of (B, 2, H, W) ``flow`` against ``target``, weighted by (B, 1, H, W) ``weight``.
+
+    The length is the square root of the summed squares rather than ``Tensor.norm(dim=1)``: the
+    same values, but torch's norm over the 2 channels of an NCHW tensor is ~40x slower on CPU
+    (about a tenth of a teacher update, docs/training.md). The clamp keeps the gradient at 0
+    where flow == target, as the norm's is, instead of 0 x inf."""
+    squared = (flow - target).square().sum(dim=1, keepdim=True)
+    length = squared.clamp_min(torch.finfo(squared.dtype).tiny).sqrt()
+    return (length * weight).sum() / weight.sum().clamp_min(1)
 
 
 def _scales(cfg: TrainConfig, flows: list) -> list:
