@@ -4,14 +4,17 @@
   python scripts/benchmark.py --only foundation env
   python scripts/benchmark.py --quick              # fewer repetitions
   python scripts/benchmark.py --only training precision --device cuda   # on a GPU
+  python scripts/benchmark.py --only update --threads 1 --quick          # where a training update's time goes (CPU)
   python scripts/benchmark.py --tiny               # every section at the smallest sizes (a check, not a measurement)
 
 Sections: foundation (project h5 windows + count images), simulator (with synthetic-dr-train
 generation per sensor size), losses, agents, env, training (windows/s per model; on CPU also
 2-process torchrun rows), precision (bf16 autocast against float32, interleaved A/B:
-agents/commands/bench_precision.py), readers, prophesee (RAW reading at 1280x720), predict
-(agents/predict.py end to end). Timings are wall-clock on whatever machine runs them; compare
-rows of one run. --device applies to the losses, agents, training and precision sections.
+agents/commands/bench_precision.py), update (a profile of one training update at a campaign's
+settings and interleaved A/B of ways to make it cheaper: agents/commands/bench_update.py),
+readers, prophesee (RAW reading at 1280x720), predict (agents/predict.py end to end). Timings
+are wall-clock on whatever machine runs them; compare rows of one run. --device applies to the
+losses, agents, training and precision sections.
 """
 
 from __future__ import annotations
@@ -33,8 +36,8 @@ ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-SECTIONS = ("foundation", "simulator", "losses", "agents", "env", "training", "precision", "readers", "prophesee",
-            "predict")
+SECTIONS = ("foundation", "simulator", "losses", "agents", "env", "training", "precision", "update", "readers",
+            "prophesee", "predict")
 
 
 def report(section: str, row: str, value: float, unit: str) -> None:
@@ -194,6 +197,10 @@ def main(argv=None) -> int:
             from agents.commands import bench_precision
 
             bench_precision.run(report, device=args.device, tiny=tiny)
+        elif section == "update":
+            from agents.commands import bench_update
+
+            bench_update.run(report, quick=quick, tiny=tiny)
         elif section == "simulator":
             from agents.commands import bench_simulator
 
