@@ -116,13 +116,3 @@ class ContrastMaximisationPolicy:
         size = tuple(np.asarray(obs[self.input_key]).shape[-2:])
         return self.settings.solve(window, size, device=self.device)
 
-
-def __getattr__(name: str):
-    # RefinedPolicy moved to agents.wrappers.refine, beside the other wrappers; this old address
-    # stays until agents/commands/evaluate.py imports it from there (then delete this function).
-    # Looked up lazily because agents.wrappers.refine imports this module.
-    if name == "RefinedPolicy":
-        from .wrappers.refine import RefinedPolicy
-
-        return RefinedPolicy
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -448,7 +448,7 @@ class Learner:
         self.step = int(payload["step"])
         self.rewarm_from = payload.get("rewarm_from")
         if not payload["optimizer"].get("state") and self.step > 0:
-            # a slim state without Adam's moments (agents.campaign): they restart from zero, and
+            # a slim state without Adam's moments (evflow_cli.campaign): they restart from zero, and
             # the step size warms up again over cfg.moment_warmup steps so the first steps stay small
             self.rewarm_from = self.step
         self.scheduler.base_lrs = [self.cfg.lr for _ in self.optimizer.param_groups]

@@ -1,6 +1,6 @@
 """Command lines generated from configuration dataclasses, so that every option is written once.
 
-Every command (agents/commands) describes its options as a dataclass and builds its parser with
+Every command (evflow_cli/commands) describes its options as a dataclass and builds its parser with
 :func:`command_parser` (or :func:`add_options`); tests/test_options.py checks that no command adds
 an option by hand. A field's type says how it parses (``Literal[...]``: a choice; ``bool``: a
 switch, ``--no-NAME`` when it defaults to True; ``tuple``/``list``: several values; ``Path``: a
@@ -14,7 +14,7 @@ inherit them and ``--help`` shows each under its own heading.
 
 Why our own ~300 lines over argparse rather than a library made for this (tyro, simple-parsing,
 both installable): the project's validation is argparse's (``type=`` checks that name the option,
-exit status 2, the one-line errors of agents/commands/cli.py, the ``SensorSize`` action) and its
+exit status 2, the one-line errors of evflow_cli/commands/cli.py, the ``SensorSize`` action) and its
 users' scripts rely on the exact spellings (``--no-flips``, ``--model-kwarg``, ``--dt``); train.py's
 ``--preset`` and ``--resume`` read the parser's actions and defaults (``given_options``); and the
 dependencies are kept to the numerical stack (a library would bring its own, and its own
@@ -74,7 +74,7 @@ def number(kind: type, low: float | None = None, high: float | None = None, *, l
     return parse
 
 
-#: the numeric option types of the commands (agents/commands), each naming its accepted range
+#: the numeric option types of the commands (evflow_cli/commands), each naming its accepted range
 positive_int = number(int, 1, name="a positive integer")
 non_negative_int = number(int, 0, name="an integer >= 0")
 positive_float = number(float, 0, low_open=True, name="a finite number > 0")

@@ -1,10 +1,10 @@
 #!/usr/bin/env python
-"""Network forward/backward timings (agents/commands/bench_agents.py)."""
+"""Network forward/backward timings (evflow_cli/commands/bench_agents.py)."""
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from agents.commands.bench_agents import main  # noqa: E402
+from evflow_cli.commands.bench_agents import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,10 +1,10 @@
 #!/usr/bin/env python
-"""Loss timings (agents/commands/bench_losses.py)."""
+"""Loss timings (evflow_cli/commands/bench_losses.py)."""
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from agents.commands.bench_losses import main  # noqa: E402
+from evflow_cli.commands.bench_losses import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main())

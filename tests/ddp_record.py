@@ -14,8 +14,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from agents import learner as learner_module  # noqa: E402
-from agents.commands import train  # noqa: E402
 from agents.objectives import windows_from_info  # noqa: E402
+from evflow_cli.commands import train  # noqa: E402
 
 
 def _digest(events) -> str:

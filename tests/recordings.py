@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs.events import Events
-from envs.h5format import write_h5
+from envs.readers import write_h5
 
 
 def translating_dots(

@@ -1,5 +1,5 @@
 """The ablation switches change exactly what they name, and the ablation runner resumes and
-skips (agents/ablations.py, scripts/ablations.py)."""
+skips (evflow_cli/ablations.py, scripts/ablations.py)."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from agents.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped, needs_second_seed, read_rows
 from agents.layers import ConvGRU, STConvGRU
 from agents.registry import make_model
 from agents.teacher import TeacherSettings
+from evflow_cli.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped, needs_second_seed, read_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))

@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 
 from envs.events import EventError
-from envs.h5format import FormatError
-from envs.readers import open_recording
+from envs.readers import FormatError, open_recording
 from envs.readers.aedat import AedatReader
 from envs.windows import iter_windows
 from tests.aedat4_writer import COMPRESSIONS, MAGIC, Stream, event_packet, frame_packet, imu_packet, write_aedat4
@@ -253,12 +252,12 @@ def test_an_interrupted_decode_leaves_no_copy(tmp_path, rng, cache, monkeypatch)
     """Ctrl-C while the file is decoded: the temporary copy and the writer's file go too."""
     path = tmp_path / "davis.aedat4"
     _davis_file(path, rng)
-    import envs.h5format
+    import envs.readers
 
     def interrupt(self, events):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(envs.h5format.H5Writer, "append_events", interrupt)
+    monkeypatch.setattr(envs.readers.H5Writer, "append_events", interrupt)
     with pytest.raises(KeyboardInterrupt):
         AedatReader(path, cache_dir=cache)
 

@@ -25,7 +25,7 @@ from agents import (
 from agents.evmgrflownet import DeepMemoryUp
 from agents.layers import ConvGRU, STConvGRU
 from agents.spiking import arctan_spike
-from agents.summary import MODEL_VARIANTS, count_parameters, forward_flops, parameter_table
+from evflow_cli.summary import MODEL_VARIANTS, count_parameters, forward_flops, parameter_table
 
 BUILT_IN = ["ev-mgrflownet", "ev-flownet", "convgru-ev-flownet", "xlif-ev-flownet", "unet-feedforward", "unet-convgru",
             "unet-xlif-encoder"]
@@ -679,7 +679,7 @@ def test_cpu_default_is_channels_last_with_compiled_gates(monkeypatch):
 def test_bench_agents_parts_rows():
     """``scripts/bench_agents.py --parts`` runs against the current layers and reports every
     piece at both inputs (one timed repetition each)."""
-    from agents.commands import bench_agents as bench
+    from evflow_cli.commands import bench_agents as bench
 
     rows = []
     bench.time_parts(lambda section, name, value, unit: rows.append((name, value, unit)), reps=1)

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from agents.checkpoint import load_checkpoint
-from agents.commands import train as train_script
 from agents.policy import autocast_dtype
+from evflow_cli.commands import train as train_script
 from tests.device_parity import network_run, relative_error
 from tests.recordings import write_translating_recording
 

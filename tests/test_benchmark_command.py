@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from agents.commands.benchmark import SECTIONS
+from evflow_cli.commands.benchmark import SECTIONS
 
 ROOT = Path(__file__).resolve().parents[1]
 

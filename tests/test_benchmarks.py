@@ -11,7 +11,7 @@ import pytest
 
 from agents.benchmarks import DSECProtocol, DSECSubmissionWriter, HotPixelFilter, MVSECProtocol, dsec_table
 from agents.evaluation import evaluate, results_table
-from envs.h5format import FormatError
+from envs.readers import FormatError
 from envs.readers.dsec import decode_flow_png, encode_flow_png, read_test_timestamps
 from envs.readers.mvsec import MVSECReader, mvsec_eval_windows, mvsec_hood_row, mvsec_scored_span
 from losses.metrics import dense_flow_error
@@ -294,7 +294,7 @@ def test_submission_pngs_in_the_benchmark_layout_decode_back_to_the_flows(tmp_pa
 
 # --------------------------------------------------------------------------- scripts/evaluate.py
 def _evaluate_script():
-    from agents.commands import evaluate as evaluate_script
+    from evflow_cli.commands import evaluate as evaluate_script
 
     return evaluate_script
 

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import torch
 
-from agents.campaign import Campaign, _size, slim_state, unslim_state
 from agents.checkpoint import load_checkpoint
-from agents.commands import campaign as campaign_script
 from agents.learner import Learner, TrainConfig
+from evflow_cli.campaign import Campaign, _size, slim_state, unslim_state
+from evflow_cli.commands import campaign as campaign_script
 from tests.recordings import write_translating_recording
 
 ROOT = Path(__file__).resolve().parents[1]

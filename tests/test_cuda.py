@@ -93,9 +93,9 @@ def test_two_training_steps_match_cpu(recordings):
 
 
 def test_evaluate_and_predict_on_cuda_match_cpu(recordings, tmp_path):
-    from agents.commands import evaluate as evaluate_script
-    from agents.commands import predict as predict_script
-    from agents.commands import train as train_script
+    from evflow_cli.commands import evaluate as evaluate_script
+    from evflow_cli.commands import predict as predict_script
+    from evflow_cli.commands import train as train_script
 
     run = tmp_path / "run"
     train_script.main(["--data", str(recordings[0]), "--width", "4", "--num-envs", "1", "--unroll", "2", "--steps", "2",

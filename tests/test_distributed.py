@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from agents.checkpoint import load_checkpoint
-from agents.commands import train as train_script
 from agents.distributed import _buckets
+from evflow_cli.commands import train as train_script
 from tests.recordings import write_translating_recording
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -8,7 +8,7 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
 from envs.env import EventFlowEnv
-from envs.h5format import H5Reader
+from envs.readers import H5Reader
 from envs.windows import Window
 from losses import EventBatch, hmc_loss, window_loss, zero_flow_loss
 from tests.recordings import write_translating_recording

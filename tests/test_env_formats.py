@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401  (registers EventFlow-v0)
-from agents.commands import evaluate as evaluate_script  # noqa: E402
+from evflow_cli.commands import evaluate as evaluate_script  # noqa: E402
 from tests.test_readers import _stream, write_dsec, write_ecd, write_hagenaars, write_mvsec
 
 

@@ -10,12 +10,12 @@ import torch
 
 import envs  # noqa: F401  (registers EventFlow-v0)
 from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
-from agents.commands import evaluate as evaluate_script  # noqa: E402
 from agents.evaluation import evaluate, results_table
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
 from agents.wrappers import RefinedPolicy
 from envs.env import EventFlowEnv
+from evflow_cli.commands import evaluate as evaluate_script  # noqa: E402
 from losses import EventBatch, contrast_maximisation_flow, hmc_loss, window_loss
 from tests.recordings import translating_dots, write_translating_recording
 from tests.test_readers import _stream, write_hagenaars

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from envs.events import EventError
-from envs.h5format import FormatError, H5Reader, H5Writer, write_h5
+from envs.readers import FormatError, H5Reader, H5Writer, write_h5
 from tests.conftest import random_events
 
 

@@ -22,8 +22,7 @@ import torch
 from agents.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, upgrade_checkpoint
 from envs.atomic import host_name
 from envs.env import EventFlowEnv
-from envs.h5format import FormatError, H5Reader, write_h5
-from envs.readers import open_recording
+from envs.readers import FormatError, H5Reader, open_recording, write_h5
 from envs.readers.convert import convert_recording
 from envs.readers.dsec import DSECReader
 from envs.readers.hagenaars import HagenaarsReader
@@ -35,11 +34,11 @@ from tests.test_readers import write_dsec, write_hagenaars, write_mvsec
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))  # export_model is tested as a script
-from agents.commands import convert as convert_script  # noqa: E402
-from agents.commands import evaluate as evaluate_script  # noqa: E402
-from agents.commands import predict as predict_script  # noqa: E402
-from agents.commands import train as train_script  # noqa: E402
 from envs.readers.prophesee import PropheseeDatReader  # noqa: E402
+from evflow_cli.commands import convert as convert_script  # noqa: E402
+from evflow_cli.commands import evaluate as evaluate_script  # noqa: E402
+from evflow_cli.commands import predict as predict_script  # noqa: E402
+from evflow_cli.commands import train as train_script  # noqa: E402
 from tests.test_prophesee import dat_bytes, evt2_words, raw_header, sorted_events  # noqa: E402
 
 
@@ -671,7 +670,7 @@ def test_unwritable_outputs_are_found_before_any_work(tmp_path):
 def test_user_errors_print_one_line_and_exit_2(tmp_path):
     """(9) scripts/*.py: ``error: <message>`` and status 2 for a user error, the traceback with
     EVFLOW_DEBUG=1; an unexpected exception keeps its traceback."""
-    from agents.commands.cli import run
+    from evflow_cli.commands.cli import run
 
     missing = tmp_path / "missing.h5"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}

@@ -1,7 +1,8 @@
 """envs/readers/ imports one way: each of its modules imports first in a fresh interpreter, none
 reaches into the simulator (envs.synthetic, envs.simulator), and none hides a cycle behind an
 import inside a function or a module ``__getattr__``. Also envs/cache.py (the cache root the
-simulated sequences and the Prophesee indexes share) and the earlier names kept importable."""
+simulated sequences and the Prophesee indexes share), the format's names at one address, and the
+library's layers (evflow_cli -> agents -> envs -> losses) importing downwards only."""
 
 from __future__ import annotations
 
@@ -76,8 +77,9 @@ def test_the_readers_package_has_no_lazy_attributes():
     assert "__getattr__" not in names
 
 
-def test_earlier_names_are_the_same_objects():
-    import envs.h5format
+def test_the_format_names_have_one_address():
+    """The h5 format's names come from envs.readers (re-exported from envs/readers/h5.py), and
+    the earlier addresses of moved modules are gone, not kept as re-exports."""
     import envs.readers
     import envs.readers.base
     import envs.readers.h5
@@ -85,10 +87,29 @@ def test_earlier_names_are_the_same_objects():
     from envs.cache import cache_root
 
     for name in ("H5Reader", "H5Writer", "write_h5"):
-        assert getattr(envs.h5format, name) is getattr(envs.readers.h5, name) is getattr(envs.readers, name)
-    assert envs.h5format.FORMAT_NAME == envs.readers.h5.FORMAT_NAME
-    assert envs.h5format.FormatError is envs.readers.base.FormatError is envs.readers.FormatError
+        assert getattr(envs.readers.h5, name) is getattr(envs.readers, name)
+    assert envs.readers.h5.FormatError is envs.readers.base.FormatError is envs.readers.FormatError
     assert envs.synthetic.cache_root is cache_root
+    for gone in ("envs/h5format.py", "agents/mirror.py", "agents/subwindows.py", "agents/commands"):
+        assert not (ROOT / gone).exists(), f"{gone} is an earlier address; import from its new place"
+    import agents.cmax
+
+    assert not hasattr(agents.cmax, "RefinedPolicy")  # agents.wrappers.refine
+
+
+#: the library's layers, each importing only those after it (scripts and tools sit above them all)
+LAYERS = ("evflow_cli", "agents", "envs", "losses")
+
+
+@pytest.mark.parametrize("package", LAYERS[1:])
+def test_the_library_never_imports_the_application(package):
+    """agents/, envs/ and losses/ are the library; evflow_cli/ (commands, campaigns, ablations,
+    benchmarks, predict's files) is built on it and never imported by it, and each library layer
+    imports only the layers below it."""
+    above = LAYERS[: LAYERS.index(package)]
+    bad = [f"{path.relative_to(ROOT)}:{line}: {name}" for path in sorted((ROOT / package).rglob("*.py"))
+           for name, line, _ in _imports(path) if name.split(".")[0] in above]
+    assert not bad, f"{package}/ imports a layer above it: {', '.join(bad)}"
 
 
 def test_cache_root_follows_evflow_cache(monkeypatch, tmp_path):

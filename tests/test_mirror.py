@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from agents.commands import evaluate as evaluate_script
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
 from agents.wrappers.mirror import ROTATION, MirrorPolicy
+from evflow_cli.commands import evaluate as evaluate_script
 from tests.recordings import write_translating_recording
 
 

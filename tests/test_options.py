@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from agents.commands import train as train_command
-from agents.commands.evaluate import EvaluateOptions
 from agents.learner import PRESETS, TrainConfig, preset_config, preset_options
 from agents.options import OPTION_FIELD, WindowSize, choices_of, field_docs, parse_options
+from evflow_cli.commands import train as train_command
+from evflow_cli.commands.evaluate import EvaluateOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,9 +46,9 @@ def test_every_choice_field_is_a_literal_and_every_field_has_its_help():
 
 
 def command_modules() -> list[str]:
-    """Every command of agents/commands: the console commands cli.py lists and every module a
+    """Every command of evflow_cli/commands: the console commands cli.py lists and every module a
     scripts/ file runs."""
-    names = set(re.findall(r'_program\("(\w+)"\)', (ROOT / "agents" / "commands" / "cli.py").read_text()))
+    names = set(re.findall(r'_program\("(\w+)"\)', (ROOT / "evflow_cli" / "commands" / "cli.py").read_text()))
     for script in (ROOT / "scripts").glob("*.py"):
         names |= set(re.findall(r"from agents\.commands\.(\w+) import main", script.read_text()))
     return sorted(names)
@@ -69,7 +69,7 @@ def test_every_command_builds_its_parser_from_an_options_dataclass(name, capsys)
     """One mechanism: each option of each command is a field of its options dataclass, added by
     agents.options.add_options (which marks the action with its field), with the help written
     under the field; none is added by hand."""
-    module = importlib.import_module(f"agents.commands.{name}")
+    module = importlib.import_module(f"evflow_cli.commands.{name}")
     actions = list(parser_actions(module.build_parser()))
     assert actions, name
     for action in actions:
@@ -83,7 +83,7 @@ def test_every_command_builds_its_parser_from_an_options_dataclass(name, capsys)
 def test_the_window_length_has_one_name_across_the_commands(tmp_path):
     """--window-size (frames per window with --window frames; --dt, the paper's name, is the same
     option) in train, evaluate, predict and teacher_targets, declared once (agents.options.WindowSize)."""
-    from agents.commands import campaign, evaluate, predict, teacher_targets
+    from evflow_cli.commands import campaign, evaluate, predict, teacher_targets
 
     for module in (train_command, evaluate, predict, teacher_targets):
         parser = module.build_parser()
@@ -91,7 +91,7 @@ def test_the_window_length_has_one_name_across_the_commands(tmp_path):
         assert flags == [["--window-size", "--dt"]], (module.__name__, flags)
         assert {"dt", "window_sizes"}.isdisjoint(action.dest for action in parser._actions)
     for name in command_modules():
-        for cls in vars(importlib.import_module(f"agents.commands.{name}")).values():
+        for cls in vars(importlib.import_module(f"evflow_cli.commands.{name}")).values():
             if isinstance(cls, type) and dataclasses.is_dataclass(cls) and cls is not WindowSize \
                     and "window_size" in cls.__dataclass_fields__:
                 assert "window_size" not in vars(cls).get("__annotations__", {}), f"{cls.__name__} declares it again"
@@ -111,7 +111,7 @@ def test_the_window_length_has_one_name_across_the_commands(tmp_path):
 
 
 def test_predict_takes_one_window_size(capsys):
-    from agents.commands import predict
+    from evflow_cli.commands import predict
 
     with pytest.raises(SystemExit) as stop:
         predict.main(["rec.h5", "--window-size", "1", "4"])
@@ -121,7 +121,7 @@ def test_predict_takes_one_window_size(capsys):
 def test_old_spellings_keep_working_and_numbers_are_checked(capsys):
     """Options renamed or newly checked by the move to option dataclasses: the old spelling still
     parses; a bad number is refused naming the option, as everywhere else."""
-    from agents.commands import generate, teacher_targets
+    from evflow_cli.commands import generate, teacher_targets
 
     with pytest.raises(SystemExit):
         teacher_targets.build_parser().parse_args(["--out", "t.h5", "--batch-size", "0"])

@@ -10,7 +10,7 @@ import agents.objectives as objectives_module
 from agents.learner import PRESETS, Learner, TrainConfig, preset_config
 
 ROOT = Path(__file__).resolve().parents[1]
-from agents.commands import train as train_script  # noqa: E402
+from evflow_cli.commands import train as train_script  # noqa: E402
 
 
 def test_preset_sets_the_paper_recipe_and_options_beside_it_win():

@@ -1,4 +1,4 @@
-"""agents.predict against the env-driven evaluation: same windows, same flows, same metrics."""
+"""evflow_cli.predict against the env-driven evaluation: same windows, same flows, same metrics."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 
 from agents.evaluation import evaluate
 from agents.policy import RecurrentPolicy
-from agents.predict import FLOW_FORMAT, predict, summary_table
 from agents.registry import make_model
+from evflow_cli.predict import FLOW_FORMAT, predict, summary_table
 
 
 class RecordingPolicy:
@@ -149,7 +149,7 @@ def test_predict_script_on_a_prophesee_file_with_per_event_flow(tmp_path, plugin
 
 def test_predict_refuses_to_overwrite(tmp_path, plugin_path):
     """An existing output is kept unless overwrite=True; the recording itself never is replaced."""
-    from envs.h5format import write_h5
+    from envs.readers import write_h5
     from tests.conftest import random_events
 
     recording = write_h5(tmp_path / "rec.h5", random_events(np.random.default_rng(0), 2000, (16, 16), (0, 100_000)))
@@ -167,8 +167,8 @@ def test_predict_refuses_to_overwrite(tmp_path, plugin_path):
 
 
 def test_the_default_model_and_mode_are_the_recorded_choice_named_in_the_provenance():
-    from agents.predict import load_policy
     from agents.pretrained import DEFAULT_PRETRAINED, default_choice, list_pretrained
+    from evflow_cli.predict import load_policy
 
     choice = default_choice()
     assert choice["model"] == DEFAULT_PRETRAINED and DEFAULT_PRETRAINED in list_pretrained()

@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envs.h5format import FormatError, H5Reader
-from envs.readers import open_recording
+from envs.readers import FormatError, H5Reader, open_recording
 from envs.readers.prophesee import PropheseeDatReader, PropheseeRawReader, read_raw_header
 
 SENSOR = (720, 1280)  # IMX636
@@ -364,8 +363,8 @@ def test_geometry_too_small_for_the_events_names_the_file(tmp_path, rng):
 
 @pytest.mark.parametrize("fmt", ["EVT2", "EVT3"])
 def test_benchmark_encoders_agree_with_the_reader(tmp_path, fmt):
-    """The vectorised encoders of agents/commands/bench_prophesee.py write what the reader reads back."""
-    from agents.commands import bench_prophesee as bench
+    """The vectorised encoders of evflow_cli/commands/bench_prophesee.py write what the reader reads back."""
+    from evflow_cli.commands import bench_prophesee as bench
 
     path = bench.write_raw(tmp_path / "b.raw", fmt, 30_000, 2e6, chunk=7_000)
     rng = np.random.default_rng(0)  # the same draws as write_raw(seed=0)

@@ -12,8 +12,7 @@ import pytest
 
 from envs.env import EventFlowEnv
 from envs.events import Events
-from envs.h5format import FormatError, H5Reader
-from envs.readers import open_recording
+from envs.readers import FormatError, H5Reader, open_recording
 from envs.readers.dsec import DSECReader, decode_flow_png, encode_flow_png
 from envs.readers.hagenaars import HagenaarsReader
 from envs.readers.mvsec import MVSECReader, mvsec_eval_windows
@@ -571,7 +570,7 @@ def test_open_recording_detects_and_names_formats(tmp_path, mvsec_file, rng):
         open_recording(other)
     with pytest.raises(ValueError, match="unknown format"):
         open_recording(path, "mp4")
-    from envs.h5format import write_h5
+    from envs.readers import write_h5
 
     own = write_h5(tmp_path / "own.h5", Events.create([1], [2], [3], [1], (4, 5)))
     with open_recording(own) as r:

@@ -12,14 +12,13 @@ import h5py
 import numpy as np
 import pytest
 
-from agents.commands import cli
-from agents.commands import convert as convert_command
-from agents.commands import evaluate as evaluate_command
-from agents.commands import predict as predict_command
-from agents.commands import train as train_command
-from envs.h5format import H5Reader
-from envs.readers import open_recording
+from envs.readers import H5Reader, open_recording
 from envs.readers._common import auto_sensor_size
+from evflow_cli.commands import cli
+from evflow_cli.commands import convert as convert_command
+from evflow_cli.commands import evaluate as evaluate_command
+from evflow_cli.commands import predict as predict_command
+from evflow_cli.commands import train as train_command
 from tests.test_prophesee import assert_events, dat_bytes, evt2_words, evt3_words, sorted_events, write
 
 SENSOR = (48, 64)  # (height, width) of the recordings below; no file says it
@@ -152,7 +151,7 @@ def test_auto_sizes_follow_the_documented_list():
 
 def test_a_file_with_its_own_geometry_keeps_it_and_says_so(tmp_path, events):
     from envs.events import Events
-    from envs.h5format import write_h5
+    from envs.readers import write_h5
 
     x, y, t, p = events
     path = write_h5(tmp_path / "own.h5", Events.create(x, y, t, p, SENSOR))

@@ -40,7 +40,7 @@ def test_ship_exports_an_improvement_and_a_new_machine_continues_from_it(tmp_pat
 
 
 def test_ship_can_validate_the_network_stepped_through_sub_windows(tmp_path):
-    from agents.commands.ship import validation_score
+    from evflow_cli.commands.ship import validation_score
 
     log, _ = _ship(tmp_path, tmp_path / "run", "--val-split", "dt")
     meta = json.loads((tmp_path / "weights" / "tiny.json").read_text())

@@ -259,7 +259,7 @@ def test_load_sequence_caches_in_memory_and_on_disk(tmp_path, monkeypatch):
 
 
 def test_generate_script_writes_h5_files(tmp_path):
-    from envs.h5format import H5Reader
+    from envs.readers import H5Reader
 
     main = runpy.run_path(str(SCRIPTS / "generate_synthetic.py"))["main"]
     main(["--split", "synthetic-mini", "--out", str(tmp_path), "--num", "1", "--no-progress"])

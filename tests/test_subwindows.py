@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from agents.commands import evaluate as evaluate_script
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model
 from agents.wrappers.subwindows import SubWindowPolicy, compose_flows, sub_windows
 from envs.env import EventFlowEnv
+from evflow_cli.commands import evaluate as evaluate_script
 from tests.recordings import write_translating_recording
 
 

@@ -28,7 +28,7 @@ from losses import EventBatch, contrast_maximisation_flow
 from tests.recordings import write_translating_recording
 
 ROOT = Path(__file__).resolve().parents[1]
-from agents.commands import train as train_script  # noqa: E402
+from evflow_cli.commands import train as train_script  # noqa: E402
 
 TINY = TeacherSettings(grids=(2, 4), steps=3)
 

@@ -1,4 +1,4 @@
-"""train.py --logger tensorboard (agents/tensorboard_log.py): the event files hold the step and
+"""train.py --logger tensorboard (evflow_cli/tensorboard_log.py): the event files hold the step and
 validation scalars of metrics.jsonl and a flow panel per validation; without the optional
 'tensorboard' extra the option is refused before any work, saying how to install it."""
 
@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from agents.commands import train as train_command
+from evflow_cli.commands import train as train_command
 from tests.recordings import write_translating_recording
 
 

@@ -15,9 +15,9 @@ import torch
 
 from agents import RecurrentPolicy, make_model
 from agents.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from agents.commands import evaluate as evaluate_script
-from agents.commands import train as train_script
 from envs.env import EventFlowEnv
+from evflow_cli.commands import evaluate as evaluate_script
+from evflow_cli.commands import train as train_script
 from losses import EventBatch, hmc_loss
 from tests.recordings import write_translating_recording
 
@@ -215,7 +215,7 @@ def test_evaluate_script_writes_table_and_pictures(recording, tmp_path):
 
 
 def test_evaluate_without_ground_truth_reports_fwl_only(tmp_path):
-    from envs.h5format import write_h5
+    from envs.readers import write_h5
     from tests.recordings import translating_dots
 
     events, span = translating_dots(np.random.default_rng(0), sensor_size=(32, 32))

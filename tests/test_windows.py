@@ -2,8 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from envs.h5format import H5Reader, write_h5
-from envs.readers import ArrayReader
+from envs.readers import ArrayReader, H5Reader, write_h5
 from envs.windows import iter_windows, window_bounds, window_grid
 from losses import EventBatch
 from tests.conftest import random_events

@@ -25,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agents.campaign import Campaign  # noqa: E402
+from evflow_cli.campaign import Campaign  # noqa: E402
 
 MAX_STATE_COMMITS = 3
 #: the most a stretch of training may add to the repository (bytes, as git packs them)

@@ -21,8 +21,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from agents.commands import evaluate as evaluate_script  # noqa: E402
-from agents.commands import train as train_script  # noqa: E402
+from evflow_cli.commands import evaluate as evaluate_script  # noqa: E402
+from evflow_cli.commands import train as train_script  # noqa: E402
 
 
 def main(argv=None) -> int:

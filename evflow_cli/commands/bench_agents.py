@@ -7,14 +7,14 @@ best of ``reps`` after one warm-up window; then EV-MGRFlowNet's latency as a rat
 ConvGRU-EV-FlowNet's at the same width (target <= 1.3): the median over repetitions of the
 ratio of the two models' times in that repetition (all models take turns in each repetition).
 For reference, each width also reports the ratio of the two models' convolution and
-matrix-product arithmetic (``agents.summary.forward_flops``), the part of the latency ratio that
+matrix-product arithmetic (``evflow_cli.summary.forward_flops``), the part of the latency ratio that
 no implementation removes, and, with ``--variants``, EV-MGRFlowNet's two ablations (what the
 ST-ConvGRU and the prior-flow path each add) and, with ``--nchw``, every model in the NCHW
 layout with torch's gate arithmetic (``model.channels_last = False``) and the speed-up of the
 default layout over it. ``--parts`` instead times some of EV-MGRFlowNet's own pieces alone (the
 forward warp of the prior flow and the ST-ConvGRU's pair update).
 
-``run(report)`` is called by agents/commands/benchmark.py; ``report(section, row_name, value, unit)``
+``run(report)`` is called by evflow_cli/commands/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_agents.py [--reps N] [--widths paper cpu]
 [--variants] [--nchw] [--parts] [--device cpu|cuda] [--threads N]``.
 """
@@ -31,7 +31,7 @@ import torch
 
 from agents import WIDTHS, make_model
 from agents.options import DeviceOptions, command_parser, option, options_from_args, positive_int
-from agents.summary import forward_flops
+from evflow_cli.summary import forward_flops
 
 SECTION = "agents"
 MODELS = [  # (row label, registry name, keyword arguments)

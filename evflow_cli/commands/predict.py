@@ -13,13 +13,13 @@ Examples:
 checkpoint file, or a registry name / package.module:factory. Recordings in any supported
 format (envs/readers: Prophesee RAW / DAT, AEDAT4, MVSEC, DSEC, project h5...). Windows as in
 the env: ground-truth aligned frames where the recording has a ground-truth grid, else time
-windows; the recurrent state is carried from window to window. See agents/predict.py for the
+windows; the recurrent state is carried from window to window. See evflow_cli/predict.py for the
 output layout.
 
 Outputs (--out, --video, --json) are claimed before any work (envs.outputs.Output): never the
 recording, never an existing file without --overwrite, never one another process is writing, and
 a folder that cannot be written fails at once. Numbers are checked when parsed; a user error
-prints one line (``error: ...``) and exits 2 (agents.commands.cli; EVFLOW_DEBUG=1: traceback).
+prints one line (``error: ...``) and exits 2 (evflow_cli.commands.cli; EVFLOW_DEBUG=1: traceback).
 """
 
 from __future__ import annotations
@@ -46,8 +46,8 @@ from agents.options import (
     positive_float,
     positive_int,
 )
-from agents.predict import load_policy, predict, summary_dict, summary_table
 from envs.outputs import Output
+from evflow_cli.predict import load_policy, predict, summary_dict, summary_table
 
 
 @dataclass(kw_only=True)

@@ -39,7 +39,7 @@ row with its flow refined by K steps of that solver on the window's own events.
 OUT/table.md and the JSON are claimed before any work (envs.outputs.Output): never an input,
 never a file of an earlier evaluation (nor its pictures/ or DSEC submission) without
 --overwrite, never one another process is writing. Numbers are checked when parsed; a user error
-prints one line (``error: ...``) and exits 2 (agents.commands.cli; EVFLOW_DEBUG=1: traceback).
+prints one line (``error: ...``) and exits 2 (evflow_cli.commands.cli; EVFLOW_DEBUG=1: traceback).
 """
 
 from __future__ import annotations
@@ -54,7 +54,6 @@ from typing import Literal
 import agents.pretrained as pretrained_module
 from agents.checkpoint import load_model
 from agents.evaluation import evaluate, results_json, results_table, windowing_of
-from agents.mirror import MIRROR_SETS, MirrorPolicy
 from agents.options import (
     DeviceOptions,
     ModelWidth,
@@ -74,7 +73,8 @@ from agents.options import (
 )
 from agents.policy import RecurrentPolicy
 from agents.registry import make_model, width_kwargs
-from agents.subwindows import SubWindowPolicy
+from agents.wrappers.mirror import MIRROR_SETS, MirrorPolicy
+from agents.wrappers.subwindows import SubWindowPolicy
 from envs.outputs import Output
 
 
@@ -105,9 +105,9 @@ class EvaluateOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Prog
     refine_accept: float | None = option(None, metavar="A", type=fraction)
     """--refine keeps the refined flow of a window only where it lowers the env's loss (L_HMC with the border rule) by at least the fraction A of the network's (else the network's flow); default: always"""
     split: str | None = option(None, metavar="N|dt")
-    """also evaluate each model stepped through N equal sub-windows of every window, their flows composed (agents/subwindows.py); 'dt': one per ground-truth interval (N = the table's dt)"""
+    """also evaluate each model stepped through N equal sub-windows of every window, their flows composed (agents/wrappers/subwindows.py); 'dt': one per ground-truth interval (N = the table's dt)"""
     mirror: int | None = option(None, nargs="?", const=4, metavar="N")
-    """also evaluate each model (and split row) averaged over its flows on mirrored copies of the input (agents/mirror.py): N = 4 (alone: --mirror), the input mirrored left-right, up-down and both, 4 network steps per window; N = 2, the input and its rotation by 180 degrees, 2 steps"""
+    """also evaluate each model (and split row) averaged over its flows on mirrored copies of the input (agents/wrappers/mirror.py): N = 4 (alone: --mirror), the input mirrored left-right, up-down and both, 4 network steps per window; N = 2, the input and its rotation by 180 degrees, 2 steps"""
     data: list[str] = option(default_factory=lambda: ["synthetic-test"])
     """synthetic split, recording files or directories"""
     mvsec: str | None = option(None, metavar="DIR")
@@ -186,7 +186,8 @@ def dsec_sinks(args, protocol, policies: dict) -> dict:
 
 def build_policies(args) -> dict:
     """Row name -> policy (None: zero flow), in table order."""
-    from agents.cmax import ContrastMaximisationPolicy, RefinedPolicy
+    from agents.cmax import ContrastMaximisationPolicy
+    from agents.wrappers.refine import RefinedPolicy
 
     policies: dict = {}
     names = args.name or []

@@ -10,9 +10,9 @@
 Sections: foundation (project h5 windows + count images), simulator (with synthetic-dr-train
 generation per sensor size), losses, agents, env, training (windows/s per model; on CPU also
 2-process torchrun rows), precision (bf16 autocast against float32, interleaved A/B:
-agents/commands/bench_precision.py), update (a profile of one training update at a campaign's
-settings and interleaved A/B of ways to make it cheaper: agents/commands/bench_update.py),
-readers, prophesee (RAW reading at 1280x720), predict (agents/predict.py end to end). Timings
+evflow_cli/commands/bench_precision.py), update (a profile of one training update at a campaign's
+settings and interleaved A/B of ways to make it cheaper: evflow_cli/commands/bench_update.py),
+readers, prophesee (RAW reading at 1280x720), predict (evflow_cli/predict.py end to end). Timings
 are wall-clock on whatever machine runs them; compare rows of one run. --device applies to the
 losses, agents, training and precision sections.
 """
@@ -47,7 +47,7 @@ def report(section: str, row: str, value: float, unit: str) -> None:
 def _recording(path: Path, seconds: float = 4.0, rate: float = 2e6, size=(260, 346)):
     """A 346x260 recording at `rate` events/s (uniform random events)."""
     from envs.events import Events
-    from envs.h5format import H5Writer
+    from envs.readers import H5Writer
 
     rng = np.random.default_rng(0)
     h, w = size
@@ -61,7 +61,7 @@ def _recording(path: Path, seconds: float = 4.0, rate: float = 2e6, size=(260, 3
 
 
 def bench_foundation(quick: bool, tiny: bool = False) -> None:
-    from envs.h5format import H5Reader
+    from envs.readers import H5Reader
     from envs.representations import count_image
     from envs.windows import iter_windows
 
@@ -194,36 +194,36 @@ def main(argv=None) -> int:
         elif section == "training":
             bench_training(quick, tiny, args.device)
         elif section == "precision":
-            from agents.commands import bench_precision
+            from evflow_cli.commands import bench_precision
 
             bench_precision.run(report, device=args.device, tiny=tiny)
         elif section == "update":
-            from agents.commands import bench_update
+            from evflow_cli.commands import bench_update
 
             bench_update.run(report, quick=quick, tiny=tiny)
         elif section == "simulator":
-            from agents.commands import bench_simulator
+            from evflow_cli.commands import bench_simulator
 
             bench_simulator.run(report, quick=quick, tiny=tiny)
         elif section == "losses":
-            from agents.commands import bench_losses
+            from evflow_cli.commands import bench_losses
 
             bench_losses.run(report, quick=quick, device=args.device, repeats=1 if tiny else None,
                              events_divisor=1000 if tiny else None)
         elif section == "agents":
-            from agents.commands import bench_agents
+            from evflow_cli.commands import bench_agents
 
             bench_agents.run(report, reps=1 if quick else 2, device=args.device,
                              widths=("cpu",) if tiny else ("paper", "cpu"), inputs=bench_agents.TINY_INPUTS if tiny else None)
         elif section == "readers":
-            from agents.commands import bench_readers
+            from evflow_cli.commands import bench_readers
 
             if tiny:
                 bench_readers.run(report, num_events=20_000, max_windows=10)
             else:
                 bench_readers.run(report)
         elif section in ("prophesee", "predict"):
-            from agents.commands import bench_prophesee
+            from evflow_cli.commands import bench_prophesee
 
             events = 50_000 if tiny else 4_000_000 if quick else bench_prophesee.DEFAULT_EVENTS
             bench_prophesee.run(report, num_events=events, max_windows=10 if tiny else 2000, sections=(section,),

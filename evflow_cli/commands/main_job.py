@@ -34,8 +34,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from agents.commands import evaluate as evaluate_command
-from agents.commands import train as train_command
 from agents.learner import preset_options
 from agents.options import (
     DeviceOptions,
@@ -48,6 +46,8 @@ from agents.options import (
     options_from_args,
 )
 from agents.pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info
+from evflow_cli.commands import evaluate as evaluate_command
+from evflow_cli.commands import train as train_command
 
 #: The project's recipe (docs/results.md: how far it gets; docs/history/: how it was found), as train.py
 #: presets (agents.learner.PRESETS). Stage 1: distil the per-window contrast-maximisation teacher

@@ -41,6 +41,10 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
+from agents.evaluation import env_loss
+from agents.policy import FlowPolicy, RecurrentPolicy
+from agents.rollout import WindowStep, observation_options, rollout
+from agents.wrappers.subwindows import SubWindowPolicy
 from envs.env import EventFlowEnv
 from envs.outputs import Output
 from envs.representations import event_mask
@@ -55,11 +59,6 @@ from envs.visualize import (
 )
 from envs.windows import WINDOW_MODES, Window, window_bounds
 from losses import flow_error, fwl, rsat
-
-from .evaluation import env_loss
-from .policy import FlowPolicy, RecurrentPolicy
-from .rollout import WindowStep, observation_options, rollout
-from .wrappers.subwindows import SubWindowPolicy
 
 __all__ = ["FLOW_FORMAT", "PredictResult", "load_policy", "predict", "summary_table"]
 
@@ -99,16 +98,16 @@ def load_policy(model: str | None = None, *, device: str = "cpu", width: str | i
     - a path to a checkpoint file written by training: ``agents.checkpoint.load_model``;
     - a registry name or ``package.module:factory``: a fresh, untrained model of ``width``.
     """
-    from .checkpoint import load_model
-    from .pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info
-    from .registry import make_model, width_kwargs
+    from agents.checkpoint import load_model
+    from agents.pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info
+    from agents.registry import make_model, width_kwargs
 
     if model is None or model in list_pretrained():
         name = model or DEFAULT_PRETRAINED
         info = pretrained_info(name)
         provenance = {"kind": "pretrained", "name": name, **{k: info[k] for k in ("command", "date", "data") if k in info}}
         if model is None:  # the default: say how it was chosen
-            from .pretrained import default_choice
+            from agents.pretrained import default_choice
 
             choice = default_choice()
             provenance["default"] = {k: choice[k] for k in ("mode", "chosen_on", "date") if k in choice}

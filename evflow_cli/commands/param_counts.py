@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 from agents import WIDTHS
 from agents.options import command_parser, option, options_from_args, positive_int
-from agents.summary import flops_table, parameter_table
+from evflow_cli.summary import flops_table, parameter_table
 
 
 @dataclass

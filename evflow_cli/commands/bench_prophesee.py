@@ -1,4 +1,4 @@
-"""Benchmark sections for Prophesee RAW reading and for ``predict`` (agents/predict.py).
+"""Benchmark sections for Prophesee RAW reading and for ``predict`` (evflow_cli/predict.py).
 
 ``prophesee``: a synthetic 1280x720 (IMX636) recording of ``num_events`` uniformly random
 events at ``rate`` events/s is encoded as EVT 3.0 and as EVT 2.0 (vectorised encoders below,
@@ -12,11 +12,11 @@ it through ``open_recording`` and reports:
 - 10 ms windows read through ``events_between``, spread over the whole file (windows/s);
 - the child's peak RSS growth while doing all that (the file's decoded events are far larger).
 
-``predict``: ``agents.predict.predict`` end to end on CPU (windows, model, metrics, h5 writing;
+``predict``: ``evflow_cli.predict.predict`` end to end on CPU (windows, model, metrics, h5 writing;
 no video) with the shipped default model, on synthetic-mini (64x64) and on a span of the
 1280x720 EVT 3.0 file (33 ms windows).
 
-``run(report, ...)`` is called by agents/commands/benchmark.py. Standalone:
+``run(report, ...)`` is called by evflow_cli/commands/benchmark.py. Standalone:
 ``python scripts/bench_prophesee.py [--events N] [--sections prophesee predict]``.
 """
 
@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.commands.bench_readers import peak_rss_mb, window_starts
 from agents.options import command_parser, option, options_from_args, positive_float, positive_int
+from evflow_cli.commands.bench_readers import peak_rss_mb, window_starts
 
 SENSOR = (720, 1280)
 DEFAULT_EVENTS = 20_000_000
@@ -129,7 +129,7 @@ def bench_reading(report, num_events: int, rate: float, max_windows: int, workdi
     with tempfile.TemporaryDirectory(dir=workdir, prefix="bench_prophesee-") as tmp:
         for fmt in ("EVT3", "EVT2"):
             path = write_raw(Path(tmp) / f"{fmt.lower()}.raw", fmt, num_events, rate)
-            out = subprocess.run([sys.executable, "-m", "agents.commands.bench_prophesee", "--child", str(path), tmp, str(max_windows)],
+            out = subprocess.run([sys.executable, "-m", "evflow_cli.commands.bench_prophesee", "--child", str(path), tmp, str(max_windows)],
                                  capture_output=True, text=True, check=False)
             if out.returncode != 0:
                 raise RuntimeError(f"bench child for {fmt} failed:\n{out.stderr}")
@@ -147,7 +147,7 @@ def bench_reading(report, num_events: int, rate: float, max_windows: int, workdi
 
 def bench_predict(report, workdir: str | None, windows_full: int = 10, tiny: bool = False) -> None:
     """tiny: a fifth of synthetic-mini and 2 windows of a small RAW file (checks the section runs)."""
-    from agents.predict import load_policy, predict
+    from evflow_cli.predict import load_policy, predict
 
     policy, _ = load_policy(None, device="cpu")
     with tempfile.TemporaryDirectory(dir=workdir, prefix="bench_predict-") as tmp:
@@ -184,7 +184,7 @@ class BenchPropheseeOptions:
     max_windows: int = option(2000, type=positive_int)
     """windows read (spread evenly)"""
     sections: list[str] = option(default_factory=lambda: ["prophesee", "predict"], choices=["prophesee", "predict"])
-    """prophesee: RAW reading at 1280x720; predict: agents/predict.py end to end"""
+    """prophesee: RAW reading at 1280x720; predict: evflow_cli/predict.py end to end"""
     workdir: str | None = None
     """where the synthetic file goes (default: system temp)"""
 

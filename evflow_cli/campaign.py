@@ -17,7 +17,7 @@ where the last one stopped:
 
 Work in progress (the full training checkpoint with the moments, metrics, logs) lives in
 ``runs/campaigns/NAME/`` and dies with the machine; the folder above is what survives.
-``scripts/campaign.py`` is the command (agents/commands/campaign.py).
+``scripts/campaign.py`` is the command (evflow_cli/commands/campaign.py).
 """
 
 from __future__ import annotations
@@ -33,14 +33,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from agents.checkpoint import load_checkpoint, save_checkpoint
 from envs.atomic import remove_stale_temporaries, temporary_path
-
-from .checkpoint import load_checkpoint, save_checkpoint
 
 __all__ = ["CAMPAIGNS_DIR", "STATE_BUDGET", "CampaignSpec", "Campaign", "slim_state", "unslim_state", "machine",
            "plot_curve"]
 
-CAMPAIGNS_DIR = Path(__file__).resolve().parent / "campaigns"
+CAMPAIGNS_DIR = Path(__file__).resolve().parents[1] / "agents" / "campaigns"  # beside the shipped weights
 #: the most a campaign's resume state may weigh (bytes): it is committed at every stretch
 STATE_BUDGET = 12 * 2**20
 
@@ -94,7 +93,7 @@ def _write_text(path: Path, text: str) -> None:
 
 
 def _size(payload: dict[str, Any]) -> int:
-    from .checkpoint import to_safe
+    from agents.checkpoint import to_safe
 
     buffer = io.BytesIO()
     torch.save(to_safe(payload), buffer)

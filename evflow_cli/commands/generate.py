@@ -6,7 +6,7 @@
     python scripts/generate_synthetic.py --split synthetic-dr-train:2000 --cache --workers 2
 
 Formats (--format): evflow-h5 (default: events, 30 Hz frames, exact flow between consecutive
-frames; see envs/h5format.py), hagenaars (the event_flow / HQF h5 layout, same content, but
+frames; see envs/readers/h5.py), hagenaars (the event_flow / HQF h5 layout, same content, but
 its readers take exactly zero flow as invalid: still backgrounds lose their ground truth),
 ecd-text (a folder per sequence: events.txt, images.txt, frames; no flow). Every output records
 the split, the sequence spec, the full scene config and the simulator version.

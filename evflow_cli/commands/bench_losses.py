@@ -7,7 +7,7 @@ same data (each the best of ``repeats`` calls, the two taking turns); the ratio 
 times and the median over turns of the ratio within a turn (robust to bursts of load on a
 shared machine); and the floor of one scatter-add + one gather of 4N floats.
 
-``run(report)`` is called by agents/commands/benchmark.py; ``report(section, row_name, value, unit)``
+``run(report)`` is called by evflow_cli/commands/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_losses.py [--quick]``.
 """
 

@@ -10,7 +10,7 @@ time with a progress bar; the output appears under its final name only when comp
 (envs.readers.convert.convert_recording). An existing OUTPUT is refused unless --overwrite is
 given; OUTPUT may never be INPUT itself (nor a link to it), nor a file another process is writing
 now (envs.outputs.Output). Numbers are checked when parsed; a user error prints one line
-(``error: ...``) and exits 2 (agents.commands.cli; EVFLOW_DEBUG=1 shows the traceback).
+(``error: ...``) and exits 2 (evflow_cli.commands.cli; EVFLOW_DEBUG=1 shows the traceback).
 """
 
 from __future__ import annotations

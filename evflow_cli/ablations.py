@@ -43,13 +43,13 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
+from agents.checkpoint import load_checkpoint, load_model
+from agents.evaluation import evaluate, results_json
+from agents.policy import RecurrentPolicy
+from agents.teacher import TeacherSettings, TeacherTargets, compute_teacher_targets, copy_targets
 from envs.atomic import same_file
 
-from .checkpoint import load_checkpoint, load_model
-from .evaluation import evaluate, results_json
-from .policy import RecurrentPolicy
 from .summary import count_parameters, forward_flops, forward_latency_ms
-from .teacher import TeacherSettings, TeacherTargets, compute_teacher_targets, copy_targets
 
 __all__ = ["Configuration", "CONFIGURATIONS", "Budget", "AblationRunner", "needs_second_seed", "render_tables",
            "read_rows", "plot_validation_curves", "PAPER_MVSEC_DT1"]

@@ -1,4 +1,4 @@
-"""Campaigns: long training kept resumable in the repository (agents/campaign.py says what the
+"""Campaigns: long training kept resumable in the repository (evflow_cli/campaign.py says what the
 folder holds).
 
   python scripts/campaign.py new mgr-devval --export ev-mgrflownet-cpu-next \\
@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from agents.campaign import STATE_BUDGET, Campaign, CampaignSpec, machine, plot_curve
 from agents.options import (
     DeviceOptions,
     check_choices,
@@ -43,6 +42,7 @@ from agents.options import (
     positive_float,
     positive_int,
 )
+from evflow_cli.campaign import STATE_BUDGET, Campaign, CampaignSpec, machine, plot_curve
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout
 PYTHON = sys.executable
@@ -141,7 +141,7 @@ def cmd_new(args, rest: list[str]) -> int:
     banned = sorted({a for a in rest if a.split("=")[0] in ("--out", "--resume", "--init", "--minutes")})
     if banned:
         raise SystemExit(f"the recipe (after --) must not set {', '.join(banned)}: the campaign sets them")
-    from agents.commands.train import parse_args
+    from evflow_cli.commands.train import parse_args
 
     parse_args([*rest, "--out", str(campaign.work / "train")])  # a recipe train.py would refuse fails here
     spec = CampaignSpec(name=args.name, export=args.export, train=rest, init=args.init, val_data=args.val_data,

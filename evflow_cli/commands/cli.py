@@ -2,7 +2,7 @@
 status 2 (as argparse does for a bad option), not a traceback.
 
 A user error is one this project raises on purpose about its input: a ``raise`` statement in
-``envs/``, ``agents/`` or ``losses/`` raising a ``ValueError`` (``FormatError``, ``EventError``,
+``envs/``, ``agents/``, ``losses/`` or ``evflow_cli/`` raising a ``ValueError`` (``FormatError``, ``EventError``,
 ``CheckpointError``... are ValueErrors) or a missing, existing, unwritable path
 (``FileNotFoundError``, ``FileExistsError``, ``IsADirectoryError``, ``NotADirectoryError``,
 ``PermissionError``). Anything else (a bug, an error raised inside numpy or torch) keeps its
@@ -24,7 +24,7 @@ from typing import Callable
 __all__ = ["USER_ERRORS", "is_user_error", "run"]
 
 USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError)
-_OURS = tuple(str(Path(__file__).resolve().parents[2] / package) + os.sep for package in ("envs", "agents", "losses"))
+_OURS = tuple(str(Path(__file__).resolve().parents[2] / package) + os.sep for package in ("envs", "agents", "losses", "evflow_cli"))
 
 
 def is_user_error(err: BaseException) -> bool:
@@ -53,10 +53,10 @@ def run(main: Callable[[list[str] | None], int], argv: list[str] | None = None) 
 
 def _program(command: str) -> Callable[[list[str] | None], int]:
     def entry(argv: list[str] | None = None) -> int:
-        return run(importlib.import_module(f"agents.commands.{command}").main, argv)
+        return run(importlib.import_module(f"evflow_cli.commands.{command}").main, argv)
 
     entry.__name__ = command
-    entry.__doc__ = f"The console command of agents/commands/{command}.py."
+    entry.__doc__ = f"The console command of evflow_cli/commands/{command}.py."
     return entry
 
 

@@ -14,7 +14,7 @@ Examples:
 Writes OUT/metrics.jsonl (one line per optimizer step, plus validation lines),
 OUT/checkpoint.pt (every --ckpt-every steps, on Ctrl-C / SIGINT, on SIGTERM and at the end;
 atomic) and OUT/config.json; with --logger tensorboard also OUT/tensorboard/ (the same scalars,
-and a flow panel at each validation: agents/tensorboard_log.py). A new run in an OUT that holds
+and a flow panel at each validation: evflow_cli/tensorboard_log.py). A new run in an OUT that holds
 an earlier run's checkpoint or metrics is refused: --resume continues it, --overwrite starts afresh.
 
 --resume continues the stored run: its configuration is used, and an option given on this command
@@ -66,8 +66,8 @@ from agents.options import (
     positive_int,
 )
 from agents.policy import RecurrentPolicy
-from agents.tensorboard_log import TensorBoardLog, require_tensorboard
 from envs.atomic import remove_stale_temporaries, temporary_path
+from evflow_cli.tensorboard_log import TensorBoardLog, require_tensorboard
 
 
 @dataclass

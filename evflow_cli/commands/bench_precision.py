@@ -13,8 +13,8 @@ width (c = 8) on a 96x96 crop, batch 8:
   against bf16, two learners on the same recordings;
 - bf16's rounding: the relative difference of the finest flow to float32's, same weights and input.
 
-``run(report)`` is called by agents/commands/benchmark.py (``--only precision``); standalone:
-``python -m agents.commands.bench_precision [--pairs N] [--device cpu|cuda] [--threads N]``.
+``run(report)`` is called by evflow_cli/commands/benchmark.py (``--only precision``); standalone:
+``python -m evflow_cli.commands.bench_precision [--pairs N] [--device cpu|cuda] [--threads N]``.
 The CPU's bf16 instructions (avx512_bf16, amx_bf16) are printed first: without them bf16 is emulated.
 """
 

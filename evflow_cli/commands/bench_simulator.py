@@ -3,7 +3,7 @@
     python scripts/bench_simulator.py          # every row
     python scripts/bench_simulator.py --dr     # only synthetic-dr-train generation per size
 
-``run(report, quick)`` is imported by agents/commands/benchmark.py; ``report(section, row_name, value, unit)``
+``run(report, quick)`` is imported by evflow_cli/commands/benchmark.py; ``report(section, row_name, value, unit)``
 prints one row. Throughput = seconds of simulated 128x128 events per wall-clock second
 (single process), at a slow, a medium and a fast split-like scene (max flow 1, 5, 10 px per
 30 Hz frame; 2 occluding objects; camera pan, roll and zoom), also per CPU second (robust to

@@ -6,7 +6,7 @@ import torch
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
-from .registry import make_model
+from agents.registry import make_model
 
 #: (label, registry name, extra kwargs): every built-in model and EV-MGRFlowNet's two ablations.
 MODEL_VARIANTS: list[tuple[str, str, dict]] = [

@@ -5,7 +5,7 @@ EV-MGRFlowNet, ConvGRU-EV-FlowNet and XLIF-EV-FlowNet with L_HMC and with L_AT; 
 L_HMC) trains a teacher stage on cached contrast-maximisation targets of its loss, then a
 fine-tuning stage on the loss itself; is evaluated on synthetic-test and synthetic-stress at
 dt = 1 and 4; and its parameters, arithmetic and time per window are measured. Everything is in
-agents/ablations.py; this is the command line.
+evflow_cli/ablations.py; this is the command line.
 
   python scripts/ablations.py                       # the documented budget (docs/results.md)
   nohup python scripts/ablations.py > runs/ablations.log 2>&1 &      # in the background
@@ -32,7 +32,6 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from agents.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped
 from agents.options import (
     DeviceOptions,
     command_parser,
@@ -42,6 +41,7 @@ from agents.options import (
     options_from_args,
     positive_int,
 )
+from evflow_cli.ablations import CONFIGURATIONS, AblationRunner, Budget, RunnerStopped
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout
 

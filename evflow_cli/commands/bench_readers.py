@@ -15,7 +15,7 @@ the whole file), and reports:
 ECD text is measured the same way on min(num_events, 10^6) events (text is slow to write).
 AEDAT4 needs the optional ``aedat`` package and a real file, so it has no synthetic row.
 
-``run(report)`` is called by agents/commands/benchmark.py; ``report(section, row_name, value, unit)``
+``run(report)`` is called by evflow_cli/commands/benchmark.py; ``report(section, row_name, value, unit)``
 prints a row. Standalone: ``python scripts/bench_readers.py [--events N] [--rate EV_PER_S]
 [--max-windows W] [--formats ...] [--workdir DIR]``; ``--events 100000000`` is the 10^8-event
 memory check (needs a few GB of disk and tens of minutes).
@@ -72,7 +72,7 @@ def write_synthetic(fmt: str, path: Path, num_events: int, sensor_size, rate: fl
 
     chunks = _chunks(num_events, rate, sensor_size)
     if fmt == "evflow-h5":
-        from envs.h5format import H5Writer
+        from envs.readers import H5Writer
 
         with H5Writer(path, sensor_size) as writer:
             for x, y, t, p in chunks:
@@ -185,7 +185,7 @@ def run(report, num_events: int = DEFAULT_EVENTS, rate: float = DEFAULT_RATE, ma
             write_synthetic(fmt, path, n, sensor_size, rate)
             write_s = time.perf_counter() - t_write
             out = subprocess.run(
-                [sys.executable, "-m", "agents.commands.bench_readers", "--child", fmt, str(path), str(max_windows)],
+                [sys.executable, "-m", "evflow_cli.commands.bench_readers", "--child", fmt, str(path), str(max_windows)],
                 capture_output=True, text=True, check=False,
             )
             if out.returncode != 0:

@@ -39,8 +39,8 @@ the cached targets), from the campaign's initial weights.
      around them: dynamo cannot trace into numba's dispatcher; the four GRUs' shared helper hits
      dynamo's recompile limit and runs eager) and kernels off (the torch path, NCHW).
 
-``run(report)`` is called by agents/commands/benchmark.py (``--only update``); standalone:
-``python -m agents.commands.bench_update [--quick] [--tiny] [--pairs N] [--threads N] [--rows KEY ...]``
+``run(report)`` is called by evflow_cli/commands/benchmark.py (``--only update``); standalone:
+``python -m evflow_cli.commands.bench_update [--quick] [--tiny] [--pairs N] [--threads N] [--rows KEY ...]``
 (``--rows``: the profile and any of the rows, by key: ``ROWS``, ``PROCESS_ROWS``).
 """
 
@@ -74,7 +74,7 @@ CAMPAIGN = "mgr-strong-teacher"
 # -- the update's settings --------------------------------------------------------------------
 def campaign_config(name: str = CAMPAIGN):
     """(TrainConfig, initial weights name or None) of campaign ``name``'s recipe, on CPU."""
-    from agents.commands.train import build_parser, config_from_args
+    from evflow_cli.commands.train import build_parser, config_from_args
 
     spec = json.loads((ROOT / "agents" / "campaigns" / name / "campaign.json").read_text())
     cfg = config_from_args(build_parser().parse_args([*spec["train"], "--device", "cpu"]))
@@ -435,7 +435,7 @@ class _Process:
     def __init__(self, cfg, init, intra: int, inter: int, environ: dict[str, str]) -> None:
         spec = json.dumps({"config": cfg.to_dict(), "init": init, "intra": intra, "inter": inter})
         env = {**os.environ, **environ, "PYTHONPATH": str(ROOT)}
-        self.proc = subprocess.Popen([sys.executable, "-m", "agents.commands.bench_update", "--worker", spec],
+        self.proc = subprocess.Popen([sys.executable, "-m", "evflow_cli.commands.bench_update", "--worker", spec],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env, cwd=ROOT)
         if self._reply() != "ready":
             raise RuntimeError(f"bench_update worker failed to start (exit {self.proc.wait()})")
@@ -509,7 +509,7 @@ def _print_row(section: str, row: str, value: float, unit: str) -> None:
 
 @dataclass
 class BenchUpdateOptions:
-    """What python -m agents.commands.bench_update profiles and compares."""
+    """What python -m evflow_cli.commands.bench_update profiles and compares."""
 
     quick: bool = False
     """3 pairs a row, no torch.compile rows"""
