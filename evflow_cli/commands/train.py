@@ -325,18 +325,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def main(argv=None) -> int:
-    args = parse_args(argv)
+def open_run(args, argv: list[str] | None, rank: int) -> tuple[TrainConfig, Learner, dict | None]:
+    """The run's configuration and learner: a new run from the options (and --init), or the
+    stored run of --resume with its episodes restored where the configuration and the number
+    of processes allow; rank 0 prepares OUT (config.json, metrics cut back to the step)."""
     out = Path(args.out)
-    if args.logger == "tensorboard":
-        try:
-            require_tensorboard()  # before any work
-        except ImportError as err:
-            print(f"error: {err}", file=sys.stderr)
-            return 2
-    if not args.resume:
-        check_new_run_folder(out, args.overwrite)
-    rank = setup_distributed(args)
     world = dist.get_world_size() if dist.is_initialized() else 1
     payload, changed, same_world = None, set(), True
     if args.resume:
@@ -356,8 +349,89 @@ def main(argv=None) -> int:
         (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2, default=str))
         if payload is not None:
             truncate_metrics(out / "metrics.jsonl", learner.step)
-    log = open(out / "metrics.jsonl", "a" if payload is not None else "w") if rank == 0 else None
-    board = TensorBoardLog(out / "tensorboard", learner.step) if rank == 0 and args.logger == "tensorboard" else None
+    return cfg, learner, payload
+
+
+class RunRecord:
+    """Where a run's numbers go on rank 0: OUT/metrics.jsonl (the record), TensorBoard with
+    --logger tensorboard, and the progress bar; every other rank records nothing."""
+
+    def __init__(self, args, learner: Learner, rank: int, resumed: bool) -> None:
+        out = Path(args.out)
+        self.args, self.learner = args, learner
+        self.log = open(out / "metrics.jsonl", "a" if resumed else "w") if rank == 0 else None
+        self.board = (TensorBoardLog(out / "tensorboard", learner.step)
+                      if rank == 0 and args.logger == "tensorboard" else None)
+        self.bar = tqdm(total=learner.cfg.steps, initial=learner.step, unit="step",
+                        disable=args.no_progress or rank != 0)
+
+    def step(self, stats: dict) -> None:
+        if self.log:
+            self.log.write(json.dumps(stats) + "\n")
+            self.log.flush()
+        if self.board:
+            self.board.scalars(stats, "train")
+        shown = {"loss": f"{stats['loss']:.4f}", "zero": f"{stats['zero_flow_loss']:.4f}"}
+        if "model_hmc" in stats:
+            shown["hmc"] = f"{stats['model_hmc']:.4f}"
+        self.bar.set_postfix(**shown, win_s=f"{stats['windows_per_s']:.1f}")
+        self.bar.update(1)
+
+    def validate(self, echo) -> None:
+        """Scores the learner on --val-data (every rank takes part) and records the line."""
+        args = self.args
+        val = {"step": self.learner.step, **validate(self.learner, args.val_data, args.val_windows)}
+        if self.log:
+            self.log.write(json.dumps(val) + "\n")
+            echo(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in val.items()))
+        if self.board:
+            log_validation(self.board, self.learner, args.val_data, val)
+
+    def close(self) -> None:
+        self.bar.close()
+        if self.log:
+            self.log.close()
+        if self.board:
+            self.board.close()
+
+
+def agreed_stop(interrupted: dict, args, elapsed: float, device: torch.device) -> list[bool]:
+    """[a signal came, --minutes ran out], agreed by every rank under torchrun (each rank's
+    flags on its own device, the maximum taken), so all stop on the same step."""
+    stop = [interrupted["signal"] is not None, args.minutes is not None and elapsed > 60 * args.minutes]
+    if dist.is_initialized():
+        flags = torch.tensor(stop, dtype=torch.float32, device=device)
+        dist.all_reduce(flags, op=dist.ReduceOp.MAX)
+        stop = [bool(flag) for flag in flags.tolist()]
+    return stop
+
+
+def tear_down(learner: Learner) -> None:
+    """Closes the learner's envs and, under torchrun, leaves the process group together."""
+    learner.close()
+    if dist.is_initialized():
+        if sys.exc_info()[0] is None:  # tear down together: a rank whose peer already left can abort in gloo
+            if learner.device.type == "cuda":
+                dist.barrier(device_ids=[learner.device.index])
+            else:
+                dist.barrier()
+        dist.destroy_process_group()
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    out = Path(args.out)
+    if args.logger == "tensorboard":
+        try:
+            require_tensorboard()  # before any work
+        except ImportError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+    if not args.resume:
+        check_new_run_folder(out, args.overwrite)
+    rank = setup_distributed(args)
+    cfg, learner, payload = open_run(args, argv, rank)
+    record = RunRecord(args, learner, rank, resumed=payload is not None)
 
     def save() -> None:
         state = learner.state_dict()  # under torchrun a collective: every rank's episodes gathered to rank 0
@@ -368,46 +442,27 @@ def main(argv=None) -> int:
     interrupted = {"signal": None}
     handlers = {sig: signal.signal(sig, lambda signum, _: interrupted.__setitem__("signal", signum))
                 for sig in (signal.SIGINT, signal.SIGTERM)}
-    start = time.time()
+    start, first_step = time.time(), learner.step
     signalled = False  # stopped by a signal on any rank (agreed by all)
     validated = None  # the step the last validation scored
-    bar = tqdm(total=cfg.steps, initial=learner.step, unit="step", disable=args.no_progress or rank != 0)
     try:
         while learner.step < cfg.steps:
             stats = learner.update()
             elapsed = time.time() - start
-            stats["windows_per_s"] = stats["windows"] * (learner.step - (payload or {}).get("step", 0)) / max(elapsed, 1e-9)
+            stats["windows_per_s"] = stats["windows"] * (learner.step - first_step) / max(elapsed, 1e-9)
             stats["elapsed_s"] = round(elapsed, 1)  # since this process started (resumes restart it)
-            if log:
-                log.write(json.dumps(stats) + "\n")
-                log.flush()
-            if board:
-                board.scalars(stats, "train")
-            shown = {"loss": f"{stats['loss']:.4f}", "zero": f"{stats['zero_flow_loss']:.4f}"}
-            if "model_hmc" in stats:
-                shown["hmc"] = f"{stats['model_hmc']:.4f}"
-            bar.set_postfix(**shown, win_s=f"{stats['windows_per_s']:.1f}")
-            bar.update(1)
+            record.step(stats)
             if args.val_every and learner.step % args.val_every == 0 and args.val_data:
-                val = {"step": learner.step, **validate(learner, args.val_data, args.val_windows)}  # every rank
+                record.validate(record.bar.write)
                 validated = learner.step
-                if log:
-                    log.write(json.dumps(val) + "\n")
-                    bar.write(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in val.items()))
-                if board:
-                    log_validation(board, learner, args.val_data, val)
             if learner.step % args.ckpt_every == 0:
                 save()
-            stop = [interrupted["signal"] is not None, args.minutes is not None and elapsed > 60 * args.minutes]
-            if dist.is_initialized():  # every rank stops on the same step (the flags on the rank's own device)
-                flags = torch.tensor(stop, dtype=torch.float32, device=learner.device)
-                dist.all_reduce(flags, op=dist.ReduceOp.MAX)
-                stop = [bool(flag) for flag in flags.tolist()]
+            stop = agreed_stop(interrupted, args, elapsed, learner.device)
             signalled = stop[0]
             if any(stop):
                 break
     finally:
-        bar.close()
+        record.bar.close()
         failed = sys.exc_info()[0] is not None
         if not dist.is_initialized():  # one process: also a signal that came after the last step
             signalled = interrupted["signal"] is not None
@@ -419,26 +474,10 @@ def main(argv=None) -> int:
             name = signal.Signals(interrupted["signal"]).name
             print(f"{name}: stopped at step {learner.step}; saved {out / 'checkpoint.pt'}", file=sys.stderr)
         if args.val_data and not signalled and not failed and validated != learner.step:
-            val = {"step": learner.step, **validate(learner, args.val_data, args.val_windows)}  # every rank
-            if log:
-                log.write(json.dumps(val) + "\n")
-                print(" ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in val.items()))
-            if board:
-                log_validation(board, learner, args.val_data, val)
-        if log:
-            log.close()
-        if board:
-            board.close()
-        learner.close()
-        if dist.is_initialized():
-            if sys.exc_info()[0] is None:  # tear down together: a rank whose peer already left can abort in gloo
-                if learner.device.type == "cuda":
-                    dist.barrier(device_ids=[learner.device.index])
-                else:
-                    dist.barrier()
-            dist.destroy_process_group()
+            record.validate(print)
+        record.close()
+        tear_down(learner)
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())
