@@ -21,6 +21,12 @@ Resumable: a (configuration, seed) with a row is skipped; a stage with a checkpo
 that returns before its budget (SIGTERM / Ctrl-C: train.py saves and returns) stops the runner,
 so the same command continues later. One runner per output folder (a lock file says so).
 
+Like a campaign (``evflow_cli/campaign.py``), a stage outlives its machine: when it stops, and when
+it finishes before its configuration's row is written, its checkpoint is slimmed to the campaign
+budget (Adam's moments dropped, restarted with a warm-up on resume) and kept in the record,
+``RECORD/unfinished/<configuration>-s<seed>-<stage>.pt``, with its validation lines; a fresh
+clone whose run folder lacks the stage continues from it. The row, once written, replaces them.
+
 Seeds: the full model runs every seed given (3); another configuration runs the first seed, and
 the second too where its primary number (synthetic-test AEE at dt = 1, the first split and
 window length evaluated) differs from the full model's mean by at most two of the full model's
@@ -43,12 +49,13 @@ from typing import Callable, Literal
 import numpy as np
 import torch
 
-from agents.checkpoint import load_checkpoint, load_model
+from agents.checkpoint import load_checkpoint, load_model, save_checkpoint
 from agents.evaluation import evaluate, results_json
 from agents.policy import RecurrentPolicy
 from agents.teacher import TeacherSettings, TeacherTargets, compute_teacher_targets, copy_targets
 from envs.atomic import same_file
 
+from .campaign import STATE_BUDGET, slim_state, unslim_state
 from .summary import count_parameters, forward_flops, forward_latency_ms
 
 __all__ = ["Configuration", "CONFIGURATIONS", "Budget", "AblationRunner", "needs_second_seed", "render_tables",
@@ -230,7 +237,7 @@ class AblationRunner:
     record: the folder of what must outlive the run folder (rows.jsonl, budget.json, tables.md,
     curves/, targets/); default ``out``. on_row: called with the files written after each
     finished row (e.g. to commit them); on_targets: called with the record's copy of teacher
-    targets solved here.
+    targets solved here; on_state: called with a stage's slim state kept in the record.
     """
 
     def __init__(self, out: str | os.PathLike, budget: Budget, train: Callable[[list[str]], object], *,
@@ -238,7 +245,8 @@ class AblationRunner:
                  targets: dict[str, str] | None = None, log: Callable[[str], None] = print,
                  record: str | os.PathLike | None = None,
                  on_row: Callable[[list[Path]], None] | None = None,
-                 on_targets: Callable[[list[Path]], None] | None = None) -> None:
+                 on_targets: Callable[[list[Path]], None] | None = None,
+                 on_state: Callable[[list[Path]], None] | None = None) -> None:
         unknown = sorted(set(only or []) - set(CONFIGURATIONS))
         if unknown:
             raise ValueError(f"unknown configuration(s) {unknown}; known: {list(CONFIGURATIONS)}")
@@ -256,6 +264,7 @@ class AblationRunner:
         self.rows_path = self.record / "rows.jsonl"
         self.on_row = on_row
         self.on_targets = on_targets
+        self.on_state = on_state
 
     # -- the plan ------------------------------------------------------------------------------
 
@@ -309,6 +318,8 @@ class AblationRunner:
             f.write(json.dumps(row, default=str) + "\n")
             f.flush()
             os.fsync(f.fileno())
+        for stage in ("teacher", "finetune"):  # the row holds what they were kept for
+            self.kept_state(self.out / f"{name}-s{seed}" / stage).unlink(missing_ok=True)
         split, dt = self.budget.eval_splits[0], f"dt{self.budget.eval_dts[0]}"
         self.log(f"[ablations] {name} seed {seed}: done, {split} {dt} AEE {row['eval'][split][dt]['aee']}")
         self.write_outputs(report)
@@ -382,9 +393,45 @@ class AblationRunner:
             raise ValueError(f"{path}: not the {loss} teacher's targets this budget asks for (differs in "
                              f"{', '.join(differ)}: {', '.join(f'{k}={stored.get(k)!r}' for k in differ)})")
 
+    def kept_state(self, folder: Path) -> Path:
+        """Where the record keeps the slim state of the stage trained in ``folder``
+        (``OUT/<configuration>-s<seed>/<stage>``)."""
+        return self.record / "unfinished" / f"{folder.parent.name}-{folder.name}.pt"
+
+    def _keep_stage(self, folder: Path, done: bool) -> None:
+        """The stage's checkpoint, slimmed, and its metrics' validation lines, into the record."""
+        payload = load_checkpoint(folder / "checkpoint.pt")
+        slim, dropped = slim_state(payload, STATE_BUDGET)
+        lines = []
+        if (folder / "metrics.jsonl").exists():
+            lines = [line for line in (folder / "metrics.jsonl").read_text().splitlines()
+                     if line.strip() and any(k.startswith("val_") for k in json.loads(line))]
+        path = self.kept_state(folder)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_checkpoint(path, {**slim, "ablation": {"validation_lines": lines, "done": done}})
+        self.log(f"[ablations] {folder}: state at step {payload['step']} kept in {path} "
+                 f"({path.stat().st_size / 2**20:.1f} MB; left out: {dropped})")
+        if self.on_state is not None:
+            self.on_state([path])
+
+    def _restore_stage(self, folder: Path) -> None:
+        """A stage missing from the run folder (a fresh clone) continued from the record's state."""
+        kept = self.kept_state(folder)
+        if (folder / "checkpoint.pt").exists() or (folder / "done.json").exists() or not kept.exists():
+            return
+        payload = load_checkpoint(kept)
+        carried = payload.pop("ablation", None) or {}
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "metrics.jsonl").write_text("".join(line + "\n" for line in carried.get("validation_lines", [])))
+        save_checkpoint(folder / "checkpoint.pt", unslim_state(payload))
+        if carried.get("done"):
+            _write_json(folder / "done.json", {"step": int(payload["step"]), "restored_from": str(kept)})
+        self.log(f"[ablations] {folder}: continued from the record's state at step {payload['step']} ({kept})")
+
     def _stage(self, folder: Path, options: list[str], steps: int, seed: int) -> Path:
         """Run (or continue, or skip) one training stage; returns its checkpoint."""
         checkpoint = folder / "checkpoint.pt"
+        self._restore_stage(folder)
         if (folder / "done.json").exists():
             return checkpoint
         run = ["--out", str(folder), "--no-progress", "--device", self.device, "--ckpt-every", "100"]
@@ -401,6 +448,8 @@ class AblationRunner:
             self.log(f"[ablations] {folder}: training {steps} steps")
             self.train([*options, "--seed", str(seed), *run])
         step = load_checkpoint(checkpoint)["step"] if checkpoint.exists() else 0
+        if checkpoint.exists():
+            self._keep_stage(folder, done=step >= steps)
         if step < steps:
             raise RunnerStopped(f"{folder}: stopped at step {step} of {steps}; rerun the command to continue")
         _write_json(folder / "done.json", {"step": step, "date": datetime.datetime.now().isoformat(timespec="seconds")})
@@ -414,6 +463,7 @@ class AblationRunner:
             model_options += ["--model-kwarg", f"{key}={json.dumps(value)}"]
         b = self.budget
         teacher = folder / "teacher"
+        self._restore_stage(teacher)  # a fresh clone: the stage as the record keeps it
         targets = None if (teacher / "done.json").exists() else self.targets(config.loss)  # not needed once done
         checkpoint = self._stage(teacher, [*model_options, *b.teacher_options(targets)], b.teacher_steps, seed)
         if b.finetune_steps:

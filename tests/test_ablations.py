@@ -233,11 +233,69 @@ def test_the_record_outlives_the_run_folder(tmp_path):
     assert len(again.run()) == 1 and len(committed) == 1
 
 
+def test_a_stopped_stage_continues_on_a_fresh_clone_from_the_record(tmp_path, monkeypatch):
+    """Like a campaign: a stage stopped on one machine is kept slim in the record
+    (RECORD/unfinished/, handed to on_state) and continued by a runner whose run folder is new,
+    from its step, with its validation lines; a finished teacher stage kept there is not trained
+    (nor its targets needed) again; the row replaces the kept states."""
+    from evflow_cli import ablations
+
+    record, kept = tmp_path / "record", []
+
+    def one_step(argv):
+        return train_script.main([*argv, "--minutes", "0"])  # stops (and saves) after one step
+
+    first = AblationRunner(tmp_path / "run1", TINY, one_step, seeds=(0,), only=["mgr-hmc"], log=lambda _: None,
+                           record=record, on_state=kept.extend)
+    with pytest.raises(RunnerStopped, match="step 1 of 3"):
+        first.run()
+    state = record / "unfinished" / "mgr-hmc-s0-teacher.pt"
+    assert kept == [state]
+    stored = torch.load(state, weights_only=True)
+    assert stored["step"] == 1 and state.stat().st_size < 12 * 2**20  # (this tiny network's fits with its moments)
+
+    calls: list[list[str]] = []
+
+    def train_teacher_then_stop(argv):  # machine 2: the teacher stage to its end, the fine-tuning one step
+        calls.append(argv)
+        return train_script.main(argv if "--resume" in argv else [*argv, "--minutes", "0"])
+
+    second = AblationRunner(tmp_path / "run2", TINY, train_teacher_then_stop, seeds=(0,), only=["mgr-hmc"],
+                            log=lambda _: None, record=record, on_state=kept.extend)
+    with pytest.raises(RunnerStopped, match="finetune: stopped at step 1 of 2"):
+        second.run()
+    teacher = tmp_path / "run2" / "mgr-hmc-s0" / "teacher"
+    assert calls[0][0] == "--resume" and "--init" in calls[1]
+    lines = [json.loads(line) for line in (teacher / "metrics.jsonl").read_text().splitlines()]
+    assert [line["step"] for line in lines if "loss" in line] == [2, 3]  # continued from step 1
+    assert [line["step"] for line in lines if "val_aee_model" in line] == [1, 2, 3]  # machine 1's step 1 kept
+    assert torch.load(state, weights_only=True)["ablation"]["done"] is True
+    assert (record / "unfinished" / "mgr-hmc-s0-finetune.pt").exists()
+
+    def solve(*args, **kwargs):
+        pytest.fail("solved the targets of a finished teacher stage")
+
+    monkeypatch.setattr(ablations, "compute_teacher_targets", solve)
+    (record / "targets" / "hmc.h5").unlink()  # a finished teacher stage needs no targets
+    calls.clear()
+
+    def train(argv):
+        calls.append(argv)
+        return train_script.main(argv)
+
+    third = AblationRunner(tmp_path / "run3", TINY, train, seeds=(0,), only=["mgr-hmc"], log=lambda _: None,
+                           record=record)
+    rows = third.run()
+    assert len(calls) == 1 and calls[0][0] == "--resume" and "finetune" in calls[0][calls[0].index("--out") + 1]
+    assert [p[0] for p in rows[0]["validation"]] == [1, 2, 3, 4, 5]  # both stages, over the three machines
+    assert not list((record / "unfinished").glob("*.pt"))  # the row replaces them
+
+
 def test_solved_targets_are_kept_in_the_record_and_reused_by_a_new_machine(tmp_path, monkeypatch):
     """Targets solved in the run folder are copied into the record (the same values), handed to
     on_targets; a runner with a new run folder and the same record solves nothing."""
-    from agents import ablations
     from agents.teacher import TeacherTargets
+    from evflow_cli import ablations
 
     record, kept = tmp_path / "record", []
     first = AblationRunner(tmp_path / "run1", TINY, train_script.main, seeds=(0,), log=lambda _: None, record=record,

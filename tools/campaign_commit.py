@@ -3,7 +3,8 @@
 
   python tools/campaign_commit.py mgr-devval                 # agents/campaigns/mgr-devval + its export
   python tools/campaign_commit.py mgr-devval --from OUT      # first take a GPU leg's output folder in
-  python tools/campaign_commit.py --ablations                # the ablations' record (docs/ablations)
+  python tools/campaign_commit.py --ablations                # the ablations' record (docs/ablations, with the
+                                                             # slim states of stages in progress)
 
 A campaign commit holds its folder (campaign.json, state.pt, curve.jsonl, curve.png,
 reference.json) and agents/weights/EXPORT.pt/.json when they changed. It refuses a state over the
@@ -98,7 +99,11 @@ def main(argv=None) -> int:
         git("add", "docs/ablations", "docs/results.md")
         rows = ROOT / "docs" / "ablations" / "rows.jsonl"
         count = len(rows.read_text().splitlines()) if rows.exists() else 0
-        subprocess.run(["git", "commit", "-q", "-m", f"Ablations: {count} finished runs (rows, tables, curves)", "--",
+        states = sorted(p.stem for p in (ROOT / "docs" / "ablations" / "unfinished").glob("*.pt"))
+        message = f"Ablations: {count} finished runs (rows, tables, curves)"
+        if states:
+            message += f"; stages kept in progress: {', '.join(states)}"
+        subprocess.run(["git", "commit", "-q", "-m", message, "--",
                         "docs/ablations", "docs/results.md"], cwd=ROOT, check=False)
         return 0
     if not args.name:

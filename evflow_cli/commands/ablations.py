@@ -16,7 +16,8 @@ RECORD/curves/<configuration>.png (validation AEE against step) and the tables i
 RECORD (docs/ablations) is in the repository: commit it after rows finish (this command never
 writes to git; ``python tools/campaign_commit.py --ablations`` does) and finished rows survive a
 new machine. The teacher targets, once solved, are kept there too (RECORD/targets/<loss>.h5): a
-new machine starts training at once.
+new machine starts training at once, and so are the stages in progress (RECORD/unfinished/*.pt,
+slim like a campaign's state, under 12 MB each): a fresh clone continues a stopped stage.
 Checkpoints and evaluations stay in --out.
 Resumable: rerun the same command; finished configurations are skipped, a killed one continues
 from its checkpoint (SIGTERM / Ctrl-C stop a stage cleanly).
