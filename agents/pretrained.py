@@ -41,6 +41,27 @@ def default_choice(directory: str | os.PathLike | None = None) -> dict[str, Any]
 DEFAULT_PRETRAINED = default_choice()["model"]
 
 
+def default_steps(window: str, window_size: int | None, frame_us: int = 33_333,
+                  choice: dict[str, Any] | None = None) -> int:
+    """Network steps per window of the default model's mode (``default.json``'s ``split``):
+    ``"dt"``, one step per ground-truth interval: ``window_size`` frames (default 1), or a time
+    window of ``window_size`` µs over ``frame_us`` (the interval the model steps at, rounded,
+    at least 1); event-count windows, a mode without ``split`` and a weights folder without
+    ``default.json``: 1 (one pass)."""
+    if choice is None:
+        try:
+            choice = default_choice()
+        except FileNotFoundError:  # a folder of one's own models, none chosen as the default
+            return 1
+    if choice.get("split") != "dt":
+        return 1
+    if window == "frames":
+        return int(window_size or 1)
+    if window == "time" and window_size:
+        return max(1, round(int(window_size) / int(frame_us)))
+    return 1
+
+
 def list_pretrained(directory: str | os.PathLike | None = None) -> list[str]:
     """Names of the shipped models (those with both NAME.pt and NAME.json)."""
     directory = Path(WEIGHTS_DIR if directory is None else directory)

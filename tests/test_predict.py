@@ -177,3 +177,28 @@ def test_the_default_model_and_mode_are_the_recorded_choice_named_in_the_provena
     assert provenance["name"] == choice["model"] and provenance["default"]["mode"] == choice["mode"]
     _, named = load_policy(DEFAULT_PRETRAINED)  # named explicitly: no claim about a choice
     assert "default" not in named
+
+
+def test_predict_without_a_model_runs_the_default_in_its_mode(tmp_path, monkeypatch):
+    """No --model: the default model, stepped once per ground-truth interval when default.json's
+    mode says so (2-frame windows: 2 steps), the steps named in the file and the provenance; a
+    model named explicitly, or --split given, runs as asked."""
+    import json as json_module
+
+    import agents.pretrained as pretrained
+    from evflow_cli.commands import predict as predict_command
+
+    monkeypatch.setattr(pretrained, "default_choice", lambda directory=None: {
+        "model": pretrained.DEFAULT_PRETRAINED, "mode": "split dt", "chosen_on": "devval", "split": "dt"})
+    common = ["synthetic-mini", "--window-size", "2", "--end", "0.2", "--no-video", "--no-progress"]
+
+    def run(name: str, *extra: str) -> tuple[int, dict]:
+        out, summary = tmp_path / f"{name}.h5", tmp_path / f"{name}.json"
+        assert predict_command.main([*common, *extra, "--out", str(out), "--json", str(summary)]) == 0
+        with h5py.File(out, "r") as f:
+            return int(f.attrs["split"]), json_module.loads(summary.read_text())["model"]
+
+    split, provenance = run("default")
+    assert split == 2 and provenance["default"]["split"] == 2 and provenance["default"]["mode"] == "split dt"
+    assert run("named", "--model", pretrained.DEFAULT_PRETRAINED)[0] == 1
+    assert run("given", "--split", "3")[0] == 3

@@ -135,3 +135,40 @@ def test_evaluate_adds_a_split_row_per_model_and_checks_the_option(tmp_path, rng
     assert aee(dt2)["unet-feedforward"] != aee(dt2)["unet-feedforward + split dt"]
     with pytest.raises(SystemExit, match="--split"):
         evaluate_script.main(["--zero", "--split", "0", "--data", str(path), "--out", str(out)])
+
+
+def test_the_default_steps_once_per_ground_truth_interval():
+    from agents.pretrained import default_steps
+
+    stepped, one_pass = {"split": "dt"}, {"mode": "one pass per window"}
+    assert [default_steps("frames", n, choice=stepped) for n in (None, 1, 4)] == [1, 1, 4]
+    assert default_steps("time", 133_332, 33_333, choice=stepped) == 4  # 4 intervals of 33.3 ms, rounded
+    assert default_steps("time", 10_000, 33_333, choice=stepped) == 1  # never below one step
+    assert default_steps("count", 15_000, choice=stepped) == 1
+    assert default_steps("frames", 4, choice=one_pass) == 1
+
+
+def test_evaluate_runs_the_default_without_a_name_in_its_mode(tmp_path, rng, monkeypatch):
+    """--pretrained alone: the default model in the mode default.json records (one step per
+    ground-truth interval), its row the same flow as --pretrained NAME --split dt; a mode given on
+    the command line (--split, --mirror) is the user's instead."""
+    import agents.pretrained as pretrained
+
+    path = write_translating_recording(tmp_path / "rec.h5", rng, sensor_size=(32, 48))
+    monkeypatch.setattr(pretrained, "default_choice", lambda directory=None: {"model": pretrained.DEFAULT_PRETRAINED,
+                                                                             "split": "dt"})
+    name = pretrained.DEFAULT_PRETRAINED
+    common = ["--dt", "2", "--data", str(path), "--no-progress", "--pictures", "0", "--max-windows", "3"]
+    evaluate_script.main(["--pretrained", *common, "--out", str(tmp_path / "default")])
+    evaluate_script.main(["--pretrained", name, "--split", "dt", *common, "--out", str(tmp_path / "named")])
+    default = json.loads((tmp_path / "default" / "results.json").read_text())
+    named = json.loads((tmp_path / "named" / "results.json").read_text())
+    assert default["method"] == f"{name} (pretrained) + split dt (the default's mode)"
+    assert default["overall"]["dt2"]["aee"] == named["baselines"][f"{name} (pretrained) + split dt"]["overall"]["dt2"]["aee"]
+    assert default["overall"]["dt2"]["aee"] != named["overall"]["dt2"]["aee"]  # the one pass differs at dt = 2
+    evaluate_script.main(["--pretrained", "--mirror", "2", *common, "--out", str(tmp_path / "mirror")])
+    mirrored = json.loads((tmp_path / "mirror" / "results.json").read_text())
+    assert mirrored["method"] == f"{name} (pretrained)"
+    with pytest.raises(SystemExit, match="--split dt steps once per ground-truth interval"):
+        evaluate_script.main(["--pretrained", "--split", "dt", "--window", "time", "--data", str(path),
+                              "--out", str(tmp_path / "time")])

@@ -2,7 +2,7 @@
 L_HMC against zero flow's, FWL and RSAT, per sequence; Markdown table + JSON + PNG pictures.
 
 Examples:
-  python scripts/evaluate.py --pretrained --zero                                   # the shipped model
+  python scripts/evaluate.py --pretrained --zero                                   # the default model in its mode
   python scripts/evaluate.py --checkpoint runs/mgr/checkpoint.pt --zero            # synthetic-test
   python scripts/evaluate.py --checkpoint ckpt.pt --data rec1.h5 rec2.h5 --window-size 4
   python scripts/evaluate.py --model mypkg.models:build --data synthetic-test     # untrained plug-in
@@ -199,7 +199,11 @@ def build_policies(args) -> dict:
                                          voxel_bins=cfg.get("voxel_bins", 5))
     pretrained = [] if args.pretrained is None else (args.pretrained or [pretrained_module.DEFAULT_PRETRAINED])
     for name in pretrained:
-        policies[f"{name} (pretrained)"] = RecurrentPolicy.from_pretrained(name, device=args.device)
+        policy = RecurrentPolicy.from_pretrained(name, device=args.device)
+        if default_mode_split(args):  # the default in the mode devval picked (per table: splits = dt)
+            policies[f"{name} (pretrained) + split dt (the default's mode)"] = SubWindowPolicy(policy, splits=1)
+        else:
+            policies[f"{name} (pretrained)"] = policy
     if args.model and not args.checkpoint:
         policies[args.model] = RecurrentPolicy(make_model(args.model, **width_kwargs(args.width)).eval(),
                                                device=args.device)
@@ -227,6 +231,16 @@ def build_policies(args) -> dict:
     if args.zero or not policies:
         policies["zero flow"] = None
     return policies
+
+
+def default_mode_split(args) -> bool:
+    """True when the default model runs in its own mode, one network step per ground-truth
+    interval (``agents/weights/default.json``: ``"split": "dt"``): ``--pretrained`` without a name,
+    frame windows, and no mode chosen on the command line (--split, --mirror, --refine)."""
+    if not (args.pretrained == [] and args.split is None and args.mirror is None and not args.refine
+            and (args.window == "frames" or bool(args.mvsec)) and args.protocol != "dsec"):
+        return False
+    return pretrained_module.default_steps("frames", 2) == 2  # default.json's mode steps per interval
 
 
 def protocol_settings(args, data) -> list:
@@ -276,6 +290,9 @@ def main(argv=None) -> int:
         raise SystemExit("--refine-accept gates a refinement: give --refine K too")
     if args.split is not None and args.split != "dt" and not (args.split.isdigit() and int(args.split) >= 1):
         raise SystemExit(f"--split must be a number of sub-windows >= 1 or 'dt', got {args.split!r}")
+    if args.split == "dt" and args.window != "frames" and not args.mvsec:
+        raise SystemExit(f"--split dt steps once per ground-truth interval of frame windows; with --window {args.window} "
+                         "give the number of sub-windows, --split N")
     if args.mirror is not None and args.mirror not in MIRROR_SETS:
         raise SystemExit(f"--mirror takes the number of copies, one of {sorted(MIRROR_SETS)}; got {args.mirror}")
     if args.dsec_submission and not args.dsec_test_timestamps:
@@ -316,7 +333,7 @@ def evaluate_settings(args) -> tuple[str, dict]:
         else:
             runs = [(data, args.format, args.data_options(), None, None)]
         named = {name: [] for name in policies}
-        if args.split == "dt":  # one sub-window per ground-truth interval of this table
+        if args.split == "dt" or default_mode_split(args):  # one sub-window per ground-truth interval of this table
             for policy in policies.values():
                 for layer in (policy, getattr(policy, "policy", None)):
                     if isinstance(layer, SubWindowPolicy):

@@ -4,6 +4,7 @@ arrows too), and a summary against zero flow.
 
 Examples:
   python scripts/predict.py recording.raw                                # shipped model, 33 ms windows
+  python scripts/predict.py rec.h5 --window-size 4                       # 4-frame windows, 4 network steps each
   python scripts/predict.py recording.dat --window time --window-size 20000 --start 5 --end 15
   python scripts/predict.py rec.h5 --model runs/mgr/checkpoint.pt --per-event --device cuda
   python scripts/predict.py rec.h5 --model mypkg.models:build          # an (untrained) plug-in
@@ -46,6 +47,7 @@ from agents.options import (
     positive_float,
     positive_int,
 )
+from agents.pretrained import default_steps
 from envs.outputs import Output
 from evflow_cli.predict import load_policy, predict, summary_dict, summary_table
 
@@ -83,8 +85,8 @@ class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progr
     """H W (centred) or TOP LEFT H W"""
     sequence: str = "0"
     """which recording of a folder / split (index or name)"""
-    split: int = option(1, type=positive_int, metavar="N")
-    """step the network through N equal sub-windows of each window and compose their flows (long windows of fast motion; N network steps per window)"""
+    split: int | None = option(None, type=positive_int, metavar="N")
+    """step the network through N equal sub-windows of each window and compose their flows (long windows of fast motion; N network steps per window); default: the default model's mode (agents/weights/default.json: one step per ground-truth interval, or per --no-gt-window of a time window), 1 for any other model"""
     per_event: bool = False
     """also store the flow at every event"""
     json: str | None = None
@@ -116,12 +118,17 @@ def main(argv=None) -> int:  # opens as the other commands do: parse, then set t
                       option="--json") if args.json else None
     with json_out or contextlib.nullcontext():
         policy, provenance = load_policy(args.model, device=args.device, width=args.width)
+        split = args.split
+        if split is None:
+            split = default_steps(args.window, args.window_size, args.no_gt_window) if args.model is None else 1
+        if "default" in provenance:
+            provenance["default"]["split"] = split
         result = predict(
             policy, args.recording, out, window=args.window, window_size=args.window_size, start_s=args.start,
             end_s=args.end, crop=args.crop, sequence=sequence, data_format=args.format, per_event=args.per_event,
             data_options=args.data_options() or None,
             video=video, video_fps=args.fps, video_frames=args.video_frames, video_arrows=args.arrows, provenance=provenance,
-            no_gt_window_us=args.no_gt_window, progress=not args.no_progress, overwrite=args.overwrite, split=args.split,
+            no_gt_window_us=args.no_gt_window, progress=not args.no_progress, overwrite=args.overwrite, split=split,
         )
         name = provenance.get("name") or provenance.get("path") or "model"
         print(summary_table(result, name=str(name)))
