@@ -41,19 +41,24 @@ def default_choice(directory: str | os.PathLike | None = None) -> dict[str, Any]
 DEFAULT_PRETRAINED = default_choice()["model"]
 
 
+def default_split() -> str | None:
+    """The default model's mode as a ``--split`` value (``default.json``'s ``split``: ``"dt"``,
+    one network step per ground-truth interval), None for one pass or a weights folder without
+    ``default.json`` (a folder of one's own models, none chosen as the default)."""
+    try:
+        return default_choice().get("split")
+    except FileNotFoundError:
+        return None
+
+
 def default_steps(window: str, window_size: int | None, frame_us: int = 33_333,
                   choice: dict[str, Any] | None = None) -> int:
-    """Network steps per window of the default model's mode (``default.json``'s ``split``):
-    ``"dt"``, one step per ground-truth interval: ``window_size`` frames (default 1), or a time
-    window of ``window_size`` µs over ``frame_us`` (the interval the model steps at, rounded,
-    at least 1); event-count windows, a mode without ``split`` and a weights folder without
-    ``default.json``: 1 (one pass)."""
-    if choice is None:
-        try:
-            choice = default_choice()
-        except FileNotFoundError:  # a folder of one's own models, none chosen as the default
-            return 1
-    if choice.get("split") != "dt":
+    """Network steps per window of the default model's mode (:func:`default_split`, or
+    ``choice``'s ``split``): ``"dt"``, one step per ground-truth interval: ``window_size`` frames
+    (default 1), or a time window of ``window_size`` µs over ``frame_us`` (the interval the model
+    steps at, rounded, at least 1); event-count windows and one pass: 1."""
+    split = default_split() if choice is None else choice.get("split")
+    if split != "dt":
         return 1
     if window == "frames":
         return int(window_size or 1)

@@ -237,10 +237,9 @@ def default_mode_split(args) -> bool:
     """True when the default model runs in its own mode, one network step per ground-truth
     interval (``agents/weights/default.json``: ``"split": "dt"``): ``--pretrained`` without a name,
     frame windows, and no mode chosen on the command line (--split, --mirror, --refine)."""
-    if not (args.pretrained == [] and args.split is None and args.mirror is None and not args.refine
-            and (args.window == "frames" or bool(args.mvsec)) and args.protocol != "dsec"):
-        return False
-    return pretrained_module.default_steps("frames", 2) == 2  # default.json's mode steps per interval
+    return (args.pretrained == [] and args.split is None and args.mirror is None and not args.refine
+            and (args.window == "frames" or bool(args.mvsec)) and args.protocol != "dsec"
+            and pretrained_module.default_split() == "dt")
 
 
 def protocol_settings(args, data) -> list:
