@@ -60,6 +60,9 @@ class CampaignSpec:
     val_dt: list[int] = field(default_factory=lambda: [1, 4])
     val_windows: int | None = None
     """windows per validation sequence (None: all)"""
+    val_split: str | None = None
+    """the mode the score is taken in: None, one network step per window; "dt", one step per
+    ground-truth interval (evaluate.py --split dt, the shipped default's mode)"""
     reference: str = "cmax"
     """the score's reference row: 'cmax' (per-window contrast maximisation) or 'zero' (zero flow)"""
     interval_minutes: float = 20.0
@@ -219,8 +222,10 @@ class Campaign:
         rows = self.curve() + [row]
         _write_text(self.curve_path, "".join(json.dumps(r) + "\n" for r in rows))
 
-    def best(self) -> dict | None:
-        rows = [r for r in self.curve() if r.get("score") is not None]
+    def best(self, mode: str | None = None) -> dict | None:
+        """The curve's best row among those scored in ``mode`` (a row's ``mode``; None: one pass):
+        scores of different modes are not compared."""
+        rows = [r for r in self.curve() if r.get("score") is not None and r.get("mode") == mode]
         return min(rows, key=lambda r: r["score"]) if rows else None
 
     def state_step(self) -> int | None:

@@ -173,6 +173,40 @@ def test_validation_exports_the_best_and_the_curve_accumulates(recording, tmp_pa
     assert campaign.reference_path.stat().st_mtime_ns == stamp
 
 
+def test_a_score_in_the_shipped_mode_rescores_the_export_before_it_competes(recording, tmp_path):
+    """val_split "dt": the score is taken from evaluate.py's --split dt row (the network stepped
+    once per ground-truth interval), the one pass kept beside it; when a running campaign switches
+    to it, its export is scored in the new mode first and only rows of that mode compete."""
+    root, runs = tmp_path / "campaigns", tmp_path / "runs"
+    campaign_script.main(["new", "c", "--campaigns-dir", str(root), "--export", "c-model", "--val-data",
+                          str(recording), "--val-dt", "2", "--reference", "zero", "--interval-minutes", "10", "--",
+                          *_recipe(recording, 2)])
+    assert _resume(root, runs) == 0
+    campaign = Campaign("c", root, runs)
+    (one_pass,) = campaign.curve()
+    assert "mode" not in one_pass and one_pass["exported"]
+    spec = json.loads(campaign.spec_path.read_text())
+    spec["val_split"] = "dt"
+    spec["train"][spec["train"].index("--steps") + 1] = "4"
+    campaign.spec_path.write_text(json.dumps(spec))
+    assert _resume(root, tmp_path / "fresh") == 0
+    rows = Campaign("c", root).curve()
+    assert [r["step"] for r in rows] == [2, 2, 4] and [r.get("mode") for r in rows] == [None, "split dt", "split dt"]
+    rescored, later = rows[1], rows[2]
+    assert rescored["rescored"] and not rescored["exported"]
+    # the export is the float16 copy of step 2: its one pass repeats step 2's score within rounding
+    assert rescored["aee_one_pass"]["dt2"] == pytest.approx(one_pass["aee"]["dt2"], rel=2e-2)
+    reference = json.loads(campaign.reference_path.read_text())["aee"]["dt2"]
+    for row in (rescored, later):
+        assert row["score"] == pytest.approx(row["aee"]["dt2"] / reference, rel=1e-4)
+        assert row["aee"]["dt2"] != pytest.approx(row["aee_one_pass"]["dt2"], rel=1e-6)  # two steps, not one
+    assert later["exported"] == (later["score"] < rescored["score"])
+    assert campaign.best("split dt")["score"] == min(rescored["score"], later["score"])
+    assert campaign.best()["score"] == one_pass["score"]  # one-pass rows compete only among themselves
+    record = json.loads((root / "weights" / "c-model.json").read_text())
+    assert record["validation"]["mode"] == ("split dt" if later["exported"] else "one pass")
+
+
 def test_refusals(recording, tmp_path):
     with pytest.raises(SystemExit, match="--out"):
         campaign_script.main(["new", "c", "--campaigns-dir", str(tmp_path), "--export", "x", "--", "--out", "elsewhere"])

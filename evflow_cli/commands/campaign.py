@@ -10,7 +10,8 @@ folder holds).
 
 resume trains in stretches of the campaign's interval (train.py --resume in runs/campaigns/NAME/),
 and after each: validates (evaluate.py on the validation data, every window unless the campaign
-says otherwise; score = mean over dt of the model's AEE / the reference row's AEE), appends the
+says otherwise; score = mean over dt of the model's AEE / the reference row's AEE, the network run
+one pass per window or, with val_split "dt", as the shipped default runs it), appends the
 curve, exports the weights as float16 + provenance to agents/weights/EXPORT when the score is the
 campaign's best, and writes the slim resume state agents/campaigns/NAME/state.pt. SIGTERM or
 SIGINT stop the training step in progress, save, write the state and exit 0. On a fresh clone
@@ -105,12 +106,42 @@ def reference(campaign: Campaign, spec: CampaignSpec, device: str, log) -> dict:
 def validate(campaign: Campaign, spec: CampaignSpec, weights: list[str], tag: str, device: str, log) -> dict:
     """Score the weights (``--checkpoint PATH`` or ``--pretrained NAME``) on the validation data."""
     ref = reference(campaign, spec, device, log)
-    results = _evaluate([*weights, "--name", "model", *_eval_data_args(spec)], campaign.work / "val" / tag, device)
-    aee = _aee(results, spec.val_dt)
+    split = ["--split", spec.val_split] if spec.val_split else []
+    results = _evaluate([*weights, "--name", "model", *split, *_eval_data_args(spec)], campaign.work / "val" / tag,
+                        device)
+    block = results["baselines"][f"model + split {spec.val_split}"] if spec.val_split else results
+    aee = _aee(block, spec.val_dt)
     score = sum(aee[k] / ref["aee"][k] for k in aee) / len(aee)
     sequences = {name: {k: v.get("aee") for k, v in seq.items() if k.startswith("dt")}
-                 for name, seq in results["sequences"].items()}
-    return {"score": round(score, 5), "aee": aee, "reference_aee": ref["aee"], "sequences": sequences}
+                 for name, seq in block["sequences"].items()}
+    row = {"score": round(score, 5), "aee": aee, "reference_aee": ref["aee"], "sequences": sequences}
+    if spec.val_split:  # the one pass beside it, from the same run
+        row.update(mode=mode_of(spec), aee_one_pass=_aee(results, spec.val_dt))
+    return row
+
+
+def mode_of(spec: CampaignSpec) -> str | None:
+    """How the campaign's score runs the network (a curve row's ``mode``; None: one pass)."""
+    return f"split {spec.val_split}" if spec.val_split else None
+
+
+def rescore_export(campaign: Campaign, spec: CampaignSpec, weights_dir: Path, here: str, progress: dict,
+                   device: str, log) -> None:
+    """When the campaign's score changed mode, its current export is scored in the new mode first,
+    so that a later step is exported only when it beats the export in the same terms."""
+    mode = mode_of(spec)
+    rows = campaign.curve()
+    if not rows or any(r.get("mode") == mode for r in rows) or not (weights_dir / f"{spec.export}.pt").exists():
+        return
+    meta = weights_dir / f"{spec.export}.json"
+    step = json.loads(meta.read_text()).get("validation", {}).get("step") if meta.exists() else None
+    row = validate(campaign, spec, ["--checkpoint", str(weights_dir / f"{spec.export}.pt")], "export", device, log)
+    campaign.append_curve({"step": step, **row, "wall_h": round(progress.get("wall_s", 0.0) / 3600, 4),
+                           "stretch": progress["stretches"], "machine": here,
+                           "date": datetime.date.today().isoformat(), "exported": False,
+                           "rescored": f"the export ({spec.export}, step {step}) in the campaign's new mode"})
+    log(f"[campaign] the score's mode is now {mode or 'one pass'}: the export (step {step}) scores "
+        f"{row['score']:.4f} {row['aee']} in it")
 
 
 def _steps_of(recipe: list[str]) -> list[str]:
@@ -145,7 +176,8 @@ def cmd_new(args, rest: list[str]) -> int:
 
     parse_args([*rest, "--out", str(campaign.work / "train")])  # a recipe train.py would refuse fails here
     spec = CampaignSpec(name=args.name, export=args.export, train=rest, init=args.init, val_data=args.val_data,
-                        val_dt=args.val_window_size, val_windows=args.val_windows, reference=args.reference,
+                        val_dt=args.val_window_size, val_windows=args.val_windows, val_split=args.val_split,
+                        reference=args.reference,
                         interval_minutes=args.interval_minutes, state_budget_mb=args.state_budget_mb, note=args.note)
     spec.write(campaign.spec_path)
     print(f"wrote {campaign.spec_path}; start it with: python scripts/campaign.py resume {args.name} --background")
@@ -209,6 +241,8 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
         campaign.append_curve({"step": 0, **row, "wall_h": 0.0, "stretch": 0, "machine": here, "init": spec.init,
                                "date": datetime.date.today().isoformat()})
         log(f"[campaign] the initial weights ({spec.init}): score {row['score']:.4f} {row['aee']}")
+    elif spec.val_data:
+        rescore_export(campaign, spec, weights_dir, here, progress, args.device, log)
     deadline = time.time() + 3600 * args.hours if args.hours else float("inf")
     if args.minutes:
         deadline = min(deadline, time.time() + 60 * args.minutes)
@@ -235,7 +269,7 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
             if stop["signal"] is None and spec.val_data:
                 row = validate(campaign, spec, ["--checkpoint", str(campaign.checkpoint)], f"step{step}", args.device,
                                log)
-                best = campaign.best()
+                best = campaign.best(mode_of(spec))
                 improved = best is None or row["score"] < best["score"]
                 campaign.append_curve({"step": step, **row, "wall_h": round(progress["wall_s"] / 3600, 4),
                                        "stretch": progress["stretches"], "machine": here,
@@ -273,7 +307,9 @@ def export(campaign: Campaign, spec: CampaignSpec, row: dict, step: int, here: s
         "machine": here,
         "validation": {"data": spec.val_data, "dt": spec.val_dt, "windows_per_sequence": spec.val_windows or "all",
                        "score": row["score"], "aee": row["aee"], "reference_aee": row["reference_aee"],
-                       "definition": f"mean over dt of AEE / the {spec.reference} row's AEE", "step": step},
+                       "definition": f"mean over dt of AEE / the {spec.reference} row's AEE"
+                                     + (f", the network run with --split {spec.val_split}" if spec.val_split else ""),
+                       "mode": mode_of(spec) or "one pass", "step": step},
     }
     export_pretrained(campaign.checkpoint, spec.export, provenance, directory=weights_dir)
 
@@ -332,7 +368,7 @@ def cmd_status(args) -> int:
     campaign = Campaign(args.name, args.campaigns_dir, args.runs)
     spec = campaign.spec()
     progress = campaign.progress()
-    best = campaign.best()
+    best = campaign.best(mode_of(spec))
     size = campaign.state_path.stat().st_size / 2**20 if campaign.state_path.exists() else 0.0
     pid_file = campaign.work / "campaign.pid"
     running = pid_file.exists() and _pid_alive(int(pid_file.read_text() or 0))
@@ -340,8 +376,9 @@ def cmd_status(args) -> int:
           f"{progress.get('wall_s', 0) / 3600:.2f} training hours over {progress.get('stretches', 0)} stretches; "
           f"{'running here' if running else 'not running here'}")
     for row in campaign.curve():
-        print(f"  step {row['step']:>7}  score {row['score']:.4f}  " + "  ".join(
-            f"{k} {v:.3f}" for k, v in row["aee"].items()) + f"  {row.get('wall_h', 0):.2f} h  {row.get('machine', '')}")
+        print(f"  step {row['step']!s:>7}  score {row['score']:.4f}  " + "  ".join(
+            f"{k} {v:.3f}" for k, v in row["aee"].items()) + f"  {row.get('wall_h', 0):.2f} h  {row.get('machine', '')}"
+            + f"  {row.get('mode') or 'one pass'}")
     if best:
         print(f"best: step {best['step']}, score {best['score']:.4f}")
     return 0
@@ -381,6 +418,8 @@ class NewOptions(CampaignOptions):
     """the validation's window lengths in ground-truth frames (evaluate.py --window-size): the score is the mean over them"""
     val_windows: int | None = option(None, type=positive_int)
     """windows per validation sequence (default: all)"""
+    val_split: str | None = option(None, choices=("dt",))
+    """score the network as the shipped default runs it: 'dt', one step per ground-truth interval (evaluate.py --split dt); default: one pass per window"""
     reference: Literal["cmax", "zero"] = "cmax"
     """the score's reference row"""
     interval_minutes: float = option(20.0, type=positive_float)
