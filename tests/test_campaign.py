@@ -173,10 +173,20 @@ def test_validation_exports_the_best_and_the_curve_accumulates(recording, tmp_pa
     assert campaign.reference_path.stat().st_mtime_ns == stamp
 
 
-def test_a_score_in_the_shipped_mode_rescores_the_export_before_it_competes(recording, tmp_path):
+def test_a_score_in_the_shipped_mode_rescores_the_export_before_it_competes(recording, tmp_path, monkeypatch):
     """val_split "dt": the score is taken from evaluate.py's --split dt row (the network stepped
     once per ground-truth interval), the one pass kept beside it; when a running campaign switches
-    to it, its export is scored in the new mode first and only rows of that mode compete."""
+    to it, its export is scored in the new mode first and only rows of that mode compete. The
+    validations run with the campaign's --threads, like its training."""
+    threads = []
+    evaluate = campaign_script._evaluate
+
+    def recorded(args, out, device, env=None):
+        threads.append((env or os.environ).get("OMP_NUM_THREADS"))
+        return evaluate(args, out, device, env)
+
+    monkeypatch.setattr(campaign_script, "_evaluate", recorded)
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
     root, runs = tmp_path / "campaigns", tmp_path / "runs"
     campaign_script.main(["new", "c", "--campaigns-dir", str(root), "--export", "c-model", "--val-data",
                           str(recording), "--val-dt", "2", "--reference", "zero", "--interval-minutes", "10", "--",
@@ -205,6 +215,7 @@ def test_a_score_in_the_shipped_mode_rescores_the_export_before_it_competes(reco
     assert campaign.best()["score"] == one_pass["score"]  # one-pass rows compete only among themselves
     record = json.loads((root / "weights" / "c-model.json").read_text())
     assert record["validation"]["mode"] == ("split dt" if later["exported"] else "one pass")
+    assert threads == ["1"] * 4  # the reference (once), step 2, the rescored export, step 4: on the campaign's 1 thread
 
 
 def test_refusals(recording, tmp_path):

@@ -64,13 +64,14 @@ def _expand(patterns: list[str]) -> list[str]:
     return out
 
 
-def _evaluate(args: list[str], out: Path, device: str) -> dict:
+def _evaluate(args: list[str], out: Path, device: str, env: dict | None = None) -> dict:
+    """evaluate.py in a child process (``env``: its environment, e.g. the campaign's thread count)."""
     if out.exists():  # the campaign's own folder of an earlier try of this validation: replaced
         shutil.rmtree(out)
     out.mkdir(parents=True)
     cmd = [PYTHON, str(ROOT / "scripts" / "evaluate.py"), *args, "--pictures", "0", "--no-progress",
            "--out", str(out), "--device", device]
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=env)
     return json.loads((out / "results.json").read_text())
 
 
@@ -83,7 +84,7 @@ def _aee(block: dict, dts: list[int]) -> dict[str, float]:
     return {f"dt{d}": block["overall"][f"dt{d}"]["aee"] for d in dts}
 
 
-def reference(campaign: Campaign, spec: CampaignSpec, device: str, log) -> dict:
+def reference(campaign: Campaign, spec: CampaignSpec, device: str, log, env: dict | None = None) -> dict:
     """The reference row's AEE per dt on the validation data (computed once, then read)."""
     key = {"data": spec.val_data, "dt": spec.val_dt, "windows": spec.val_windows, "reference": spec.reference}
     if campaign.reference_path.exists():
@@ -93,7 +94,7 @@ def reference(campaign: Campaign, spec: CampaignSpec, device: str, log) -> dict:
     log(f"[campaign] computing the reference row ({spec.reference}) on the validation data, once")
     start = time.time()
     flag = "--cmax" if spec.reference == "cmax" else "--zero"
-    results = _evaluate([flag, *_eval_data_args(spec)], campaign.work / "val" / "reference", device)
+    results = _evaluate([flag, *_eval_data_args(spec)], campaign.work / "val" / "reference", device, env)
     block = results if results["method"] != "model" else results["baselines"][spec.reference]
     sequences = {name: {k: v.get("aee") for k, v in seq.items() if k.startswith("dt")}
                  for name, seq in block["sequences"].items()}
@@ -103,12 +104,13 @@ def reference(campaign: Campaign, spec: CampaignSpec, device: str, log) -> dict:
     return stored
 
 
-def validate(campaign: Campaign, spec: CampaignSpec, weights: list[str], tag: str, device: str, log) -> dict:
+def validate(campaign: Campaign, spec: CampaignSpec, weights: list[str], tag: str, device: str, log,
+             env: dict | None = None) -> dict:
     """Score the weights (``--checkpoint PATH`` or ``--pretrained NAME``) on the validation data."""
-    ref = reference(campaign, spec, device, log)
+    ref = reference(campaign, spec, device, log, env)
     split = ["--split", spec.val_split] if spec.val_split else []
     results = _evaluate([*weights, "--name", "model", *split, *_eval_data_args(spec)], campaign.work / "val" / tag,
-                        device)
+                        device, env)
     block = results["baselines"][f"model + split {spec.val_split}"] if spec.val_split else results
     aee = _aee(block, spec.val_dt)
     score = sum(aee[k] / ref["aee"][k] for k in aee) / len(aee)
@@ -126,7 +128,7 @@ def mode_of(spec: CampaignSpec) -> str | None:
 
 
 def rescore_export(campaign: Campaign, spec: CampaignSpec, weights_dir: Path, here: str, progress: dict,
-                   device: str, log) -> None:
+                   device: str, log, env: dict | None = None) -> None:
     """When the campaign's score changed mode, its current export is scored in the new mode first,
     so that a later step is exported only when it beats the export in the same terms."""
     mode = mode_of(spec)
@@ -135,7 +137,8 @@ def rescore_export(campaign: Campaign, spec: CampaignSpec, weights_dir: Path, he
         return
     meta = weights_dir / f"{spec.export}.json"
     step = json.loads(meta.read_text()).get("validation", {}).get("step") if meta.exists() else None
-    row = validate(campaign, spec, ["--checkpoint", str(weights_dir / f"{spec.export}.pt")], "export", device, log)
+    row = validate(campaign, spec, ["--checkpoint", str(weights_dir / f"{spec.export}.pt")], "export", device, log,
+                   env)
     campaign.append_curve({"step": step, **row, "wall_h": round(progress.get("wall_s", 0.0) / 3600, 4),
                            "stretch": progress["stretches"], "machine": here,
                            "date": datetime.date.today().isoformat(), "exported": False,
@@ -225,7 +228,7 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
             child["proc"].send_signal(signal.SIGTERM)  # train.py finishes its step and saves
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    env = dict(os.environ)
+    env = dict(os.environ)  # of the children: training and validation run with the campaign's --threads
     if args.threads:
         env.update({k: str(args.threads) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")})
     weights_dir = Path(args.weights_dir) if args.weights_dir else ROOT / "agents" / "weights"
@@ -237,12 +240,12 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
         f"{ {'working': 'working checkpoint', 'state': 'committed state', 'fresh': 'start'}[source]}")
     if source == "fresh" and spec.init and spec.val_data and not campaign.curve():
         row = validate(campaign, spec, ["--pretrained", spec.init] if "/" not in spec.init and not spec.init.endswith(
-            ".pt") else ["--checkpoint", spec.init], "init", args.device, log)
+            ".pt") else ["--checkpoint", spec.init], "init", args.device, log, env)
         campaign.append_curve({"step": 0, **row, "wall_h": 0.0, "stretch": 0, "machine": here, "init": spec.init,
                                "date": datetime.date.today().isoformat()})
         log(f"[campaign] the initial weights ({spec.init}): score {row['score']:.4f} {row['aee']}")
     elif spec.val_data:
-        rescore_export(campaign, spec, weights_dir, here, progress, args.device, log)
+        rescore_export(campaign, spec, weights_dir, here, progress, args.device, log, env)
     deadline = time.time() + 3600 * args.hours if args.hours else float("inf")
     if args.minutes:
         deadline = min(deadline, time.time() + 60 * args.minutes)
@@ -268,7 +271,7 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
             step, total = int(payload["step"]), int(payload["config"]["steps"])
             if stop["signal"] is None and spec.val_data:
                 row = validate(campaign, spec, ["--checkpoint", str(campaign.checkpoint)], f"step{step}", args.device,
-                               log)
+                               log, env)
                 best = campaign.best(mode_of(spec))
                 improved = best is None or row["score"] < best["score"]
                 campaign.append_curve({"step": step, **row, "wall_h": round(progress["wall_s"] / 3600, 4),
