@@ -218,6 +218,24 @@ def test_a_score_in_the_shipped_mode_rescores_the_export_before_it_competes(reco
     assert threads == ["1"] * 4  # the reference (once), step 2, the rescored export, step 4: on the campaign's 1 thread
 
 
+def test_a_shipped_model_is_scored_in_the_mode_too(recording, tmp_path):
+    """The initial weights of a campaign are often a shipped model (``--pretrained NAME``, whose rows
+    evaluate.py names after it): with val_split its stepped row is found and scored as well."""
+    from evflow_cli.campaign import CampaignSpec
+
+    runs = tmp_path / "runs"
+    spec = CampaignSpec(name="c", export="c-model", train=[], val_data=[str(recording)], val_dt=[2],
+                        reference="zero", val_split="dt")
+    campaign = Campaign("c", tmp_path / "campaigns", runs)
+    campaign.dir.mkdir(parents=True)
+    row = campaign_script.validate(campaign, spec, ["--pretrained", "ev-mgrflownet-cpu-synthetic"], "init", "cpu",
+                                   print, {**os.environ, "OMP_NUM_THREADS": "1"})
+    results = json.loads((runs / "c" / "val" / "init" / "results.json").read_text())
+    stepped = results["baselines"]["ev-mgrflownet-cpu-synthetic (pretrained) + split dt"]["overall"]["dt2"]["aee"]
+    assert row["mode"] == "split dt" and row["aee"]["dt2"] == stepped
+    assert row["aee_one_pass"]["dt2"] == results["overall"]["dt2"]["aee"] != stepped
+
+
 def test_refusals(recording, tmp_path):
     with pytest.raises(SystemExit, match="--out"):
         campaign_script.main(["new", "c", "--campaigns-dir", str(tmp_path), "--export", "x", "--", "--out", "elsewhere"])

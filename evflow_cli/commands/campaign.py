@@ -111,7 +111,9 @@ def validate(campaign: Campaign, spec: CampaignSpec, weights: list[str], tag: st
     split = ["--split", spec.val_split] if spec.val_split else []
     results = _evaluate([*weights, "--name", "model", *split, *_eval_data_args(spec)], campaign.work / "val" / tag,
                         device, env)
-    block = results["baselines"][f"model + split {spec.val_split}"] if spec.val_split else results
+    block = results  # the first row: the weights one pass per window (named "model", or "NAME (pretrained)")
+    if spec.val_split:
+        block = next(row for name, row in results["baselines"].items() if name.endswith(f" + split {spec.val_split}"))
     aee = _aee(block, spec.val_dt)
     score = sum(aee[k] / ref["aee"][k] for k in aee) / len(aee)
     sequences = {name: {k: v.get("aee") for k, v in seq.items() if k.startswith("dt")}
