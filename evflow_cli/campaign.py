@@ -86,6 +86,11 @@ class CampaignSpec:
     def write(self, path: Path) -> None:
         _write_text(path, json.dumps(asdict(self), indent=1) + "\n")
 
+    @property
+    def mode(self) -> str | None:
+        """How the score runs the network (a curve row's ``mode``; None: one pass per window)."""
+        return f"split {self.val_split}" if self.val_split else None
+
 
 def _write_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)

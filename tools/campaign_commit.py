@@ -80,7 +80,7 @@ def commit_campaign(name: str, force: bool) -> None:
     paths += [f"agents/weights/{spec.export}{s}" for s in (".pt", ".json") if (ROOT / "agents" / "weights" /
                                                                              f"{spec.export}{s}").exists()]
     git("add", *paths)
-    best = campaign.best()
+    best = campaign.best(spec.mode)  # among the rows scored as the campaign scores now
     message = (f"campaign {name}: stretch {stretch}, step {campaign.state_step()}, "
                f"{progress.get('wall_s', 0) / 3600:.2f} training hours"
                + (f"; best validation {best['score']:.4f} at step {best['step']}" if best else ""))

@@ -120,20 +120,15 @@ def validate(campaign: Campaign, spec: CampaignSpec, weights: list[str], tag: st
                  for name, seq in block["sequences"].items()}
     row = {"score": round(score, 5), "aee": aee, "reference_aee": ref["aee"], "sequences": sequences}
     if spec.val_split:  # the one pass beside it, from the same run
-        row.update(mode=mode_of(spec), aee_one_pass=_aee(results, spec.val_dt))
+        row.update(mode=spec.mode, aee_one_pass=_aee(results, spec.val_dt))
     return row
-
-
-def mode_of(spec: CampaignSpec) -> str | None:
-    """How the campaign's score runs the network (a curve row's ``mode``; None: one pass)."""
-    return f"split {spec.val_split}" if spec.val_split else None
 
 
 def rescore_export(campaign: Campaign, spec: CampaignSpec, weights_dir: Path, here: str, progress: dict,
                    device: str, log, env: dict | None = None) -> None:
     """When the campaign's score changed mode, its current export is scored in the new mode first,
     so that a later step is exported only when it beats the export in the same terms."""
-    mode = mode_of(spec)
+    mode = spec.mode
     rows = campaign.curve()
     if not rows or any(r.get("mode") == mode for r in rows) or not (weights_dir / f"{spec.export}.pt").exists():
         return
@@ -274,7 +269,7 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
             if stop["signal"] is None and spec.val_data:
                 row = validate(campaign, spec, ["--checkpoint", str(campaign.checkpoint)], f"step{step}", args.device,
                                log, env)
-                best = campaign.best(mode_of(spec))
+                best = campaign.best(spec.mode)
                 improved = best is None or row["score"] < best["score"]
                 campaign.append_curve({"step": step, **row, "wall_h": round(progress["wall_s"] / 3600, 4),
                                        "stretch": progress["stretches"], "machine": here,
@@ -314,7 +309,7 @@ def export(campaign: Campaign, spec: CampaignSpec, row: dict, step: int, here: s
                        "score": row["score"], "aee": row["aee"], "reference_aee": row["reference_aee"],
                        "definition": f"mean over dt of AEE / the {spec.reference} row's AEE"
                                      + (f", the network run with --split {spec.val_split}" if spec.val_split else ""),
-                       "mode": mode_of(spec) or "one pass", "step": step},
+                       "mode": spec.mode or "one pass", "step": step},
     }
     export_pretrained(campaign.checkpoint, spec.export, provenance, directory=weights_dir)
 
@@ -373,7 +368,7 @@ def cmd_status(args) -> int:
     campaign = Campaign(args.name, args.campaigns_dir, args.runs)
     spec = campaign.spec()
     progress = campaign.progress()
-    best = campaign.best(mode_of(spec))
+    best = campaign.best(spec.mode)
     size = campaign.state_path.stat().st_size / 2**20 if campaign.state_path.exists() else 0.0
     pid_file = campaign.work / "campaign.pid"
     running = pid_file.exists() and _pid_alive(int(pid_file.read_text() or 0))
