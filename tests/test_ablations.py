@@ -6,7 +6,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -289,6 +291,41 @@ def test_a_stopped_stage_continues_on_a_fresh_clone_from_the_record(tmp_path, mo
     assert len(calls) == 1 and calls[0][0] == "--resume" and "finetune" in calls[0][calls[0].index("--out") + 1]
     assert [p[0] for p in rows[0]["validation"]] == [1, 2, 3, 4, 5]  # both stages, over the three machines
     assert not list((record / "unfinished").glob("*.pt"))  # the row replaces them
+
+
+def test_a_sigterm_to_the_runner_reaches_its_stage(tmp_path):
+    """``kill -TERM`` of the runner (a background run's pid) is passed on to the stage's process, which
+    saves and returns, so the runner can keep the stage; before, the runner alone ended and the
+    stage trained on unseen. The runner's own handlers are back afterwards."""
+    import signal
+    import threading
+
+    from evflow_cli.commands.ablations import run_stage
+
+    flag = tmp_path / "stage"
+    stage = ("import pathlib, signal, sys, time\n"
+             f"p = pathlib.Path({str(flag)!r})\n"
+             "signal.signal(signal.SIGTERM, lambda *a: (p.write_text('saved'), sys.exit(0)))\n"
+             "p.write_text('ready')\n"
+             "time.sleep(20)\n"
+             "p.write_text('trained on')\n")
+    reached_runner_only = []
+    outer = signal.signal(signal.SIGTERM, lambda *a: reached_runner_only.append(True))
+
+    def terminate_when_ready():
+        deadline = time.time() + 15
+        while time.time() < deadline and not (flag.exists() and flag.read_text() == "ready"):
+            time.sleep(0.02)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    try:
+        threading.Thread(target=terminate_when_ready, daemon=True).start()
+        run_stage([sys.executable, "-c", stage])
+        assert flag.read_text() == "saved" and not reached_runner_only
+        signal.getsignal(signal.SIGTERM)(signal.SIGTERM, None)  # the handler in place again is the caller's
+        assert reached_runner_only == [True]
+    finally:
+        signal.signal(signal.SIGTERM, outer)
 
 
 def test_solved_targets_are_kept_in_the_record_and_reused_by_a_new_machine(tmp_path, monkeypatch):

@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -79,6 +80,26 @@ def build_parser() -> argparse.ArgumentParser:
     return command_parser(AblationsOptions, __doc__, defaults={"device": default_device()})
 
 
+def run_stage(cmd: list[str], env: dict | None = None) -> None:
+    """Run a stage's process to its end; a SIGTERM or SIGINT that reaches the runner while it runs is
+    passed on to it (train.py then saves and returns, and the runner stops after it, keeping the
+    stage), instead of ending the runner alone and leaving the stage training on unseen."""
+    child = subprocess.Popen(cmd, env=env)
+
+    def forward(signum, _frame):
+        if child.poll() is None:
+            child.send_signal(signal.SIGTERM)
+
+    previous = {sig: signal.signal(sig, forward) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        code = child.wait()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if code != 0:
+        raise subprocess.CalledProcessError(code, cmd)
+
+
 def main(argv=None) -> int:
     args = options_from_args(AblationsOptions, build_parser().parse_args(argv))
     args.set_threads()
@@ -94,7 +115,7 @@ def main(argv=None) -> int:
         # each stage in its own process (as ship.py does): a stage run inside the runner's process
         # did not learn (docs/history/2026-12-02-round-10.md), the same options in a process of their own did
         env = {**os.environ, **({"OMP_NUM_THREADS": str(args.threads)} if args.threads else {})}
-        subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), *argv], check=True, env=env)
+        run_stage([sys.executable, str(ROOT / "scripts" / "train.py"), *argv], env)
 
     runner = AblationRunner(args.out, budget, train, seeds=tuple(args.seeds), only=args.only,
                             device=args.device, targets=targets, record=args.record, on_row=written,
