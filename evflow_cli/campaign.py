@@ -81,6 +81,8 @@ class CampaignSpec:
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"{path}: unknown field(s) {', '.join(unknown)}; fields: {', '.join(sorted(known))}")
+        if data.get("val_split") not in (None, "dt"):  # refused here, not after a stretch of training
+            raise ValueError(f"{path}: val_split must be \"dt\" or null, got {data['val_split']!r}")
         return cls(**data)
 
     def write(self, path: Path) -> None:

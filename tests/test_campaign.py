@@ -242,6 +242,13 @@ def test_refusals(recording, tmp_path):
     with pytest.raises(FileNotFoundError, match="no campaign 'nope'"):
         campaign_script.main(["resume", "nope", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")])
     _new(tmp_path, recording, 2)
+    spec_path = tmp_path / "c" / "campaign.json"
+    good = spec_path.read_text()
+    spec_path.write_text(json.dumps({**json.loads(good), "val_split": "4"}))
+    with pytest.raises(ValueError, match=r"campaign.json: val_split must be \"dt\" or null, got '4'"):
+        campaign_script.main(["resume", "c", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")])
+    assert not (tmp_path / "r" / "c" / "train").exists()  # refused before any training
+    spec_path.write_text(good)
     pid_file = tmp_path / "r" / "c" / "campaign.pid"
     pid_file.parent.mkdir(parents=True)
     pid_file.write_text(str(os.getppid()))  # a live process holds the campaign
