@@ -149,8 +149,9 @@ def main(argv=None) -> int:
         name = Path(data).name
         if DEFAULT_PRETRAINED in list_pretrained():
             info = pretrained_info(DEFAULT_PRETRAINED)
+            trained = info.get("budget", {}).get("optimizer_steps") or info.get("steps")  # a campaign's export: its step
             print(f"\n[main] 1/3 evaluating the shipped model {DEFAULT_PRETRAINED!r} ({info.get('date')}, "
-                  f"{info.get('budget', {}).get('optimizer_steps')} steps), alone and once per interval, zero flow"
+                  f"{trained} steps), alone and once per interval, zero flow"
                   f"{'' if args.no_cmax else ' and contrast maximisation'} on {data}", flush=True)
             rows_here = ["--pretrained", DEFAULT_PRETRAINED, "--split", "dt", "--zero", *rows]
         else:
