@@ -26,10 +26,14 @@ import torch
 
 from losses import CMAX_WEIGHTS, EventBatch, LossWeights, contrast_maximisation_flow
 
-__all__ = ["CMaxSettings", "ContrastMaximisationPolicy", "FRAME_US"]
+__all__ = ["CMaxSettings", "ContrastMaximisationPolicy", "EVIDENCE_PRIOR", "FRAME_US"]
 
 #: The step size is given per 30 Hz frame of window length: a longer window moves further.
 FRAME_US = 33_333
+
+#: ``CMaxSettings.evidence_prior`` as measured (docs/results.md, "Still scenes and the solve"):
+#: a window of 30,000 events is held to zero flow with weight 1.
+EVIDENCE_PRIOR = 30_000.0
 
 
 @dataclass(frozen=True)
@@ -45,6 +49,10 @@ class CMaxSettings:
     max_events: windows with more events are solved on an even subsample (cost bound).
     prior_weight: with a base flow (refinement), the weight of the residual's mean square in
     flow-scaling units (``losses.contrast_maximisation_flow``); 0: none.
+    evidence_prior: a prior toward the starting flow (zero flow, or the base) whose weight is
+    ``evidence_prior / events in the window`` (added to prior_weight): a window with few events
+    keeps still unless they demand motion; one with many is solved as without it. 0: none
+    (``EVIDENCE_PRIOR`` is the measured setting, docs/results.md).
     """
 
     grids: tuple[int, ...] = (4, 8, 16)
@@ -60,6 +68,7 @@ class CMaxSettings:
     flow_scaling: float = 32.0
     max_events: int = 60_000
     prior_weight: float = 0.0
+    evidence_prior: float = 0.0
 
     @property
     def weights(self) -> LossWeights:
@@ -75,6 +84,7 @@ class CMaxSettings:
         n = len(window["t"])
         if n == 0:
             return np.zeros((2, height, width), np.float32) if base is None else np.asarray(base, np.float32)
+        prior = (self.prior_weight if base is not None else 0.0) + self.evidence_prior / n
         if n > self.max_events:
             pick = np.linspace(0, n - 1, self.max_events).astype(np.int64)
             window = {**{k: np.asarray(window[k])[pick] for k in ("x", "y", "t", "p")},
@@ -85,7 +95,7 @@ class CMaxSettings:
         flow = contrast_maximisation_flow(
             batch, height, width, grids=self.grids, steps=self.steps, lr=self.lr_per_frame * frames,
             sensor_scales=self.sensor_scales, lr_decay=self.lr_decay, flow_scaling=self.flow_scaling,
-            weights=self.weights, base=offset, prior_weight=self.prior_weight if base is not None else 0.0,
+            weights=self.weights, base=offset, prior_weight=prior,
         )
         return flow[0].cpu().numpy().astype(np.float32)
 

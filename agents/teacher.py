@@ -73,11 +73,20 @@ class TeacherSettings:
     border_penalty: float = CMAX_WEIGHTS.border_penalty
     border_ramp: float = CMAX_WEIGHTS.border_ramp
     flow_scaling: float = 32.0  # the loss's smoothness normalisation (the training runs' value)
+    evidence_prior: float = 0.0  # a prior toward zero flow of weight evidence_prior / the window's events (agents.cmax.CMaxSettings)
 
     @property
     def weights(self) -> LossWeights:
         """The loss weights of the solve."""
         return LossWeights(self.lambda_1, self.lambda_2, self.alpha, self.border_penalty, self.border_ramp)
+
+    def describe(self) -> dict:
+        """The settings as a target file's config records them (no evidence prior: not named, as
+        in the files made before it existed)."""
+        out = asdict(self)
+        if not out["evidence_prior"]:
+            del out["evidence_prior"]
+        return out
 
 
 def _windows_of(env: EventFlowEnv, sequence: int) -> list[Window]:
@@ -125,7 +134,7 @@ def compute_teacher_targets(
     names = [source.name for source in resolve_data(data)]
     first_env = EventFlowEnv(data, window="frames", compute_reward=False, sequences=[0])
     config = {"format": FORMAT, "data": data if isinstance(data, str) else [str(d) for d in np.atleast_1d(data)],
-              "window_sizes": sizes, "sensor_size": list(first_env.sensor_size), **asdict(settings)}
+              "window_sizes": sizes, "sensor_size": list(first_env.sensor_size), **settings.describe()}
     if max_windows is not None:
         config["max_windows"] = int(max_windows)
     first_env.close()
@@ -180,7 +189,8 @@ def _solve_recording(data, index: int, name: str, sizes: list[int], settings: Te
         for start in range(0, len(windows), batch_size):
             chunk = windows[start : start + batch_size]
             batch = EventBatch.from_windows(chunk, device=device)
-            grids.extend(_solve_coarse(batch, H, W, settings, lr=settings.lr_per_frame * k))
+            counts = [len(w.events) for w in chunk]
+            grids.extend(_solve_coarse(batch, H, W, settings, lr=settings.lr_per_frame * k, counts=counts))
             if progress is not None:
                 progress(len(chunk), name)
         bounds += [[w.t_start, w.t_end] for w in windows]
@@ -291,12 +301,15 @@ def _replace_with(path: Path, write) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def _solve_coarse(batch: EventBatch, height: int, width: int, s: TeacherSettings, *, lr: float) -> torch.Tensor:
-    """(B, 2, gh, gw) the last level's coarse flow (its upsampling is the target)."""
+def _solve_coarse(batch: EventBatch, height: int, width: int, s: TeacherSettings, *, lr: float,
+                  counts: Sequence[int]) -> torch.Tensor:
+    """(B, 2, gh, gw) the last level's coarse flow (its upsampling is the target); counts: each
+    window's events (the evidence prior's weight)."""
+    prior = [s.evidence_prior / max(int(n), 1) for n in counts] if s.evidence_prior else 0.0
     flow = contrast_maximisation_flow(
         batch, height, width, grids=s.grids, steps=s.steps if isinstance(s.steps, int) else tuple(s.steps), lr=lr,
         flow_scaling=s.flow_scaling, weights=s.weights, return_coarse=True,
-        sensor_scales=s.sensor_scales, lr_decay=s.lr_decay,
+        sensor_scales=s.sensor_scales, lr_decay=s.lr_decay, prior_weight=prior,
     )
     return flow.cpu()
 

@@ -385,7 +385,7 @@ class AblationRunner:
 
     def _check_targets(self, path: Path, loss: Loss, settings: TeacherSettings) -> None:
         stored = TeacherTargets(path).config
-        wanted = json.loads(json.dumps({"data": self.budget.train_data, **dataclasses.asdict(settings)}))
+        wanted = json.loads(json.dumps({"data": self.budget.train_data, **settings.describe()}))
         differ = sorted(key for key in wanted if stored.get(key) != wanted[key])
         if not set(self.budget.teacher_window_sizes) <= set(stored.get("window_sizes", [])):
             differ.append("window_sizes")

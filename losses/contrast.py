@@ -46,7 +46,7 @@ def contrast_maximisation_flow(
     sensor_scales: Sequence[int] | None = None,
     lr_decay: float = 1.0,
     base: torch.Tensor | None = None,
-    prior_weight: float = 0.0,
+    prior_weight: float | Sequence[float] | torch.Tensor = 0.0,
 ) -> torch.Tensor:
     """(B, 2, height, width) flow in pixels per window minimising L_HMC of each window.
 
@@ -67,10 +67,11 @@ def contrast_maximisation_flow(
     base: optional (B, 2, height, width) flow in pixels that the grid is a residual on (the
     flow is ``base + upsampled grid``, the grid starting at zero), e.g. a network's prediction
     (test-time refinement keeps its detail and corrects it); default none.
-    prior_weight: with ``base``, adds ``prior_weight * mean(|residual| / flow_scaling)^2`` over the
-    grid's cells to each window's loss: a Gaussian prior that the base is right, so the solve
-    leaves it only where the loss gains more (the loss alone also rewards collapsing the events
-    of a still scene); 0: none.
+    prior_weight: adds ``prior_weight * mean(|grid| / flow_scaling)^2`` over the grid's cells to
+    each window's loss, the grid being the correction to ``base`` (or, without one, the flow
+    itself): a Gaussian prior that the base (or a still scene) is right, so the solve leaves it
+    only where the loss gains more (the loss alone also rewards collapsing the events of a still
+    scene); one weight for all windows or one per window ((B,) values); 0: none.
     """
     device = events.x.device
     B = events.x.shape[0]
@@ -83,8 +84,10 @@ def contrast_maximisation_flow(
     if base is not None and (return_coarse or tuple(base.shape) != (B, 2, height, width)):
         raise ValueError(f"base must be (B, 2, height, width) = {(B, 2, height, width)} and excludes return_coarse, "
                          f"got {tuple(base.shape)}")
-    if prior_weight < 0 or (prior_weight and base is None):
-        raise ValueError(f"prior_weight must be >= 0 and needs a base flow, got {prior_weight}")
+    prior = torch.as_tensor(prior_weight, dtype=torch.float32, device=device).reshape(-1)
+    if prior.numel() not in (1, B) or not bool(torch.isfinite(prior).all()) or bool((prior < 0).any()):
+        raise ValueError(f"prior_weight must be one finite weight >= 0 or one per window ({B}), got {prior_weight}")
+    prior = prior if bool(prior.any()) else None
     total = max(1, sum(per_level))
     coarse = None
     done = 0
@@ -116,8 +119,8 @@ def contrast_maximisation_flow(
                 if offset is not None:
                     flow = flow + offset
                 loss = window_loss(flow, level_events, zero_flow=zero, **level).per_sample.sum()
-                if prior_weight:
-                    loss = loss + prior_weight * (param / scaling).pow(2).sum(1).mean(dim=(1, 2)).sum()
+                if prior is not None:
+                    loss = loss + (prior * (param / scaling).pow(2).sum(1).mean(dim=(1, 2))).sum()
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()

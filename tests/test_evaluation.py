@@ -129,8 +129,9 @@ def test_a_strong_prior_holds_the_refinement_to_the_networks_flow(rng):
     moved = {w: np.abs(RefinedPolicy(_Constant(start), steps=60, prior_weight=w).act(obs, window)
                        - start).mean() for w in (0.0, 1e4)}
     assert moved[1e4] < 0.05 * moved[0.0] and moved[0.0] > 0.5  # held near the start, and free without
-    with pytest.raises(ValueError, match="prior_weight must be >= 0 and needs a base flow"):
-        contrast_maximisation_flow(EventBatch.from_windows([window]), 48, 64, prior_weight=1.0)
+    for bad in (-1.0, [1.0, 2.0], float("nan")):  # one window: one weight, finite, >= 0
+        with pytest.raises(ValueError, match="prior_weight must be one finite weight >= 0"):
+            contrast_maximisation_flow(EventBatch.from_windows([window]), 48, 64, prior_weight=bad)
 
 
 def test_the_acceptance_gate_keeps_the_refinement_only_where_the_loss_drops_enough(rng):
@@ -226,3 +227,37 @@ def test_the_time_per_window_leaves_out_each_sequences_warm_up_window(tmp_path, 
     path = write_translating_recording(tmp_path / "dots.h5", rng, sensor_size=(32, 32))
     (result,) = evaluate(SlowFirst(), str(path), progress=False, max_windows=4)
     assert result.windows == 4 and result.counts["ms"] == 3 and result.mean("ms") < 150
+
+
+def _noise_window(rng, n=600, size=(48, 64)):
+    """A still scene seen only through background activity: uniform events, true flow zero."""
+    t = np.sort(rng.integers(0, 33_333, n))
+    return {"x": rng.integers(0, size[1], n).astype(np.float32), "y": rng.integers(0, size[0], n).astype(np.float32),
+            "t": t.astype(np.int64), "p": rng.choice(np.array([-1, 1], np.int8), n), "t_start": 0, "t_end": 33_333}
+
+
+def test_the_evidence_prior_keeps_a_sparse_still_window_still_and_finds_a_dense_translation(rng):
+    """CMaxSettings.evidence_prior: the plain solve invents motion on 600 noise events (it lowers
+    the loss by collapsing them); held toward zero with weight C / 600 it stays many times nearer
+    zero. On the 10,000-event translation the same C (weight 3) still finds the motion."""
+    obs = {"count_image": np.zeros((2, 48, 64))}
+    noise = _noise_window(rng)
+    plain = np.abs(ContrastMaximisationPolicy().act(obs, noise)).mean()
+    held = np.abs(ContrastMaximisationPolicy(CMaxSettings(evidence_prior=30_000.0)).act(obs, noise)).mean()
+    assert plain > 0.3 and held < 0.2 * plain, (plain, held)
+    window, truth = _translation_window(rng)
+    flow = ContrastMaximisationPolicy(CMaxSettings(evidence_prior=30_000.0)).act(obs, window)
+    assert np.abs(flow.reshape(2, -1).mean(1) - truth).max() < 0.6
+
+
+def test_one_prior_weight_per_window_solves_each_window_as_alone(rng):
+    """A batch with prior weights (0, 10^4) gives each window the flow of its own solve with its
+    own weight (the windows do not share a weight)."""
+    window, _ = _translation_window(rng)
+    kwargs = dict(grids=(2, 4), steps=10, lr=0.3)
+    together = contrast_maximisation_flow(EventBatch.from_windows([window, window]), 48, 64, prior_weight=[0.0, 1e4],
+                                          **kwargs)
+    for i, weight in enumerate((0.0, 1e4)):
+        alone = contrast_maximisation_flow(EventBatch.from_windows([window]), 48, 64, prior_weight=weight, **kwargs)
+        assert torch.allclose(together[i], alone[0], atol=1e-4)
+    assert together[1].abs().mean() < 0.2 * together[0].abs().mean()  # the weight acts

@@ -226,3 +226,27 @@ def test_merged_targets_take_each_window_length_from_its_part(tmp_path):
     with pytest.raises(ValueError, match="more than one part"):
         merge_targets([(a, [2]), (b, [2])], tmp_path / "x.h5")
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_the_evidence_prior_weighs_each_window_by_its_events_and_is_recorded(tmp_path):
+    """TeacherSettings.evidence_prior: each stored window is the solver's flow with prior weight
+    C / that window's events (checked against a direct solve of one window), the file's config
+    names C, and a file without it names none (as the files made before it)."""
+    rec = write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(3), sensor_size=(24, 32))
+    free = dataclasses.replace(TINY, steps=20, lr_per_frame=0.3)
+    held = dataclasses.replace(free, evidence_prior=1e7)
+    out = compute_teacher_targets([rec], tmp_path / "held.h5", window_sizes=(2,), settings=held, batch_size=4)
+    plain = compute_teacher_targets([rec], tmp_path / "plain.h5", window_sizes=(2,), settings=free, batch_size=4)
+    assert TeacherTargets(out).config["evidence_prior"] == 1e7 and "evidence_prior" not in TeacherTargets(plain).config
+    env = EventFlowEnv(rec, window_size=2, compute_reward=False)
+    _, info = env.reset(options={"sequence": 0})
+    _, _, _, _, info = env.step(np.zeros((2, 24, 32), np.float32))
+    window = info["window"]
+    solve = dict(grids=free.grids, steps=free.steps, lr=2 * free.lr_per_frame, flow_scaling=free.flow_scaling,
+                 weights=free.weights)
+    direct = contrast_maximisation_flow(EventBatch.from_windows([window]), 24, 32,
+                                        prior_weight=1e7 / len(window.events), **solve)[0]
+    stored = TeacherTargets(out).target(info["sequence"], window.t_start, window.t_end)
+    unheld = TeacherTargets(plain).target(info["sequence"], window.t_start, window.t_end)
+    torch.testing.assert_close(stored, direct, rtol=1e-4, atol=1e-4)
+    assert unheld.abs().max() > 0.5 and stored.abs().max() < 0.3 * unheld.abs().max()  # the prior holds it

@@ -96,6 +96,8 @@ class EvaluateOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Prog
     """add the zero-flow baseline row"""
     cmax: bool = False
     """add per-window contrast maximisation (no network, no ground truth; agents/cmax.py)"""
+    cmax_prior: float | None = option(None, metavar="C", type=non_negative_float)
+    """also add the --cmax solve held toward zero flow with weight C / the window's events (30000 as measured: still, sparse windows stay still)"""
     refine: int | None = option(None, metavar="K", type=non_negative_int)
     """also evaluate each model with its flow refined by K contrast-maximisation steps"""
     refine_solver: Literal["fine", "cmax"] = "fine"
@@ -186,7 +188,7 @@ def dsec_sinks(args, protocol, policies: dict) -> dict:
 
 def build_policies(args) -> dict:
     """Row name -> policy (None: zero flow), in table order."""
-    from agents.cmax import ContrastMaximisationPolicy
+    from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
     from agents.wrappers.refine import RefinedPolicy
 
     policies: dict = {}
@@ -228,6 +230,9 @@ def build_policies(args) -> dict:
                                             prior_weight=args.refine_prior, accept=args.refine_accept)
     if args.cmax:
         policies["contrast maximisation (no network)"] = ContrastMaximisationPolicy(device=args.device)
+    if args.cmax_prior is not None:
+        policies[f"contrast maximisation, evidence prior {args.cmax_prior:g} (no network)"] = ContrastMaximisationPolicy(
+            CMaxSettings(evidence_prior=args.cmax_prior), device=args.device)
     if args.zero or not policies:
         policies["zero flow"] = None
     return policies

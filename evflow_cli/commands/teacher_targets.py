@@ -77,6 +77,8 @@ class TeacherTargetsOptions(WindowSize, DeviceOptions, Progress):
     """smoothness weight"""
     flow_scaling: float = option(TeacherSettings.flow_scaling, type=positive_float)
     """the loss's flow scaling"""
+    evidence_prior: float = option(0.0, metavar="C", type=non_negative_float)
+    """hold each window's solve toward zero flow with weight C / its events (agents/cmax.py; 30000 as measured): still, sparse windows stay still"""
     max_windows: int | None = option(None, type=positive_int)
     """only the first N windows of each recording and size (solving or --score; not for training)"""
     batch_size: int = option(16, type=positive_int)
@@ -125,6 +127,7 @@ def main(argv=None) -> int:
     steps = args.steps[0] if len(args.steps) == 1 else tuple(args.steps)
     settings = TeacherSettings(grids=tuple(args.grids), steps=steps, lr_per_frame=args.lr_per_frame,
                                lambda_2=args.lambda_2, flow_scaling=args.flow_scaling, lr_decay=args.lr_decay,
+                               evidence_prior=args.evidence_prior,
                                sensor_scales=None if args.sensor_scales is None else tuple(args.sensor_scales))
     total = count_windows(data, sizes, args.max_windows)
     bar = tqdm(total=total, unit="win", disable=args.no_progress)
