@@ -240,7 +240,8 @@ def test_bad_checkpoints_and_models_are_named(recording, tmp_path):
     train_script.main(["--data", str(recording), "--width", "4", "--num-envs", "1", "--unroll", "1", "--steps", "1",
                        "--out", str(run), "--val-data", "", "--no-progress"])
     with pytest.raises(CheckpointError, match="holds model 'ev-mgrflownet', not 'ev-flownet'"):
-        evaluate_script.main(["--checkpoint", str(run / "checkpoint.pt"), "--model", "ev-flownet", "--data", str(recording)])
+        evaluate_script.main(["--checkpoint", str(run / "checkpoint.pt"), "--model", "ev-flownet", "--data", str(recording),
+                              "--out", str(tmp_path / "ev")])  # never the checkout's runs/eval: it may exist
     payload = load_checkpoint(run / "checkpoint.pt")
     payload["model_config"]["base_width"] = 8  # weights of a width-4 net, config of a width-8 one
     save_checkpoint(tmp_path / "mismatch.pt", payload)
