@@ -36,6 +36,31 @@ FRAME_US = 33_333
 EVIDENCE_PRIOR = 30_000.0
 
 
+def check_solver_settings(settings, name: str) -> None:
+    """ValueError naming the field when a contrast-maximisation solve's settings cannot run
+    (``CMaxSettings``, ``agents.teacher.TeacherSettings``): found where they are made, not
+    after a run has started and written its configuration."""
+    levels = len(tuple(settings.grids))
+    if levels == 0 or any(int(g) < 1 for g in settings.grids):
+        raise ValueError(f"{name}: grids must be positive cell counts, got {settings.grids}")
+    per_level = isinstance(settings.steps, (tuple, list))
+    steps = tuple(settings.steps) if per_level else (settings.steps,)
+    if any(int(k) < 1 for k in steps) or (per_level and len(steps) != levels):
+        raise ValueError(f"{name}: steps must be one positive count or one per grid level ({levels}), "
+                         f"got {settings.steps}")
+    scales = settings.sensor_scales
+    if scales is not None and (len(tuple(scales)) != levels or any(int(v) < 1 for v in scales)):
+        raise ValueError(f"{name}: sensor_scales must be one positive factor per grid level ({levels}), got {scales}")
+    for field_name in ("lr_per_frame", "lr_decay", "flow_scaling"):
+        value = float(getattr(settings, field_name))
+        if not np.isfinite(value) or value <= 0:
+            raise ValueError(f"{name}: {field_name} must be a positive number, got {value}")
+    for field_name in ("evidence_prior", "prior_weight"):
+        value = float(getattr(settings, field_name, 0.0))
+        if not np.isfinite(value) or value < 0:
+            raise ValueError(f"{name}: {field_name} must be >= 0, got {value}")
+
+
 @dataclass(frozen=True)
 class CMaxSettings:
     """One per-window contrast-maximisation solve.
@@ -74,6 +99,11 @@ class CMaxSettings:
     def weights(self) -> LossWeights:
         """The loss weights of the solve."""
         return LossWeights(self.lambda_1, self.lambda_2, self.alpha, self.border_penalty, self.border_ramp)
+
+    def __post_init__(self) -> None:
+        check_solver_settings(self, "CMaxSettings")
+        if self.max_events < 1:
+            raise ValueError(f"CMaxSettings: max_events must be >= 1, got {self.max_events}")
 
     def solve(self, window: Mapping, size: tuple[int, int], base: np.ndarray | None = None,
               device: str | torch.device = "cpu") -> np.ndarray:

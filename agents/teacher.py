@@ -44,6 +44,7 @@ from envs.env import EventFlowEnv
 from envs.windows import Window, window_bounds
 from losses import CMAX_WEIGHTS, EventBatch, LossWeights, contrast_maximisation_flow
 
+from .cmax import check_solver_settings
 from .policy import ZeroFlowPolicy
 from .rollout import rollout
 
@@ -74,6 +75,9 @@ class TeacherSettings:
     border_ramp: float = CMAX_WEIGHTS.border_ramp
     flow_scaling: float = 32.0  # the loss's smoothness normalisation (the training runs' value)
     evidence_prior: float = 0.0  # a prior toward zero flow of weight evidence_prior / the window's events (agents.cmax.CMaxSettings)
+
+    def __post_init__(self) -> None:
+        check_solver_settings(self, "TeacherSettings")
 
     @property
     def weights(self) -> LossWeights:
@@ -241,11 +245,12 @@ def merge_targets(parts: Sequence[tuple[str | os.PathLike, Sequence[int]]], out:
     sizes_of: dict[str, tuple] = {}
     configs = []
     for path, sizes in parts:
-        TeacherTargets(path)  # refuses an incomplete or foreign file, naming it
+        config = TeacherTargets(path).config  # refuses an incomplete or foreign file, naming it
+        if configs and config["data"] != configs[0]["config"]["data"]:
+            raise ValueError(f"{path}: targets of data {config['data']!r}, the first part's are of "
+                             f"{configs[0]['config']['data']!r}")
+        configs.append({"source": Path(path).name, "window_sizes": sorted(int(k) for k in sizes), "config": config})
         with h5py.File(path, "r") as f:
-            config = json.loads(f.attrs["config"])
-            configs.append({"source": Path(path).name, "window_sizes": sorted(int(k) for k in sizes),
-                            "settings": config.get("settings"), "solved_sizes": config.get("window_sizes")})
             smallest = min(config["window_sizes"])
             for name, group in f.items():
                 b, g = group["bounds"][()], group["grid"][()].astype(np.float32)
@@ -260,8 +265,10 @@ def merge_targets(parts: Sequence[tuple[str | os.PathLike, Sequence[int]]], out:
                 sizes_of[name] = tuple(int(v) for v in group.attrs["sensor_size"])
                 bounds.setdefault(name, []).append(b[keep])
                 grids.setdefault(name, []).append(g[keep])
-            first = config
-    merged = {**first, "window_sizes": sorted({int(k) for _, sizes in parts for k in sizes}), "merged_from": configs}
+    first = configs[0]["config"]
+    # no solver settings at the top: each part keeps its own in merged_from (parts may be solved differently)
+    merged = {"format": FORMAT, "data": first["data"], "sensor_size": first["sensor_size"],
+              "window_sizes": sorted({int(k) for _, sizes in parts for k in sizes}), "merged_from": configs}
 
     def write(tmp: Path) -> None:
         with h5py.File(tmp, "w") as f:
@@ -345,20 +352,33 @@ class TeacherTargets:
     def __len__(self) -> int:
         return len(self._index)
 
-    def target(self, sequence: str, t_start: int, t_end: int, crop=None, flips=(False, False, False)) -> torch.Tensor:
-        """(2, h, w) float32 pixels per window: the target of one window in the env's frame.
+    def holds(self, sequence: str, t_start: int, t_end: int) -> bool:
+        """Whether the file has a target for the window ``[t_start, t_end)`` of ``sequence``."""
+        return (str(sequence), int(t_start), int(t_end)) in self._index
 
-        crop: ``(top, left, h, w)`` in the sensor frame (default: the whole frame); flips:
-        ``(h, v, p)`` as the env applied them (a polarity flip leaves the flow unchanged)."""
+    def grid(self, sequence: str, t_start: int, t_end: int) -> torch.Tensor:
+        """(2, gh, gw) the stored coarse grid of one window (pixels per window, sensor frame)."""
         key = (str(sequence), int(t_start), int(t_end))
         if key not in self._index:
             raise TeacherCacheError(
                 f"teacher targets {self.path}: no window [{t_start}, {t_end}) of recording {sequence!r} (the file "
                 f"holds data {self.config['data']!r} at window sizes {self.config['window_sizes']} frames); "
                 "make targets for the run's data and window sizes")
-        H, W = self._sizes.get(str(sequence), self.sensor_size)
+        return self._index[key]
+
+    def sensor_size_of(self, sequence: str) -> tuple[int, int]:
+        """(H, W) of one recording (the file's sensor size where it names none)."""
+        return self._sizes.get(str(sequence), self.sensor_size)
+
+    def target(self, sequence: str, t_start: int, t_end: int, crop=None, flips=(False, False, False)) -> torch.Tensor:
+        """(2, h, w) float32 pixels per window: the target of one window in the env's frame.
+
+        crop: ``(top, left, h, w)`` in the sensor frame (default: the whole frame); flips:
+        ``(h, v, p)`` as the env applied them (a polarity flip leaves the flow unchanged)."""
+        grid = self.grid(sequence, t_start, t_end)
+        H, W = self.sensor_size_of(sequence)
         top, left, h, w = (0, 0, H, W) if crop is None else (int(v) for v in crop)
-        flow = F.interpolate(self._index[key][None], size=(H, W), mode="bilinear", align_corners=False)[0]
+        flow = F.interpolate(grid[None], size=(H, W), mode="bilinear", align_corners=False)[0]
         flow = flow[:, top : top + h, left : left + w]
         if flips[0]:  # the env mirrors x -> w - 1 - x: the field mirrors and its x component flips sign
             flow = flow.flip(-1) * torch.tensor([-1.0, 1.0]).view(2, 1, 1)
@@ -407,8 +427,11 @@ def derive_targets(source: str | os.PathLike, out: str | os.PathLike, *, from_si
                 name, reader = data_source.name, data_source.reader()
                 long = window_bounds(reader, "frames", from_size)[:, :2]
                 partial = "max_windows" in src.config  # only the first long windows were solved
-                long = long[[(name, int(a), int(b)) in src._index for a, b in long]] if partial else long
-                grids = torch.stack([src._index[(name, int(a), int(b))] for a, b in long])
+                long = long[[src.holds(name, a, b) for a, b in long]] if partial else long
+                if len(long) == 0:
+                    raise TeacherCacheError(f"teacher targets {src.path}: recording {name!r} has no {from_size}-frame "
+                                            "window to derive from (shorter than one, or none solved)")
+                grids = torch.stack([src.grid(name, a, b) for a, b in long])
                 velocity = grids / torch.from_numpy((long[:, 1] - long[:, 0]).astype(np.float32)).view(-1, 1, 1, 1)
                 if smooth:
                     weights = torch.tensor([smooth + 1 - abs(d) for d in range(-smooth, smooth + 1)], dtype=torch.float32)
@@ -427,7 +450,7 @@ def derive_targets(source: str | os.PathLike, out: str | os.PathLike, *, from_si
                         out_grids.append((w * velocity).sum(0) * (t1 - t0))
                         bounds.append([t0, t1])
                 group = f.create_group(name)
-                group.attrs["sensor_size"] = src._sizes.get(name, src.sensor_size)
+                group.attrs["sensor_size"] = src.sensor_size_of(name)
                 group["bounds"] = np.array(bounds, np.int64).reshape(-1, 2)
                 group["grid"] = torch.stack(out_grids).numpy().astype(np.float32)
             f.attrs["complete"] = True

@@ -386,12 +386,16 @@ class AblationRunner:
     def _check_targets(self, path: Path, loss: Loss, settings: TeacherSettings) -> None:
         stored = TeacherTargets(path).config
         wanted = json.loads(json.dumps({"data": self.budget.train_data, **settings.describe()}))
-        differ = sorted(key for key in wanted if stored.get(key) != wanted[key])
+        differ = {key for key in wanted if stored.get(key) != wanted[key]}
+        if float(stored.get("evidence_prior", 0.0)) != float(settings.evidence_prior):  # 0 is not recorded
+            differ.add("evidence_prior")
         if not set(self.budget.teacher_window_sizes) <= set(stored.get("window_sizes", [])):
-            differ.append("window_sizes")
-        if differ:
+            differ.add("window_sizes")
+        found = [f"{key}={stored.get(key)!r}" for key in sorted(differ)]
+        found += [f"{key} (not solved with one setting)" for key in ("derived", "merged_from") if key in stored]
+        if found:
             raise ValueError(f"{path}: not the {loss} teacher's targets this budget asks for (differs in "
-                             f"{', '.join(differ)}: {', '.join(f'{k}={stored.get(k)!r}' for k in differ)})")
+                             f"{', '.join(found)})")
 
     def kept_state(self, folder: Path) -> Path:
         """Where the record keeps the slim state of the stage trained in ``folder``

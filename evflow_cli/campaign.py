@@ -279,12 +279,19 @@ def plot_curve(rows: list[dict], path: Path, title: str) -> Path | None:
     rows = [r for r in rows if r.get("score") is not None]
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     steps = [r["step"] for r in rows]
-    axes[0].plot(steps, [r["score"] for r in rows], "o-", color="k", label="score")
+    modes = list(dict.fromkeys(r.get("mode") for r in rows))  # scores of different modes: separate lines
+    for mode, style in zip(modes, ("o-", "s--", "^-.", "v:")):
+        part = [r for r in rows if r.get("mode") == mode]
+        label = "one pass" if mode is None else mode
+        axes[0].plot([r["step"] for r in part], [r["score"] for r in part], style, color="k", label=f"score, {label}")
+        for key in sorted({k for r in part for k in r.get("aee", {})}):
+            axes[1].plot([r["step"] for r in part], [r["aee"].get(key) for r in part], style,
+                         label=f"model {key}, {label}")
     axes[0].axhline(1.0, color="grey", lw=0.8, ls="--")
     axes[0].set_xlabel("optimizer step")
     axes[0].set_ylabel("AEE / reference AEE (mean over dt)")
+    axes[0].legend(fontsize=7)
     for key in sorted({k for r in rows for k in r.get("aee", {})}):
-        axes[1].plot(steps, [r["aee"].get(key) for r in rows], "o-", label=f"model {key}")
         axes[1].plot(steps, [r.get("reference_aee", {}).get(key) for r in rows], ":", label=f"reference {key}")
     axes[1].set_xlabel("optimizer step")
     axes[1].set_ylabel("mean AEE (px)")

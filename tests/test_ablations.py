@@ -400,3 +400,27 @@ def test_the_stages_are_the_recipe_of_main_py():
     assert differ == {"teacher_cache", "steps", "decay", "warmup_steps"}
     recipe, ours = config(main_script.HMC_STAGE), config(budget.finetune_options("hmc", Path("teacher.pt")))
     assert {key for key in recipe if recipe[key] != ours[key]} == {"steps"}
+
+
+def test_targets_solved_otherwise_are_refused_even_where_the_recorded_keys_agree(tmp_path):
+    """A file solved with the evidence prior (not named by files without it) or derived from
+    other windows is not the budget's teacher, though every key the budget names matches."""
+    from agents.teacher import compute_teacher_targets, derive_targets
+
+    settings = dataclasses.replace(TINY.teacher, evidence_prior=5.0)
+    held = compute_teacher_targets(TINY.train_data, tmp_path / "held.h5", window_sizes=(1, 2), settings=settings,
+                                   max_windows=2)
+    runner = AblationRunner(tmp_path / "run", TINY, lambda argv: pytest.fail("trained"), seeds=(0,),
+                            log=lambda _: None, targets={"hmc": str(held)})
+    with pytest.raises(ValueError, match=r"held.h5: not the hmc teacher's targets .*evidence_prior=5.0"):
+        runner.targets("hmc")
+    plain = compute_teacher_targets(TINY.train_data, tmp_path / "plain.h5", window_sizes=(1, 2),
+                                    settings=TINY.teacher, max_windows=2)
+    derived = derive_targets(plain, tmp_path / "derived.h5", from_size=2, window_sizes=(1,))
+    runner = AblationRunner(tmp_path / "run", TINY, lambda argv: pytest.fail("trained"), seeds=(0,),
+                            log=lambda _: None, targets={"hmc": str(derived)})
+    with pytest.raises(ValueError, match=r"derived \(not solved with one setting\)"):
+        runner.targets("hmc")
+    ok = AblationRunner(tmp_path / "run", TINY, lambda argv: pytest.fail("trained"), seeds=(0,),
+                        log=lambda _: None, targets={"hmc": str(plain)})
+    assert ok.targets("hmc") == plain  # the budget's own settings pass

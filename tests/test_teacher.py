@@ -12,6 +12,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from agents.cmax import CMaxSettings
+from agents.policy import ZeroFlowPolicy
+from agents.rollout import rollout
 from agents.teacher import (
     FORMAT,
     TeacherCacheError,
@@ -24,10 +27,13 @@ from agents.teacher import (
     score_targets,
 )
 from envs.env import EventFlowEnv
+from envs.events import Events
+from envs.readers.h5 import write_h5
 from losses import EventBatch, contrast_maximisation_flow
-from tests.recordings import write_translating_recording
+from tests.recordings import translating_dots, write_translating_recording
 
 ROOT = Path(__file__).resolve().parents[1]
+from evflow_cli.commands import teacher_targets as teacher_targets_command  # noqa: E402
 from evflow_cli.commands import train as train_script  # noqa: E402
 
 TINY = TeacherSettings(grids=(2, 4), steps=3)
@@ -250,3 +256,88 @@ def test_the_evidence_prior_weighs_each_window_by_its_events_and_is_recorded(tmp
     unheld = TeacherTargets(plain).target(info["sequence"], window.t_start, window.t_end)
     torch.testing.assert_close(stored, direct, rtol=1e-4, atol=1e-4)
     assert unheld.abs().max() > 0.5 and stored.abs().max() < 0.3 * unheld.abs().max()  # the prior holds it
+
+
+def _dense_then_sparse_recording(path: Path, keep_every: int = 8) -> Path:
+    """Translating dots whose second half keeps one event in ``keep_every``: windows of the same
+    motion with about ``keep_every`` times fewer events."""
+    events, (t0, t1) = translating_dots(np.random.default_rng(7), sensor_size=(24, 32))
+    index = np.arange(len(events.t))
+    keep = (events.t < (t0 + t1) // 2) | (index % keep_every == 0)
+    events = Events.create(events.x[keep], events.y[keep], events.t[keep], events.p[keep], events.sensor_size)
+    grid = np.arange(t0, t1 + 1, 30_000)
+    flows = [(int(a), int(b), np.stack([np.full((24, 32), 200.0 * (b - a) / 1e6, np.float32),
+                                        np.full((24, 32), -100.0 * (b - a) / 1e6, np.float32)]), np.ones((24, 32), bool))
+             for a, b in zip(grid[:-1], grid[1:])]
+    return write_h5(path, events, flows=flows, t_start_us=t0, t_end_us=t1, name=path.stem)
+
+
+def test_each_window_of_a_batch_has_its_own_evidence_prior_weight(tmp_path):
+    """Dense and sparse windows solved in one batch: each stored target is the direct solve of
+    that window alone with weight C / its own events, not one weight shared by the batch."""
+    rec = _dense_then_sparse_recording(tmp_path / "dots.h5")
+    settings = dataclasses.replace(TINY, steps=20, lr_per_frame=0.3, evidence_prior=3000.0)
+    out = compute_teacher_targets([rec], tmp_path / "held.h5", window_sizes=(2,), settings=settings, batch_size=16)
+    targets = TeacherTargets(out)
+    env = EventFlowEnv(rec, window_size=2, compute_reward=False)
+    windows = [step.window for step in rollout(ZeroFlowPolicy(), env, options={"sequence": 0})]
+    counts = [len(w.events) for w in windows]
+    assert len(windows) >= 4 and max(counts) > 5 * min(counts)  # dense and sparse in the one batch
+    solve = dict(grids=settings.grids, steps=settings.steps, lr=2 * settings.lr_per_frame,
+                 flow_scaling=settings.flow_scaling, weights=settings.weights)
+    shared = settings.evidence_prior / np.mean(counts)
+    for window, n in zip(windows, counts):
+        direct = contrast_maximisation_flow(EventBatch.from_windows([window]), 24, 32,
+                                            prior_weight=settings.evidence_prior / n, **solve)[0]
+        stored = targets.target("dots", window.t_start, window.t_end)
+        torch.testing.assert_close(stored, direct, rtol=1e-4, atol=1e-4)
+        if n == min(counts):  # the sparse window: the batch's mean weight would give another flow
+            other = contrast_maximisation_flow(EventBatch.from_windows([window]), 24, 32, prior_weight=shared,
+                                               **solve)[0]
+            assert (other - direct).abs().max() > 1e-2
+
+
+def test_merged_targets_keep_each_parts_settings_and_refuse_other_data(tmp_path):
+    rec = write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(5), sensor_size=(24, 32))
+    other = write_translating_recording(tmp_path / "other.h5", np.random.default_rng(6), sensor_size=(24, 32))
+    a = compute_teacher_targets([rec], tmp_path / "a.h5", window_sizes=(1,), settings=TINY, max_windows=2)
+    held = dataclasses.replace(TINY, evidence_prior=10.0)
+    b = compute_teacher_targets([rec], tmp_path / "b.h5", window_sizes=(2,), settings=held, max_windows=2)
+    config = TeacherTargets(merge_targets([(a, [1]), (b, [2])], tmp_path / "m.h5")).config
+    assert [part["config"].get("evidence_prior") for part in config["merged_from"]] == [None, 10.0]
+    assert [part["config"]["window_sizes"] for part in config["merged_from"]] == [[1], [2]]
+    assert "evidence_prior" not in config and "grids" not in config  # no one solver's settings claimed for all
+    c = compute_teacher_targets([other], tmp_path / "c.h5", window_sizes=(2,), settings=TINY, max_windows=2)
+    with pytest.raises(ValueError, match="targets of data"):
+        merge_targets([(a, [1]), (c, [2])], tmp_path / "x.h5")
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_deriving_from_a_file_that_lacks_long_windows_names_it(tmp_path):
+    rec = write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(8), sensor_size=(24, 32))
+    solved = compute_teacher_targets([rec], tmp_path / "solved.h5", window_sizes=(1, 2), settings=TINY)
+    with h5py.File(solved, "r+") as f:  # the 2-frame windows of the recording lost
+        bounds, grid = f["dots/bounds"][()], f["dots/grid"][()]
+        short = bounds[:, 1] - bounds[:, 0] == (bounds[:, 1] - bounds[:, 0]).min()
+        del f["dots/bounds"], f["dots/grid"]
+        f["dots/bounds"], f["dots/grid"] = bounds[short], grid[short]
+    with pytest.raises(TeacherCacheError, match=r"solved.h5: no window \[.*of recording 'dots'"):
+        derive_targets(solved, tmp_path / "d.h5", from_size=2, window_sizes=(1,))
+    assert not (tmp_path / "d.h5").exists()
+
+
+@pytest.mark.parametrize("field, value", [("evidence_prior", -1.0), ("steps", (3,)), ("grids", ()),
+                                          ("lr_per_frame", 0.0), ("sensor_scales", (2, 1, 1, 1))])
+def test_solver_settings_that_cannot_run_are_refused_where_they_are_made(field, value):
+    with pytest.raises(ValueError, match=field):
+        dataclasses.replace(TINY, **{field: value})
+    with pytest.raises(ValueError, match=field):
+        dataclasses.replace(CMaxSettings(), **{field: value})
+
+
+def test_solver_options_without_a_solve_are_an_error(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        teacher_targets_command.main(["--derive-from", str(tmp_path / "a.h5"), "--evidence-prior", "3",
+                                      "--out", str(tmp_path / "d.h5")])
+    assert "--evidence-prior set the solve, which --derive-from does not run" in capsys.readouterr().err
+    assert not (tmp_path / "d.h5").exists()

@@ -37,6 +37,7 @@ import torch  # noqa: E402
 from agents.cmax import ContrastMaximisationPolicy  # noqa: E402
 from agents.evaluation import evaluate  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
+from envs.atomic import temporary_path  # noqa: E402
 from envs.representations import EventView, event_mask  # noqa: E402
 from envs.simulator.scene import Scene  # noqa: E402
 from losses import flow_error  # noqa: E402
@@ -80,13 +81,20 @@ def make_scorer(rows: list, probes: int):
 
 
 def summarise(rows: list) -> dict:
-    a = np.array([r[1:] for r in rows], np.float64).sum(0) if rows else np.zeros(6)
-    n_k, e_k, g_k, n_c, e_c, g_c = a
-    n = max(n_k + n_c, 1.0)
-    return {"pixels": int(n_k + n_c), "changed_pct": 100 * n_c / n, "aee": (e_k + e_c) / n,
-            "aee_kept": e_k / max(n_k, 1.0), "aee_changed": e_c / max(n_c, 1.0) if n_c else None,
-            "zero_kept": g_k / max(n_k, 1.0), "zero_changed": g_c / max(n_c, 1.0) if n_c else None,
-            "error_on_changed_pct": 100 * e_c / max(e_k + e_c, 1e-12)}
+    """Pixels and AEE over ``rows`` (a scorer's: name, then count, error sum and zero flow's error
+    sum on the kept and on the changed pixels), split kept / changed; None where a part has no pixel."""
+    totals = np.array([r[1:] for r in rows], np.float64).sum(0) if rows else np.zeros(6)
+    kept_px, kept_err, kept_zero, changed_px, changed_err, changed_zero = totals
+    pixels = kept_px + changed_px
+
+    def mean(total: float, count: float) -> float | None:
+        return total / count if count else None
+
+    return {"pixels": int(pixels), "changed_pct": mean(100 * changed_px, pixels),
+            "aee": mean(kept_err + changed_err, pixels),
+            "aee_kept": mean(kept_err, kept_px), "aee_changed": mean(changed_err, changed_px),
+            "zero_kept": mean(kept_zero, kept_px), "zero_changed": mean(changed_zero, changed_px),
+            "error_on_changed_pct": mean(100 * changed_err, kept_err + changed_err)}
 
 
 def fmt(v, digits=3) -> str:
@@ -118,9 +126,9 @@ def main(argv=None) -> int:
             per[name] = {"all": summarise(rows),
                          "sequences": {s: summarise([r for r in rows if r[0] == s]) for s in dict.fromkeys(r[0] for r in rows)}}
             o = per[name]["all"]
-            print(f"[{args.data} dt={dt}] {name}: AEE {o['aee']:.3f} (kept pixels {o['aee_kept']:.3f}, changed "
-                  f"{fmt(o['aee_changed'])}; {o['changed_pct']:.1f} % of pixels changed, "
-                  f"{o['error_on_changed_pct']:.1f} % of the error there)", flush=True)
+            print(f"[{args.data} dt={dt}] {name}: AEE {fmt(o['aee'])} (kept pixels {fmt(o['aee_kept'])}, changed "
+                  f"{fmt(o['aee_changed'])}; {fmt(o['changed_pct'], 1)} % of pixels changed, "
+                  f"{fmt(o['error_on_changed_pct'], 1)} % of the error there)", flush=True)
         report[f"dt{dt}"] = per
         names = [m for m in methods if m != ZERO]
         head = ["sequence", "changed px %", "zero kept", "zero changed"] + [
@@ -138,8 +146,11 @@ def main(argv=None) -> int:
         print("\n".join(lines[-(len(per[ZERO]["sequences"]) + 6):]), flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"data": args.data, "max_windows": args.max_windows, **report}, indent=1) + "\n")
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    for path, text in ((out, json.dumps({"data": args.data, "max_windows": args.max_windows, **report}, indent=1)),
+                       (out.with_suffix(".md"), "\n".join(lines))):
+        tmp = temporary_path(path)  # whole files or none
+        tmp.write_text(text + "\n")
+        os.replace(tmp, path)
     print(f"wrote {out} and {out.with_suffix('.md')}")
     return 0
 

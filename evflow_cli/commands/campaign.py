@@ -113,7 +113,11 @@ def validate(campaign: Campaign, spec: CampaignSpec, weights: list[str], tag: st
                         device, env)
     block = results  # the first row: the weights one pass per window (named "model", or "NAME (pretrained)")
     if spec.val_split:
-        block = next(row for name, row in results["baselines"].items() if name.endswith(f" + split {spec.val_split}"))
+        block = next((row for name, row in results["baselines"].items() if name.endswith(f" + split {spec.val_split}")),
+                     None)
+        if block is None:
+            raise RuntimeError(f"campaign {spec.name}: the validation run has no '+ split {spec.val_split}' row "
+                               f"(rows: {', '.join(results['baselines'])})")
     aee = _aee(block, spec.val_dt)
     score = sum(aee[k] / ref["aee"][k] for k in aee) / len(aee)
     sequences = {name: {k: v.get("aee") for k, v in seq.items() if k.startswith("dt")}

@@ -89,10 +89,25 @@ def build_parser() -> argparse.ArgumentParser:
     return command_parser(TeacherTargetsOptions, __doc__)
 
 
+#: the options of a solve: without one (--score, --merge, --derive-from) giving them is a mistake
+SOLVER_OPTIONS = ("grids", "steps", "sensor_scales", "lr_decay", "lr_per_frame", "lambda_2", "flow_scaling",
+                  "evidence_prior", "batch_size")
+
+
+def _misplaced_solver_options(args: TeacherTargetsOptions) -> list[str]:
+    """The solver options set away from their defaults when the command solves nothing."""
+    defaults = TeacherTargetsOptions(out=args.out)
+    return [f"--{name.replace('_', '-')}" for name in SOLVER_OPTIONS if getattr(args, name) != getattr(defaults, name)]
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = options_from_args(TeacherTargetsOptions, parser.parse_args(argv))
     args.set_threads()
+    mode = "--score" if args.score else "--merge" if args.merge else "--derive-from" if args.derive_from else None
+    if mode and _misplaced_solver_options(args):
+        parser.error(f"{', '.join(_misplaced_solver_options(args))} set the solve, which {mode} does not run "
+                     "(derived and merged targets keep their sources' settings)")
     if args.score:
         from agents.teacher import score_targets
 
