@@ -45,8 +45,8 @@ def check_solver_settings(settings, name: str) -> None:
         raise ValueError(f"{name}: grids must be positive cell counts, got {settings.grids}")
     per_level = isinstance(settings.steps, (tuple, list))
     steps = tuple(settings.steps) if per_level else (settings.steps,)
-    if any(int(k) < 1 for k in steps) or (per_level and len(steps) != levels):
-        raise ValueError(f"{name}: steps must be one positive count or one per grid level ({levels}), "
+    if any(int(k) < 0 for k in steps) or (per_level and len(steps) != levels):
+        raise ValueError(f"{name}: steps must be one count >= 0 or one per grid level ({levels}), "
                          f"got {settings.steps}")
     scales = settings.sensor_scales
     if scales is not None and (len(tuple(scales)) != levels or any(int(v) < 1 for v in scales)):

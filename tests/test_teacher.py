@@ -326,7 +326,7 @@ def test_deriving_from_a_file_that_lacks_long_windows_names_it(tmp_path):
     assert not (tmp_path / "d.h5").exists()
 
 
-@pytest.mark.parametrize("field, value", [("evidence_prior", -1.0), ("steps", (3,)), ("grids", ()),
+@pytest.mark.parametrize("field, value", [("evidence_prior", -1.0), ("steps", (3,)), ("steps", -1), ("grids", ()),
                                           ("lr_per_frame", 0.0), ("sensor_scales", (2, 1, 1, 1))])
 def test_solver_settings_that_cannot_run_are_refused_where_they_are_made(field, value):
     with pytest.raises(ValueError, match=field):
