@@ -1,23 +1,16 @@
 """tools/average_weights.py: the averaged network is the (weighted) mean of its sources'
 parameters, loads as a checkpoint, and networks that differ are refused by name."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 import torch
 
 from agents.checkpoint import load_checkpoint, save_checkpoint
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("average_weights", ROOT / "tools" / "average_weights.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("tools/average_weights.py")
 
 
 def _checkpoint(path, step, scale, name="ev-flownet", extra=None):

@@ -1,20 +1,14 @@
 """tools/occlusion_share.py: the split of the AEE into pixels that keep their scene layer and
 pixels that change it, summed over windows."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def occlusion_share():
-    spec = importlib.util.spec_from_file_location("occlusion_share", ROOT / "tools" / "occlusion_share.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("tools/occlusion_share.py")
 
 
 def test_the_split_is_pooled_over_windows_by_pixel(occlusion_share):
