@@ -117,20 +117,17 @@ def test_an_interrupted_prediction_leaves_no_file(tmp_path, plugin_path, monkeyp
 
 
 def test_predict_script_on_a_prophesee_file_with_per_event_flow(tmp_path, plugin_path, monkeypatch, rng):
-    import importlib.util
     import json
-    from pathlib import Path
 
     from test_prophesee import evt3_words, raw_header, sorted_events, write
 
     from envs.readers import open_recording
+    from tests.conftest import load_script
 
     monkeypatch.setenv("EVFLOW_CACHE", str(tmp_path / "cache"))
     x, y, t, p = sorted_events(rng, 5000, (48, 64), 1_000, 300_000, clustered=True)
     raw = write(tmp_path / "cam.raw", raw_header("EVT3", (48, 64)), evt3_words(x, y, t, p)[0])
-    spec = importlib.util.spec_from_file_location("predict_script", Path(__file__).parents[1] / "scripts" / "predict.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("scripts/predict.py")
     out = tmp_path / "out" / "cam.flow.h5"
     assert script.main([str(raw), "--model", "plugin_example.tiny_flow:build", "--out", str(out), "--per-event",
                         "--window", "time", "--window-size", "25000", "--start", "0.05", "--json",

@@ -610,12 +610,9 @@ def test_convert_to_project_h5(tmp_path, mvsec_file):
 
 
 def test_convert_script_detects_the_format_and_writes_atomically(tmp_path, rng, capsys):
-    import importlib.util
-    from pathlib import Path
+    from tests.conftest import load_script
 
-    spec = importlib.util.spec_from_file_location("convert_script", Path(__file__).parents[1] / "scripts" / "convert.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("scripts/convert.py")
     x, y, t, p = _stream(rng, 3_000, (20, 30), 200_000)
     grid = np.arange(0, 200_001, 50_000)
     flows = [("flow_dt1", int(g), np.ones((2, 20, 30))) for g in grid]

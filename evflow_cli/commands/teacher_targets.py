@@ -105,8 +105,9 @@ def main(argv=None) -> int:
     args = options_from_args(TeacherTargetsOptions, parser.parse_args(argv))
     args.set_threads()
     mode = "--score" if args.score else "--merge" if args.merge else "--derive-from" if args.derive_from else None
-    if mode and _misplaced_solver_options(args):
-        parser.error(f"{', '.join(_misplaced_solver_options(args))} set the solve, which {mode} does not run "
+    misplaced = _misplaced_solver_options(args) if mode else []
+    if misplaced:
+        parser.error(f"{', '.join(misplaced)} set the solve, which {mode} does not run "
                      "(derived and merged targets keep their sources' settings)")
     if args.score:
         from agents.teacher import score_targets
