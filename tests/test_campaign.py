@@ -236,6 +236,45 @@ def test_a_shipped_model_is_scored_in_the_mode_too(recording, tmp_path):
     assert row["aee_one_pass"]["dt2"] == results["overall"]["dt2"]["aee"] != stepped
 
 
+def test_anneal_continues_the_recipe_from_the_export_with_a_decaying_step_size(recording, tmp_path):
+    """``anneal NAME`` describes a new campaign: NAME's recipe (its steps, warm-up and decay replaced
+    in either spelling), from NAME's export, validated against the same reference; resumed, its step
+    size rises over the warm-up and falls along a cosine to zero."""
+    root, runs = tmp_path / "campaigns", tmp_path / "runs"
+    campaign_script.main(["new", "c", "--campaigns-dir", str(root), "--export", "c-model", "--val-data",
+                          str(recording), "--val-dt", "1", "--reference", "zero", "--interval-minutes", "10", "--",
+                          *_recipe(recording, 2), "--warmup-steps=7"])
+    weights = ["--weights-dir", str(root / "weights")]
+    with pytest.raises(SystemExit, match="no export yet"):
+        campaign_script.main(["anneal", "c", "--campaigns-dir", str(root), *weights])
+    assert _resume(root, runs) == 0
+    assert campaign_script.main(["anneal", "c", "--campaigns-dir", str(root), *weights, "--steps", "4",
+                                 "--warmup-steps", "2", "--lr", "5e-4"]) == 0
+    spec = json.loads((root / "c-cooldown" / "campaign.json").read_text())
+    recipe = spec["train"]
+    assert spec["export"] == "c-model-cooldown" and spec["init"] == str(root / "weights" / "c-model.pt")
+    assert sorted(a for a in recipe if a.startswith(("--steps", "--warmup-steps", "--decay", "--lr"))) == \
+        ["--decay", "--lr", "--steps", "--warmup-steps"]  # each once: replaced, not repeated
+    assert recipe[recipe.index("--steps") + 1] == "4" and float(recipe[recipe.index("--lr") + 1]) == 5e-4
+    assert recipe[recipe.index("--warmup-steps") + 1] == "2" and recipe[recipe.index("--decay") + 1] == "cosine"
+    assert (root / "c-cooldown" / "reference.json").read_bytes() == (root / "c" / "reference.json").read_bytes()
+    with pytest.raises(SystemExit, match="exists"):
+        campaign_script.main(["anneal", "c", "--campaigns-dir", str(root), *weights])
+    with pytest.raises(SystemExit, match="a name of its own"):
+        campaign_script.main(["anneal", "c", "--into", "c", "--campaigns-dir", str(root), *weights])
+    assert campaign_script.main(["resume", "c-cooldown", "--campaigns-dir", str(root), "--runs", str(runs), "--quiet",
+                                 "--threads", "1", *weights]) == 0
+    rows = [json.loads(line) for line in (runs / "c-cooldown" / "train" / "metrics.jsonl").read_text().splitlines()]
+    lrs = [row["lr"] for row in rows if "lr" in row]
+    # the step size of update k (0-based): 5e-4 * min(1, (k + 1) / 2) * (1 + cos(pi k / 4)) / 2; the row
+    # of step s logs the one the scheduler set for the next update, k = s
+    expected = [5e-4 * min(1.0, (k + 1) / 2) * 0.5 * (1 + np.cos(np.pi * k / 4)) for k in range(1, 5)]
+    assert lrs == pytest.approx(expected, rel=1e-6)
+    # it started from the export: its first validation is not the campaign's initial weights
+    record = json.loads((root / "weights" / "c-model-cooldown.json").read_text())
+    assert record["campaign"] == "c-cooldown" and "annealed from its export c-model" in record["note"]
+
+
 def test_refusals(recording, tmp_path):
     with pytest.raises(SystemExit, match="--out"):
         campaign_script.main(["new", "c", "--campaigns-dir", str(tmp_path), "--export", "x", "--", "--out", "elsewhere"])

@@ -7,6 +7,7 @@ folder holds).
   python scripts/campaign.py status mgr-devval
   python scripts/campaign.py stop mgr-devval                              # SIGTERM: saves, then stops
   python scripts/campaign.py plot mgr-devval
+  python scripts/campaign.py anneal mgr-devval --steps 3000            # a new campaign: its export, annealed
 
 resume trains in stretches of the campaign's interval (train.py --resume in runs/campaigns/NAME/),
 and after each: validates (evaluate.py on the validation data, every window unless the campaign
@@ -158,6 +159,21 @@ def _steps_of(recipe: list[str]) -> list[str]:
     return []
 
 
+def _set_option(recipe: list[str], flag: str, value: str) -> list[str]:
+    """``recipe`` with the single-valued option ``flag`` set to ``value`` (replaced where present,
+    in either spelling, else appended)."""
+    out, i = [], 0
+    while i < len(recipe):
+        arg = recipe[i]
+        if arg == flag:
+            i += 2  # the flag and its value
+            continue
+        if not arg.startswith(f"{flag}="):
+            out.append(arg)
+        i += 1
+    return [*out, flag, value]
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -185,6 +201,51 @@ def cmd_new(args, rest: list[str]) -> int:
                         interval_minutes=args.interval_minutes, state_budget_mb=args.state_budget_mb, note=args.note)
     spec.write(campaign.spec_path)
     print(f"wrote {campaign.spec_path}; start it with: python scripts/campaign.py resume {args.name} --background")
+    return 0
+
+
+def cmd_anneal(args) -> int:
+    """A new campaign that continues NAME's recipe from NAME's export with the step size warmed up
+    and then annealed to zero over a fixed budget (docs/training.md, "End a campaign by annealing")."""
+    source = Campaign(args.name, args.campaigns_dir)
+    spec = source.spec()
+    into = args.into or f"{args.name}-cooldown"
+    if into == args.name:
+        raise SystemExit(f"--into {into!r}: the annealed campaign needs a name of its own")
+    target = Campaign(into, args.campaigns_dir)
+    if target.spec_path.exists() and not args.force:
+        raise SystemExit(f"campaign {into!r} exists ({target.spec_path}); --force replaces its description "
+                         "(not its state)")
+    weights_dir = Path(args.weights_dir) if args.weights_dir else ROOT / "agents" / "weights"
+    if args.init:
+        init, origin = args.init, f"from {args.init}"
+    else:
+        exported = weights_dir / f"{spec.export}.pt"
+        if not exported.exists():
+            raise SystemExit(f"campaign {args.name!r} has no export yet ({exported}): let a validation export it, "
+                             "or give the weights to anneal with --init")
+        record = weights_dir / f"{spec.export}.json"
+        validation = json.loads(record.read_text()).get("validation", {}) if record.exists() else {}
+        init = spec.export if weights_dir == ROOT / "agents" / "weights" else str(exported)
+        origin = (f"from its export {spec.export} (step {validation.get('step', '?')}, validation score "
+                  f"{validation.get('score', '?')}, {validation.get('mode', 'one pass')})" if validation
+                  else f"from its export {spec.export}")
+    recipe = _set_option(spec.train, "--steps", str(args.steps))
+    recipe = _set_option(recipe, "--warmup-steps", str(args.warmup_steps))
+    recipe = _set_option(recipe, "--decay", "cosine")
+    if args.lr is not None:
+        recipe = _set_option(recipe, "--lr", str(args.lr))
+    from evflow_cli.commands.train import parse_args
+
+    parsed = parse_args([*recipe, "--out", str(target.work / "train")])  # a recipe train.py would refuse fails here
+    note = (f"campaign {args.name}'s recipe annealed {origin}: {args.steps} steps, {args.warmup_steps} of warm-up "
+            f"to {parsed.lr:g}, then a cosine decay of the step size to zero")
+    annealed = CampaignSpec(**{**vars(spec), "name": into, "export": args.export or f"{spec.export}-cooldown",
+                               "train": recipe, "init": init, "note": note})
+    annealed.write(target.spec_path)
+    if source.reference_path.exists() and not target.reference_path.exists():  # same validation: same reference
+        shutil.copyfile(source.reference_path, target.reference_path)
+    print(f"wrote {target.spec_path} ({note}); start it with: python scripts/campaign.py resume {into} --background")
     return 0
 
 
@@ -456,6 +517,28 @@ class ResumeOptions(CampaignOptions, DeviceOptions):
 
 
 @dataclass(kw_only=True)
+class AnnealOptions(CampaignOptions):
+    """``anneal``: the new campaign that ends NAME with a decaying step size."""
+
+    into: str | None = None
+    """the new campaign's name (default: NAME-cooldown)"""
+    export: str | None = None
+    """its shipped model name (default: NAME's export + -cooldown)"""
+    init: str | None = None
+    """the weights it starts from (default: NAME's export, its best validation so far)"""
+    weights_dir: str | None = None
+    """where NAME's export lies (default agents/weights)"""
+    steps: int = option(3000, type=positive_int)
+    """training steps of the annealing"""
+    warmup_steps: int = option(50, type=positive_int)
+    """steps of linear warm-up of the step size before the cosine decay"""
+    lr: float | None = option(None, type=positive_float)
+    """the peak step size (default: the recipe's)"""
+    force: bool = False
+    """replace an existing description"""
+
+
+@dataclass(kw_only=True)
 class StopOptions(CampaignOptions):
     """``stop``: how long to wait for the state to be written."""
 
@@ -479,6 +562,7 @@ SUBCOMMANDS = {
     "prepare": (PrepareOptions, "simulate the recipe's synthetic training data ahead, in parallel"),
     "status": (CampaignOptions, "step, training hours and the validation curve"),
     "plot": (CampaignOptions, "draw curve.png from curve.jsonl"),
+    "anneal": (AnnealOptions, "describe a new campaign: NAME's recipe from its export, the step size annealed to zero"),
 }
 
 
@@ -500,7 +584,8 @@ def main(argv=None) -> int:
         raise SystemExit("only 'new' takes train.py options after --")
     if command == "new":
         return cmd_new(args, argv[cut + 1 :])
-    return {"resume": cmd_resume, "prepare": cmd_prepare, "stop": cmd_stop, "status": cmd_status, "plot": cmd_plot}[command](args)
+    return {"resume": cmd_resume, "prepare": cmd_prepare, "stop": cmd_stop, "status": cmd_status, "plot": cmd_plot,
+            "anneal": cmd_anneal}[command](args)
 
 
 if __name__ == "__main__":
