@@ -361,6 +361,7 @@ class Learner:
         if self.scaler is not None:
             self.scaler.unscale_(self.optimizer)
         grad_norm = torch.nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.grad_clip)
+        lr = self.optimizer.param_groups[0]["lr"]  # this update's step size (the scheduler then sets the next)
         if self.scaler is None:
             self.optimizer.step()
         else:  # skips the step when a gradient overflowed, and adapts the scale
@@ -377,7 +378,7 @@ class Learner:
             "loss": float(loss.detach()),
             "zero_flow_loss": float(torch.stack([w.zero.loss for w in rollout]).mean()),
             "grad_norm": float(grad_norm),
-            "lr": self.optimizer.param_groups[0]["lr"],
+            "lr": lr,
             "events": sum(int(w.batch.mask.sum()) for w in rollout),
             "windows": cfg.unroll * cfg.num_envs,
         }
