@@ -61,6 +61,7 @@ from .options import (
     SensorSizeOptions,
     Windows,
     check_choices,
+    keep_fraction,
     non_negative_float,
     non_negative_int,
     one_or_list,
@@ -116,6 +117,8 @@ class TrainConfig(ModelWidth, Windows, SensorSizeOptions):
     """place the --crop H W window at a random position in each episode (validation uses whole frames)"""
     flips: bool = True
     """Hagenaars' random h/v/polarity flips, once per sequence (--no-flips: off)"""
+    event_keep: tuple[float, ...] | None = option(None, type=keep_fraction, metavar="P")
+    """thin the training events: keep each with probability P, or (LOW HIGH) with one drawn per episode log-uniformly in the range; the motion and its targets are unchanged, so the event density stops telling the speed"""
     num_envs: int = option(4, type=positive_int)
     """B, sequences rolled out in parallel"""
     vector: Literal["sync", "async"] = "sync"
@@ -253,7 +256,7 @@ def make_vector_env(cfg: TrainConfig, *, rank: int = 0, world: int = 1, data=Non
     shard = list(range(rank, n_seq, world)) if world > 1 and n_seq >= world else None
     kwargs = dict(
         data=data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop, random_crop=cfg.random_crop,
-        flips=cfg.flips if flips is None else flips, compute_reward=False, sequences=shard,
+        flips=cfg.flips if flips is None else flips, event_keep=cfg.event_keep, compute_reward=False, sequences=shard,
         flow_scaling=cfg.flow_scaling, observations=(cfg.input,), voxel_bins=cfg.voxel_bins, data_options=options,
     )
     fns = [lambda i=i: EventFlowEnv(**kwargs, env_index=i) for i in range(cfg.num_envs)]

@@ -40,7 +40,7 @@ from envs.readers.detect import FORMATS
 
 __all__ = ["option", "field_docs", "choices_of", "check_choices", "add_options", "options_from_args", "to_argv",
            "command_parser", "parse_options", "OPTION_FIELD", "one_or_list", "default_device",
-           "number", "positive_int", "non_negative_int", "positive_float", "non_negative_float", "fraction",
+           "number", "positive_int", "non_negative_int", "positive_float", "non_negative_float", "fraction", "keep_fraction",
            "SensorSize", "sensor_size_option",
            "model_width", "WindowSize", "Windows", "SensorSizeOptions", "RecordingOptions", "ModelWidth", "Progress",
            "DeviceOptions"]
@@ -80,6 +80,7 @@ non_negative_int = number(int, 0, name="an integer >= 0")
 positive_float = number(float, 0, low_open=True, name="a finite number > 0")
 non_negative_float = number(float, 0, name="a finite number >= 0")
 fraction = number(float, 0, 1, high_open=True, name="a fraction in [0, 1)")
+keep_fraction = number(float, 0, 1, low_open=True, name="a fraction in (0, 1]")
 
 
 class SensorSize(argparse.Action):

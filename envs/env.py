@@ -149,6 +149,10 @@ class EventFlowEnv(gym.Env):
         flips: False, True (all of "h", "v", "p") or a subset of ``("h", "v", "p")``:
             horizontal / vertical mirror and polarity swap, each drawn with probability
             0.5 once per episode; the ground truth is flipped to match.
+        event_keep: None, a fraction ``p`` or a range ``(low, high)`` in (0, 1]: thin the events,
+            keeping each with probability ``p``, drawn once per episode log-uniformly in the range
+            (an augmentation: the motion, and so the ground truth, is unchanged while the events
+            per pixel fall, so that a network cannot read the speed off the event density).
         loss: ``"hmc"`` or ``"at"``; lambda_1, lambda_2, alpha: the loss weights (paper
             defaults); border_penalty: the border rule's weight (default 1; 0 = paper);
             border_ramp: its ramp in pixels (default 16; 0 = the plain dropped share). The
@@ -181,6 +185,7 @@ class EventFlowEnv(gym.Env):
         voxel_bins: int = 5,
         max_events: int = 30_000,
         flips: bool | Sequence[str] = False,
+        event_keep: float | Sequence[float] | None = None,
         loss: str = "hmc",
         lambda_1: float = LossWeights.lambda_1,
         lambda_2: float = LossWeights.lambda_2,
@@ -221,6 +226,7 @@ class EventFlowEnv(gym.Env):
         if any(f not in ("h", "v", "p") for f in flips):
             raise ValueError(f"flips must be True/False or a subset of ('h', 'v', 'p'), got {flips}")
         self.flip_kinds = flips
+        self.event_keep = _check_event_keep(event_keep)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.render_mode = render_mode
@@ -295,6 +301,7 @@ class EventFlowEnv(gym.Env):
         self._seq_index = -1
         self._step = 0
         self._flips: dict[str, bool] = {}
+        self._keep: tuple[float, int] | None = None  # this episode's (keep probability, seed) (event_keep)
         self._window: Window | None = None
         self._last_action: np.ndarray | None = None
         self._scored_window: Window | None = None
@@ -372,6 +379,11 @@ class EventFlowEnv(gym.Env):
         self._seq_index = index
         self._step = 0
         self._flips = {k: bool(self.np_random.random() < 0.5) for k in self.flip_kinds}
+        self._keep = None
+        if self.event_keep is not None:  # drawn only when asked: the stream of other runs is unchanged
+            low, high = self.event_keep
+            keep = float(np.exp(self.np_random.uniform(np.log(low), np.log(high)))) if high > low else low
+            self._keep = (keep, int(self.np_random.integers(2**62)))
         self._origin = None
         if self.random_crop:
             sh, sw = reader.sensor_size
@@ -449,8 +461,12 @@ class EventFlowEnv(gym.Env):
             y = (ch - 1 - y).astype(y.dtype)
         if self._flips.get("p"):
             p = (-p).astype(p.dtype)
-        if cropped or any(self._flips.values()):
-            events = Events(x, y, t, p, (ch, cw))  # trusted: a crop and flips of validated events
+        thinned = self._keep is not None and self._keep[0] < 1.0
+        if thinned:  # the same events for window k of this episode however often it is loaded
+            kept = np.random.default_rng((self._keep[1], k)).random(len(x)) < self._keep[0]
+            x, y, t, p = x[kept], y[kept], t[kept], p[kept]
+        if cropped or thinned or any(self._flips.values()):
+            events = Events(x, y, t, p, (ch, cw))  # trusted: a crop, thinning and flips of validated events
         flow = valid = None
         gt = reader.flow_between(t_start, t_end)
         if gt is not None:
@@ -511,6 +527,7 @@ class EventFlowEnv(gym.Env):
             "bounds": None if self._bounds is None else self._bounds.copy(),
             "step": self._step,
             "flips": dict(self._flips),
+            "keep": self._keep,
             "origin": self._origin,
             "rng": self.np_random.bit_generator.state,
             "active": self._window is not None,
@@ -527,6 +544,8 @@ class EventFlowEnv(gym.Env):
         self._step = int(state["step"])
         self._windowing = str(state.get("windowing", ""))
         self._flips = dict(state["flips"])
+        keep = state.get("keep")
+        self._keep = None if keep is None else (float(keep[0]), int(keep[1]))
         origin = state.get("origin")
         self._origin = None if origin is None else (int(origin[0]), int(origin[1]))
         self._last_action = self._scored_window = None
@@ -551,6 +570,19 @@ class EventFlowEnv(gym.Env):
     def close(self) -> None:
         for source in self.sources:
             source.close()
+
+
+def _check_event_keep(value) -> tuple[float, float] | None:
+    """``event_keep`` as ``(low, high)`` with 0 < low <= high <= 1, or None."""
+    if value is None:
+        return None
+    given = list(value) if isinstance(value, (list, tuple, np.ndarray)) else [value]
+    ok = len(given) in (1, 2) and all(
+        isinstance(v, (int, float, np.number)) and not isinstance(v, bool) and 0 < float(v) <= 1 for v in given)
+    if not ok or float(given[0]) > float(given[-1]):
+        raise ValueError(f"event_keep must be a fraction in (0, 1] or a range (low, high) of them with low <= high, "
+                         f"got {value!r}")
+    return float(given[0]), float(given[-1])
 
 
 def _is_whole(value) -> bool:

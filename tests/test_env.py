@@ -1,4 +1,5 @@
 import dataclasses
+from collections import Counter
 
 import gymnasium
 import numpy as np
@@ -211,6 +212,47 @@ def test_random_crop_moves_per_episode_and_matches_a_fixed_crop(recording):
     assert len(origins) > 3
     with pytest.raises(ValueError, match="random_crop"):
         EventFlowEnv(recording, random_crop=True)
+
+
+def test_event_keep_thins_each_episode_at_its_own_rate_and_keeps_the_motion(recording):
+    """event_keep: every window keeps a subset of its events, about the episode's probability of
+    them, drawn log-uniformly per episode within the range; the ground truth is untouched and a
+    restored episode loads the same thinned windows."""
+    full = EventFlowEnv(recording, window="time", window_size=10_000)
+    _, a = full.reset(options={"sequence": 0})
+    env = EventFlowEnv(recording, window="time", window_size=10_000, event_keep=(0.1, 0.8))
+    rates = []
+    for seed in range(40):
+        _, b = env.reset(seed=seed, options={"sequence": 0})
+        keep = env._keep[0]
+        assert 0.1 <= keep <= 0.8
+        rates.append(keep)
+        original = Counter(zip(*(a["window"][k].tolist() for k in "xytp")))
+        thinned = Counter(zip(*(b["window"][k].tolist() for k in "xytp")))
+        assert not thinned - original  # a sub-multiset: nothing added, nothing moved
+        assert np.all(np.diff(b["window"]["t"]) >= 0)
+        n = len(a["window"]["t"])
+        assert abs(thinned.total() - keep * n) < 5 * np.sqrt(n * keep * (1 - keep)) + 1  # binomial(n, keep)
+        np.testing.assert_array_equal(b["flow_gt"], a["flow_gt"])
+    # log-uniform: about half of the draws below the geometric mean of the range
+    assert 10 <= sum(r < np.sqrt(0.1 * 0.8) for r in rates) <= 30
+    env.step(np.zeros(env.action_space.shape, np.float32))
+    state = env.episode_state()
+    other = EventFlowEnv(recording, window="time", window_size=10_000, event_keep=(0.1, 0.8))
+    other.restore_episode_state(state)
+    assert other.current_window is not None
+    np.testing.assert_array_equal(other.current_window["t"], env.current_window["t"])
+    _, _, _, _, i1 = env.step(np.zeros(env.action_space.shape, np.float32))
+    _, _, _, _, i2 = other.step(np.zeros(env.action_space.shape, np.float32))
+    np.testing.assert_array_equal(i1["window"]["x"], i2["window"]["x"])
+    # a fixed probability; 1 keeps everything and draws nothing (the episodes of a plain env)
+    same = EventFlowEnv(recording, window="time", window_size=10_000, event_keep=1.0)
+    _, c = same.reset(seed=3, options={"sequence": 0})
+    _, d = full.reset(seed=3, options={"sequence": 0})
+    np.testing.assert_array_equal(c["window"]["t"], d["window"]["t"])
+    for bad in (0.0, 1.5, (0.5, 0.2), (0.1, 0.2, 0.3), True):
+        with pytest.raises(ValueError, match="event_keep"):
+            EventFlowEnv(recording, event_keep=bad)
 
 
 def test_window_size_list_draws_one_size_per_episode(recording):

@@ -172,7 +172,7 @@ def init_weights(learner, path: Path) -> None:
 #: fields that shape the network: a resume cannot change them (fine-tune with --init)
 ARCHITECTURE = frozenset({"model", "width", "input", "voxel_bins", "model_kwargs", "flow_scaling", "head_init"})
 #: fields that change the episodes: an allowed change starts fresh ones instead of the stored ones
-EPISODE_FIELDS = frozenset({"data", "sensor_size", "window", "window_size", "crop", "random_crop", "flips", "num_envs", "vector", "seed"})
+EPISODE_FIELDS = frozenset({"data", "sensor_size", "window", "window_size", "crop", "random_crop", "flips", "event_keep", "num_envs", "vector", "seed"})
 
 
 def given_options(argv: list[str] | None) -> set[str]:
