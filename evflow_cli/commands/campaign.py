@@ -425,7 +425,9 @@ def cmd_stop(args) -> int:
         time.sleep(1)
     if _pid_alive(pid):
         raise SystemExit(f"campaign {args.name!r} (pid {pid}) still runs after {args.timeout} s")
-    print(f"campaign {args.name!r} stopped; state at step {campaign.state_step()} in {campaign.state_path}")
+    step = campaign.state_step()
+    print(f"campaign {args.name!r} stopped; " + (f"state at step {step} in {campaign.state_path}" if step is not None
+                                                 else f"no state written yet ({campaign.state_path} absent)"))
     return 0
 
 
