@@ -1,0 +1,31 @@
+"""tools/density_speed.py: per window, the mean speed from the ground truth and the events per pixel
+per frame, on a recording whose motion is known."""
+
+import numpy as np
+import pytest
+
+from envs.env import EventFlowEnv
+from tests.conftest import load_script
+from tests.recordings import write_translating_recording
+
+
+@pytest.fixture(scope="module")
+def density_speed():
+    return load_script("tools/density_speed.py")
+
+
+@pytest.mark.parametrize("dt", [1, 2])
+def test_speed_and_density_of_a_known_translation(density_speed, tmp_path, dt):
+    path = write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(2), sensor_size=(24, 32))
+    rows = density_speed.from_ground_truth(str(path), dt)
+    # 200 and -100 px/s over 30 ms frames: (6, -3) px per frame, whatever the window's length
+    np.testing.assert_allclose(rows[:, 0], np.hypot(6.0, -3.0), rtol=1e-5)
+    env = EventFlowEnv(str(path), window="frames", window_size=dt, compute_reward=False)
+    _, info = env.reset(options={"sequence": 0})
+    counts, truncated = [], False
+    while not truncated:
+        counts.append(len(info["window"]["t"]))
+        _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
+    np.testing.assert_allclose(rows[:, 1], np.array(counts) / (24 * 32 * dt))
+    lines = density_speed.table("dots", rows)
+    assert any(line.startswith(f"| [4,8) | {len(rows)} |") for line in lines)  # every window in one bin
