@@ -43,7 +43,7 @@ import torch
 import torch.distributed as dist
 from gymnasium.vector import AutoresetMode
 
-from envs.env import EventFlowEnv
+from envs.env import EventFlowEnv, check_event_keep
 from losses import (
     CMAX_WEIGHTS,
     EventBatch,
@@ -187,6 +187,12 @@ class TrainConfig(ModelWidth, Windows, SensorSizeOptions):
 
     def __post_init__(self) -> None:
         check_choices(self)
+        if self.event_keep is not None:  # refused where the options are read, not when the envs are built
+            try:
+                keep = check_event_keep(self.event_keep)
+            except ValueError as err:
+                raise ValueError(f"--event-keep: {err}") from None
+            self.event_keep = None if keep is None else keep[:1] if keep[0] == keep[1] else keep
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -226,7 +226,7 @@ class EventFlowEnv(gym.Env):
         if any(f not in ("h", "v", "p") for f in flips):
             raise ValueError(f"flips must be True/False or a subset of ('h', 'v', 'p'), got {flips}")
         self.flip_kinds = flips
-        self.event_keep = _check_event_keep(event_keep)
+        self.event_keep = check_event_keep(event_keep)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.render_mode = render_mode
@@ -572,8 +572,9 @@ class EventFlowEnv(gym.Env):
             source.close()
 
 
-def _check_event_keep(value) -> tuple[float, float] | None:
-    """``event_keep`` as ``(low, high)`` with 0 < low <= high <= 1, or None."""
+def check_event_keep(value) -> tuple[float, float] | None:
+    """``event_keep`` as ``(low, high)`` with 0 < low <= high < 1 or high = 1, or None (no thinning:
+    None, 1 or (1, 1)); ValueError names a bad value."""
     if value is None:
         return None
     given = list(value) if isinstance(value, (list, tuple, np.ndarray)) else [value]
@@ -582,7 +583,8 @@ def _check_event_keep(value) -> tuple[float, float] | None:
     if not ok or float(given[0]) > float(given[-1]):
         raise ValueError(f"event_keep must be a fraction in (0, 1] or a range (low, high) of them with low <= high, "
                          f"got {value!r}")
-    return float(given[0]), float(given[-1])
+    low, high = float(given[0]), float(given[-1])
+    return None if low == 1.0 else (low, high)  # keeping every event: a plain env, its random stream unchanged
 
 
 def _is_whole(value) -> bool:

@@ -262,6 +262,15 @@ def test_anneal_continues_the_recipe_from_the_export_with_a_decaying_step_size(r
         campaign_script.main(["anneal", "c", "--campaigns-dir", str(root), *weights])
     with pytest.raises(SystemExit, match="a name of its own"):
         campaign_script.main(["anneal", "c", "--into", "c", "--campaigns-dir", str(root), *weights])
+    with pytest.raises(SystemExit, match="fewer than --steps"):
+        campaign_script.main(["anneal", "c", "--into", "c2", "--campaigns-dir", str(root), *weights, "--steps", "5",
+                              "--warmup-steps", "5"])
+    pid_file = runs / "c" / "campaign.pid"
+    pid_file.write_text(str(os.getppid()))  # a live process holds the source campaign
+    with pytest.raises(SystemExit, match="is running here"):
+        campaign_script.main(["anneal", "c", "--into", "c2", "--campaigns-dir", str(root), "--runs", str(runs),
+                              *weights])
+    pid_file.unlink()
     assert campaign_script.main(["resume", "c-cooldown", "--campaigns-dir", str(root), "--runs", str(runs), "--quiet",
                                  "--threads", "1", *weights]) == 0
     rows = [json.loads(line) for line in (runs / "c-cooldown" / "train" / "metrics.jsonl").read_text().splitlines()]

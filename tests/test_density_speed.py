@@ -29,3 +29,22 @@ def test_speed_and_density_of_a_known_translation(density_speed, tmp_path, dt):
     np.testing.assert_allclose(rows[:, 1], np.array(counts) / (24 * 32 * dt))
     lines = density_speed.table("dots", rows)
     assert any(line.startswith(f"| [4,8) | {len(rows)} |") for line in lines)  # every window in one bin
+
+
+def test_a_target_file_of_the_ground_truth_gives_the_ground_truths_rows(density_speed, tmp_path):
+    """--targets reads a training split's teacher targets like the ground truth: a target file whose
+    grids are the ground truth's flow gives its windows' event densities, and as the speed the
+    mean over every cell (the flow the reader puts on pixels without valid ground truth included)."""
+    from envs.readers import H5Reader
+    from tests.test_teacher import _write_ground_truth_targets
+
+    path = str(write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(4), sensor_size=(24, 32)))
+    targets = _write_ground_truth_targets(tmp_path / "targets.h5", path, sizes=(1, 2))
+    with H5Reader(path) as reader:
+        stamps = np.asarray(reader.flow_timestamps(), np.int64)
+        for dt in (1, 2):
+            spans = list(zip(stamps[::dt][:-1], stamps[::dt][1:]))
+            speeds = [np.linalg.norm(reader.flow_between(int(a), int(b))[0], axis=0).mean() / dt for a, b in spans]
+            rows = density_speed.from_targets(str(targets), dt)
+            np.testing.assert_allclose(rows[:, 0], speeds, rtol=1e-5)
+            np.testing.assert_allclose(rows[:, 1], density_speed.from_ground_truth(path, dt)[:, 1])

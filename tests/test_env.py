@@ -245,11 +245,18 @@ def test_event_keep_thins_each_episode_at_its_own_rate_and_keeps_the_motion(reco
     _, _, _, _, i1 = env.step(np.zeros(env.action_space.shape, np.float32))
     _, _, _, _, i2 = other.step(np.zeros(env.action_space.shape, np.float32))
     np.testing.assert_array_equal(i1["window"]["x"], i2["window"]["x"])
-    # a fixed probability; 1 keeps everything and draws nothing (the episodes of a plain env)
-    same = EventFlowEnv(recording, window="time", window_size=10_000, event_keep=1.0)
-    _, c = same.reset(seed=3, options={"sequence": 0})
-    _, d = full.reset(seed=3, options={"sequence": 0})
-    np.testing.assert_array_equal(c["window"]["t"], d["window"]["t"])
+    # 1 keeps everything and draws nothing: the episodes of a plain env, random crops and flips too
+    plain = EventFlowEnv(recording, window="time", window_size=10_000, crop=(20, 30), random_crop=True, flips=True)
+    same = EventFlowEnv(recording, window="time", window_size=10_000, crop=(20, 30), random_crop=True, flips=True,
+                        event_keep=(1.0, 1.0))
+    for seed in range(5):
+        _, c = same.reset(seed=seed)
+        _, d = plain.reset(seed=seed)
+        for _ in range(3):
+            np.testing.assert_array_equal(c["window"]["x"], d["window"]["x"])
+            np.testing.assert_array_equal(c["crop"], d["crop"])
+            _, _, _, _, c = same.step(np.zeros(same.action_space.shape, np.float32))
+            _, _, _, _, d = plain.step(np.zeros(plain.action_space.shape, np.float32))
     for bad in (0.0, 1.5, (0.5, 0.2), (0.1, 0.2, 0.3), True):
         with pytest.raises(ValueError, match="event_keep"):
             EventFlowEnv(recording, event_keep=bad)

@@ -7,9 +7,11 @@ whether a validation set keeps that relation.
     python tools/density_speed.py --data synthetic-test --data ../shared/devval/*.h5
     python tools/density_speed.py --targets agents/campaigns/mgr-derived/targets.h5   # a training split
 
-The speed is the mean |flow| over the window's valid ground-truth pixels (``--data``), or over a
-teacher-target file's coarse grid (``--targets``: the split it was made on, which has no ground
-truth); windows of ``--dt`` frames (of the file's windows, those of that many frame intervals).
+The speed is the mean |flow| over the window's valid ground-truth pixels (``--data``), or over every
+cell of a teacher-target file's coarse grid (``--targets``: the split it was made on, which has no
+ground truth; comparable with the first where the ground truth covers the frame, as on the
+synthetic splits and devval); windows of ``--dt`` frames (of the file's windows, those of that
+many frame intervals).
 """
 
 from __future__ import annotations
@@ -35,23 +37,23 @@ def from_ground_truth(data, dt: int) -> np.ndarray:
     events per pixel per frame."""
     rows = []
     for source in resolve_data(data):
-        reader = source.reader()
-        height, width = reader.sensor_size
-        for t0, t1, i0, i1 in window_bounds(reader, "frames", dt):
-            gt = reader.flow_between(int(t0), int(t1))
-            if gt is None:
-                continue
-            flow, valid = gt
-            if valid.any():
-                speed = float(np.linalg.norm(flow, axis=0)[valid].mean()) / dt
-                rows.append((speed, (int(i1) - int(i0)) / (height * width * dt)))
+        with source.reader() as reader:
+            height, width = reader.sensor_size
+            for t0, t1, i0, i1 in window_bounds(reader, "frames", dt):
+                gt = reader.flow_between(int(t0), int(t1))
+                if gt is None:
+                    continue
+                flow, valid = gt
+                if valid.any():
+                    speed = float(np.linalg.norm(flow, axis=0)[valid].mean()) / dt
+                    rows.append((speed, (int(i1) - int(i0)) / (height * width * dt)))
     return np.array(rows, float).reshape(-1, 2)
 
 
 def from_targets(path: str, dt: int) -> np.ndarray:
     """The same from a teacher-target file: the targets' coarse grids as the flow, the windows
-    counted in the frames of the split they were made on (its frame interval: the most common
-    length of its shortest windows)."""
+    counted in frame intervals of the recording they were made on (the median step of its
+    ``frames`` grid)."""
     targets = TeacherTargets(path)
     sources = {s.name: s for s in resolve_data(targets.config["data"])}
     rows = []
@@ -59,14 +61,14 @@ def from_targets(path: str, dt: int) -> np.ndarray:
         for name, group in f.items():
             if name not in sources:
                 raise ValueError(f"{path}: recording {name!r} is not in the targets' data {targets.config['data']!r}")
-            reader = sources[name].reader()
-            frame = float(np.median(np.diff(window_grid(reader)[0])))
-            height, width = targets.sensor_size_of(name)
-            for (t0, t1), grid in zip(group["bounds"][()], group["grid"][()]):
-                if round((t1 - t0) / frame) != dt:
-                    continue
-                events = reader.index_at(int(t1)) - reader.index_at(int(t0))
-                rows.append((float(np.linalg.norm(grid, axis=0).mean()) / dt, events / (height * width * dt)))
+            with sources[name].reader() as reader:
+                frame = float(np.median(np.diff(window_grid(reader)[0])))
+                height, width = targets.sensor_size_of(name)
+                for (t0, t1), grid in zip(group["bounds"][()], group["grid"][()]):
+                    if round((t1 - t0) / frame) != dt:
+                        continue
+                    events = reader.index_at(int(t1)) - reader.index_at(int(t0))
+                    rows.append((float(np.linalg.norm(grid, axis=0).mean()) / dt, events / (height * width * dt)))
     return np.array(rows, float).reshape(-1, 2)
 
 

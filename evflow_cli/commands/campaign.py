@@ -39,6 +39,7 @@ from agents.options import (
     DeviceOptions,
     check_choices,
     command_parser,
+    non_negative_int,
     option,
     options_from_args,
     positive_float,
@@ -207,7 +208,7 @@ def cmd_new(args, rest: list[str]) -> int:
 def cmd_anneal(args) -> int:
     """A new campaign that continues NAME's recipe from NAME's export with the step size warmed up
     and then annealed to zero over a fixed budget (docs/training.md, "End a campaign by annealing")."""
-    source = Campaign(args.name, args.campaigns_dir)
+    source = Campaign(args.name, args.campaigns_dir, args.runs)
     spec = source.spec()
     into = args.into or f"{args.name}-cooldown"
     if into == args.name:
@@ -216,6 +217,12 @@ def cmd_anneal(args) -> int:
     if target.spec_path.exists() and not args.force:
         raise SystemExit(f"campaign {into!r} exists ({target.spec_path}); --force replaces its description "
                          "(not its state)")
+    pid_file = source.work / "campaign.pid"
+    if pid_file.exists() and pid_file.read_text().strip().isdigit() and _pid_alive(int(pid_file.read_text())):
+        raise SystemExit(f"campaign {args.name!r} is running here: its export may still change; stop it first "
+                         f"(python scripts/campaign.py stop {args.name})")
+    if args.warmup_steps >= args.steps:
+        raise SystemExit(f"--warmup-steps {args.warmup_steps} must be fewer than --steps {args.steps}")
     weights_dir = Path(args.weights_dir) if args.weights_dir else ROOT / "agents" / "weights"
     if args.init:
         init, origin = args.init, f"from {args.init}"
@@ -226,7 +233,7 @@ def cmd_anneal(args) -> int:
                              "or give the weights to anneal with --init")
         record = weights_dir / f"{spec.export}.json"
         validation = json.loads(record.read_text()).get("validation", {}) if record.exists() else {}
-        init = spec.export if weights_dir == ROOT / "agents" / "weights" else str(exported)
+        init = spec.export if weights_dir.resolve() == (ROOT / "agents" / "weights").resolve() else str(exported.resolve())
         origin = (f"from its export {spec.export} (step {validation.get('step', '?')}, validation score "
                   f"{validation.get('score', '?')}, {validation.get('mode', 'one pass')})" if validation
                   else f"from its export {spec.export}")
@@ -532,8 +539,8 @@ class AnnealOptions(CampaignOptions):
     """where NAME's export lies (default agents/weights)"""
     steps: int = option(3000, type=positive_int)
     """training steps of the annealing"""
-    warmup_steps: int = option(50, type=positive_int)
-    """steps of linear warm-up of the step size before the cosine decay"""
+    warmup_steps: int = option(50, type=non_negative_int)
+    """steps of linear warm-up of the step size (train.py's: over the first steps of the cosine)"""
     lr: float | None = option(None, type=positive_float)
     """the peak step size (default: the recipe's)"""
     force: bool = False
