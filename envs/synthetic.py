@@ -93,6 +93,8 @@ class SequenceSpec:
     name: unique across splits. seed: scene seed. height, width: pixels. duration_s: seconds.
     max_flow_px: bound on any visible point's displacement per frame interval (px), i.e. a
     speed bound of max_flow_px * fps px/s. fps: frame rate (= ground-truth grid).
+    contrast: the texture's log-intensity range, (low, high) (``SceneConfig.random``; None:
+    its default).
     """
 
     name: str
@@ -102,16 +104,20 @@ class SequenceSpec:
     duration_s: float
     max_flow_px: float
     fps: float = 30.0
+    contrast: tuple[float, float] | None = None
 
     def config(self) -> SceneConfig:
-        return SceneConfig.random(self.seed, self.height, self.width, speed_px_s=self.max_flow_px * self.fps)
+        return SceneConfig.random(self.seed, self.height, self.width, speed_px_s=self.max_flow_px * self.fps,
+                                  contrast=self.contrast)
 
     def simulate(self) -> SimulatedSequence:
         return simulate(self.config(), self.duration_s, fps=self.fps)
 
     def cache_key(self) -> str:
-        """Hash of everything that determines the output (spec, config, simulator version)."""
-        blob = json.dumps([asdict(self), self.config().to_dict(), SIMULATOR_VERSION], sort_keys=True)
+        """Hash of everything that determines the output (spec, config, simulator version); a
+        spec without ``contrast`` hashes as before the field existed."""
+        spec = {k: v for k, v in asdict(self).items() if not (k == "contrast" and v is None)}
+        blob = json.dumps([spec, self.config().to_dict(), SIMULATOR_VERSION], sort_keys=True)
         return hashlib.sha1(blob.encode()).hexdigest()[:10]
 
 
@@ -164,6 +170,9 @@ TRANSFER_TRAIN_SEED = 40_000_000
 TRANSFER_VAL = "synthetic-transfer-val"
 TRANSFER_VAL_SEED = 50_000_000
 TRAFFIC = "synthetic-traffic"
+SOFT_TRAIN = "synthetic-train-soft"
+#: the log-intensity range of ``synthetic-train-soft``'s textures (synthetic-train: 2-3)
+SOFT_CONTRAST = (0.3, 1.5)
 TRAFFIC_SEED = 60_000_000
 TRAFFIC_SIZE = 4
 
@@ -223,9 +232,13 @@ def _build_splits() -> dict[str, list[SequenceSpec]]:
         SequenceSpec(f"synthetic-test-256-{i:02d}", 2100 + i, 256, 256, 1.0, m)
         for i, m in enumerate((1.0, 4.0, 12.0))
     ]
+    # the training scenes and motions with weaker textures: the same speeds with fewer events
+    soft = [SequenceSpec(f"synthetic-train-soft-{i:03d}", spec.seed, 128, 128, 2.0, spec.max_flow_px,
+                         contrast=SOFT_CONTRAST) for i, spec in enumerate(train)]
     mini = [SequenceSpec(f"synthetic-mini-{i}", 3000 + i, 64, 64, 1.0, m) for i, m in enumerate((1.0, 3.0, 8.0))]
     return {
         "synthetic-train": train,
+        SOFT_TRAIN: soft,
         "synthetic-test": test,
         "synthetic-mini": mini,
         DR_TRAIN: dr_train_specs(DR_TRAIN_DEFAULT_SIZE),

@@ -481,3 +481,46 @@ def test_env_trains_on_random_crops_of_the_randomised_split():
         env.close()
     finally:
         clear_cache()
+
+
+# --- synthetic-train-soft: the training scenes with weaker textures ----------------------------
+
+
+def test_soft_split_is_the_training_scenes_with_their_texture_range_drawn_lower():
+    """Each synthetic-train-soft sequence is its synthetic-train twin (same seed, motion bound,
+    camera, objects, sensor) except the leaves' log-intensity range, drawn log-uniformly in
+    SOFT_CONTRAST; synthetic-train itself is unchanged (its cache keys predate the field)."""
+    from envs.synthetic import SOFT_CONTRAST, SPLITS
+
+    soft, train = SPLITS["synthetic-train-soft"], SPLITS["synthetic-train"]
+    assert len(soft) == len(train) == 32
+    assert train[0].cache_key() == "4a575e5e10" and train[1].cache_key() == "00a74c072b"
+    ranges = []
+    for a, b in zip(soft, train):
+        ca, cb = a.config().to_dict(), b.config().to_dict()
+        ranges.append(-ca["texture"]["log_min"])
+        assert SOFT_CONTRAST[0] <= ranges[-1] <= SOFT_CONTRAST[1]
+        assert 2.0 <= -cb["texture"]["log_min"] <= 3.0
+        ca["texture"].pop("log_min"), cb["texture"].pop("log_min")
+        assert ca == cb and a.max_flow_px == b.max_flow_px
+        assert a.cache_key() != b.cache_key()
+    assert np.ptp(np.log(ranges)) > 0.6 * np.log(SOFT_CONTRAST[1] / SOFT_CONTRAST[0])  # spread over the range
+    with pytest.raises(ValueError, match="contrast"):
+        SceneConfig.random(1, 32, 32, contrast=(1.0, 0.5))
+
+
+def test_weaker_texture_same_motion_fewer_events_that_follow_the_truth():
+    """The same scene and motion with a 4x smaller log-intensity range fires several times fewer
+    events (each edge crosses fewer thresholds), and they still follow the ground truth."""
+    h, w = 48, 64
+    counts = {}
+    for log_range in (0.5, 2.0):
+        config = SceneConfig.random(11, h, w, speed_px_s=120.0, contrast=(log_range, log_range), noise=False)
+        seq = simulate(config, duration_s=0.2)
+        counts[log_range] = len(seq.events.t)
+        t0, t1 = int(seq.frame_times[2]), int(seq.frame_times[3])
+        flow, _ = seq.flow_between(t0, t1)
+        events = seq.events.slice_time(t0, t1)
+        sharp = _iwe_variance(events, flow, t0, t1)
+        assert sharp > 1.1 * _iwe_variance(events, 0 * flow, t0, t1)
+    assert 2.0 < counts[2.0] / counts[0.5] < 6.0

@@ -144,6 +144,7 @@ class SceneConfig:
         rotation: bool = True,
         zoom: bool = True,
         noise: bool = True,
+        contrast: tuple[float, float] | None = None,
     ) -> "SceneConfig":
         """A random scene drawn from ``seed``.
 
@@ -156,7 +157,13 @@ class SceneConfig:
         num_objects: default uniform in 1..4.
         rotation, zoom: allow roll / zoom components (camera and objects).
         noise: background-activity noise (0-0.2 Hz/pixel) and 0-2 hot pixels.
+        contrast: (low, high) natural-log units: the range of the leaves' log intensities,
+            drawn log-uniformly in it (default: uniform in 2-3, i.e. 7:1 to 20:1). Fewer units,
+            fewer threshold crossings per edge: the same motion with fewer events, as in
+            photographs, whose edges are mostly weaker than the default leaves'.
         """
+        if contrast is not None and not (len(contrast) == 2 and 0 < contrast[0] <= contrast[1]):
+            raise ValueError(f"contrast must be (low, high) log units with 0 < low <= high, got {contrast!r}")
         rng = np.random.default_rng([int(seed), 0])
         speed = float(speed_px_s) if speed_px_s is not None else 30.0 * rng.uniform(0.5, 10.0)
         centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
@@ -184,7 +191,12 @@ class SceneConfig:
             hot_pixels=int(rng.integers(0, 3)) if noise else 0,
             hot_pixel_rate_hz=float(rng.uniform(50.0, 200.0)),
         )
-        texture = TextureConfig(r_min=float(rng.uniform(1.5, 3.0)), log_min=-float(rng.uniform(2.0, 3.0)))
+        r_min = float(rng.uniform(1.5, 3.0))
+        if contrast is None:
+            log_range = float(rng.uniform(2.0, 3.0))
+        else:  # one draw either way: the rest of the scene is the default's
+            log_range = float(np.exp(rng.uniform(np.log(contrast[0]), np.log(contrast[1]))))
+        texture = TextureConfig(r_min=r_min, log_min=-log_range)
         return cls(int(seed), int(height), int(width), camera, tuple(objects), texture, sensor)
 
     # -- (de)serialisation ---------------------------------------------------------------
