@@ -238,19 +238,25 @@ def merge_targets(parts: Sequence[tuple[str | os.PathLike, Sequence[int]]], out:
     length is one of ``sizes`` frames (a window's length in frames is its duration over the
     frame interval, the shortest window of that recording and file divided by the file's
     smallest window size). E.g. 1-frame targets of one solver with 2- and 4-frame targets of a
-    stronger one. The sources must share their recordings, grid and sensor sizes; a window given
-    by two parts raises ValueError. dtype as :func:`copy_targets` (stored grids; None: as read)."""
+    stronger one. Parts of the same data must share their recordings' grid and sensor sizes;
+    parts of other data (e.g. two training splits) must hold other recordings, and the file's
+    data is then the list of theirs. A window given by two parts raises ValueError. dtype as
+    :func:`copy_targets` (stored grids; None: as read)."""
     grids: dict[str, list] = {}
     bounds: dict[str, list] = {}
     sizes_of: dict[str, tuple] = {}
     configs = []
+    data_recordings: dict[str, set] = {}  # each part's recordings
     for path, sizes in parts:
         config = TeacherTargets(path).config  # refuses an incomplete or foreign file, naming it
-        if configs and config["data"] != configs[0]["config"]["data"]:
-            raise ValueError(f"{path}: targets of data {config['data']!r}, the first part's are of "
-                             f"{configs[0]['config']['data']!r}")
         configs.append({"source": Path(path).name, "window_sizes": sorted(int(k) for k in sizes), "config": config})
         with h5py.File(path, "r") as f:
+            other_data = [c for c in configs[:-1] if c["config"]["data"] != config["data"]]
+            shared = sorted(set(f) & {name for c in other_data for name in data_recordings[c["source"]]})
+            if shared:
+                raise ValueError(f"{path}: targets of data {config['data']!r} for recording {shared[0]} that a part "
+                                 f"of other data ({other_data[0]['config']['data']!r}) holds too")
+            data_recordings[configs[-1]["source"]] = set(f)
             smallest = min(config["window_sizes"])
             for name, group in f.items():
                 b, g = group["bounds"][()], group["grid"][()].astype(np.float32)
@@ -266,8 +272,13 @@ def merge_targets(parts: Sequence[tuple[str | os.PathLike, Sequence[int]]], out:
                 bounds.setdefault(name, []).append(b[keep])
                 grids.setdefault(name, []).append(g[keep])
     first = configs[0]["config"]
+    datas = []  # the parts' data, in order, each once
+    for c in configs:
+        for item in np.atleast_1d(c["config"]["data"]).tolist():
+            if item not in datas:
+                datas.append(item)
     # no solver settings at the top: each part keeps its own in merged_from (parts may be solved differently)
-    merged = {"format": FORMAT, "data": first["data"], "sensor_size": first["sensor_size"],
+    merged = {"format": FORMAT, "data": datas[0] if len(datas) == 1 else datas, "sensor_size": first["sensor_size"],
               "window_sizes": sorted({int(k) for _, sizes in parts for k in sizes}), "merged_from": configs}
 
     def write(tmp: Path) -> None:

@@ -297,7 +297,7 @@ def test_each_window_of_a_batch_has_its_own_evidence_prior_weight(tmp_path):
             assert (other - direct).abs().max() > 1e-2
 
 
-def test_merged_targets_keep_each_parts_settings_and_refuse_other_data(tmp_path):
+def test_merged_targets_keep_each_parts_settings_and_join_other_data_only_on_other_recordings(tmp_path):
     rec = write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(5), sensor_size=(24, 32))
     other = write_translating_recording(tmp_path / "other.h5", np.random.default_rng(6), sensor_size=(24, 32))
     a = compute_teacher_targets([rec], tmp_path / "a.h5", window_sizes=(1,), settings=TINY, max_windows=2)
@@ -307,9 +307,19 @@ def test_merged_targets_keep_each_parts_settings_and_refuse_other_data(tmp_path)
     assert [part["config"].get("evidence_prior") for part in config["merged_from"]] == [None, 10.0]
     assert [part["config"]["window_sizes"] for part in config["merged_from"]] == [[1], [2]]
     assert "evidence_prior" not in config and "grids" not in config  # no one solver's settings claimed for all
+    # other data, other recordings: one file over both (two training splits), each window its part's
     c = compute_teacher_targets([other], tmp_path / "c.h5", window_sizes=(2,), settings=TINY, max_windows=2)
-    with pytest.raises(ValueError, match="targets of data"):
-        merge_targets([(a, [1]), (c, [2])], tmp_path / "x.h5")
+    joined = TeacherTargets(merge_targets([(a, [1]), (c, [2])], tmp_path / "j.h5"))
+    assert joined.config["data"] == [str(rec), str(other)]
+    for part, name in ((a, "dots"), (c, "other")):
+        with h5py.File(part) as f:
+            for (t0, t1), grid in zip(f[f"{name}/bounds"][()], f[f"{name}/grid"][()]):
+                np.testing.assert_array_equal(joined.grid(name, t0, t1).numpy(), grid)
+    # other data holding a recording of the same name: refused, nothing written
+    twin = write_translating_recording(tmp_path / "twin" / "dots.h5", np.random.default_rng(7), sensor_size=(24, 32))
+    d = compute_teacher_targets([twin], tmp_path / "d.h5", window_sizes=(2,), settings=TINY, max_windows=2)
+    with pytest.raises(ValueError, match="for recording dots that a part of other data"):
+        merge_targets([(a, [1]), (d, [2])], tmp_path / "x.h5")
     assert not (tmp_path / "x.h5").exists()
 
 
