@@ -94,7 +94,7 @@ class SequenceSpec:
     max_flow_px: bound on any visible point's displacement per frame interval (px), i.e. a
     speed bound of max_flow_px * fps px/s. fps: frame rate (= ground-truth grid).
     contrast: the texture's log-intensity range, (low, high) (``SceneConfig.random``; None:
-    its default).
+    its default). leaf_size: the range of its smallest leaf radius, pixels (likewise).
     """
 
     name: str
@@ -105,18 +105,19 @@ class SequenceSpec:
     max_flow_px: float
     fps: float = 30.0
     contrast: tuple[float, float] | None = None
+    leaf_size: tuple[float, float] | None = None
 
     def config(self) -> SceneConfig:
         return SceneConfig.random(self.seed, self.height, self.width, speed_px_s=self.max_flow_px * self.fps,
-                                  contrast=self.contrast)
+                                  contrast=self.contrast, leaf_size=self.leaf_size)
 
     def simulate(self) -> SimulatedSequence:
         return simulate(self.config(), self.duration_s, fps=self.fps)
 
     def cache_key(self) -> str:
         """Hash of everything that determines the output (spec, config, simulator version); a
-        spec without ``contrast`` hashes as before the field existed."""
-        spec = {k: v for k, v in asdict(self).items() if not (k == "contrast" and v is None)}
+        spec without ``contrast`` or ``leaf_size`` hashes as before the fields existed."""
+        spec = {k: v for k, v in asdict(self).items() if not (k in ("contrast", "leaf_size") and v is None)}
         blob = json.dumps([spec, self.config().to_dict(), SIMULATOR_VERSION], sort_keys=True)
         return hashlib.sha1(blob.encode()).hexdigest()[:10]
 
@@ -173,6 +174,9 @@ TRAFFIC = "synthetic-traffic"
 SOFT_TRAIN = "synthetic-train-soft"
 #: the log-intensity range of ``synthetic-train-soft``'s textures (synthetic-train: 2-3)
 SOFT_CONTRAST = (0.3, 1.5)
+SPARSE_TRAIN = "synthetic-train-sparse"
+#: the range of ``synthetic-train-sparse``'s smallest leaf radius, pixels (synthetic-train: 1.5-3)
+SPARSE_LEAVES = (6.0, 24.0)
 TRAFFIC_SEED = 60_000_000
 TRAFFIC_SIZE = 4
 
@@ -235,10 +239,14 @@ def _build_splits() -> dict[str, list[SequenceSpec]]:
     # the training scenes and motions with weaker textures: the same speeds with fewer events
     soft = [SequenceSpec(f"synthetic-train-soft-{i:03d}", spec.seed, 128, 128, 2.0, spec.max_flow_px,
                          contrast=SOFT_CONTRAST) for i, spec in enumerate(train)]
+    # the training scenes and motions with larger leaves: fewer, longer edges, most of the frame silent
+    sparse = [SequenceSpec(f"synthetic-train-sparse-{i:03d}", spec.seed, 128, 128, 2.0, spec.max_flow_px,
+                           leaf_size=SPARSE_LEAVES) for i, spec in enumerate(train)]
     mini = [SequenceSpec(f"synthetic-mini-{i}", 3000 + i, 64, 64, 1.0, m) for i, m in enumerate((1.0, 3.0, 8.0))]
     return {
         "synthetic-train": train,
         SOFT_TRAIN: soft,
+        SPARSE_TRAIN: sparse,
         "synthetic-test": test,
         "synthetic-mini": mini,
         DR_TRAIN: dr_train_specs(DR_TRAIN_DEFAULT_SIZE),

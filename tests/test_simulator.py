@@ -218,10 +218,13 @@ def test_split_catalogue():
     assert len(train) == 32 and {(s.height, s.width) for s in train} == {(128, 128)}
     assert {(s.height, s.width) for s in test} == {(128, 128), (256, 256)}
     names = [s.name for split in SPLITS.values() for s in split]
-    # every split its own scenes, but synthetic-train-soft: synthetic-train's scenes, weaker textured
-    seeds = [s.seed for name, split in SPLITS.items() if name != "synthetic-train-soft" for s in split]
+    # every split its own scenes, but synthetic-train-soft and -sparse: synthetic-train's scenes,
+    # weaker textured / with larger leaves
+    twins = ("synthetic-train-soft", "synthetic-train-sparse")
+    seeds = [s.seed for name, split in SPLITS.items() if name not in twins for s in split]
     assert len(set(names)) == len(names) and len(set(seeds)) == len(seeds)
-    assert [s.seed for s in SPLITS["synthetic-train-soft"]] == [s.seed for s in train]
+    for twin in twins:
+        assert [s.seed for s in SPLITS[twin]] == [s.seed for s in train]
     motion = [s.max_flow_px for s in train]
     assert min(motion) <= 0.5 and max(motion) >= 10
     assert get_spec("synthetic-test", "synthetic-test-256-01") is test[9]

@@ -509,6 +509,47 @@ def test_soft_split_is_the_training_scenes_with_their_texture_range_drawn_lower(
         SceneConfig.random(1, 32, 32, contrast=(1.0, 0.5))
 
 
+def test_sparse_split_is_the_training_scenes_with_larger_leaves():
+    """Each synthetic-train-sparse sequence is its synthetic-train twin but for the smallest leaf
+    radius, drawn log-uniformly in SPARSE_LEAVES (synthetic-train: 1.5-3); the other splits' keys
+    are unchanged by the field."""
+    from envs.synthetic import SPARSE_LEAVES, SPLITS
+
+    sparse, train = SPLITS["synthetic-train-sparse"], SPLITS["synthetic-train"]
+    assert len(sparse) == len(train) == 32
+    assert train[0].cache_key() == "4a575e5e10" and SPLITS["synthetic-train-soft"][0].leaf_size is None
+    radii = []
+    for a, b in zip(sparse, train):
+        ca, cb = a.config().to_dict(), b.config().to_dict()
+        radii.append(ca["texture"]["r_min"])
+        assert SPARSE_LEAVES[0] <= radii[-1] <= SPARSE_LEAVES[1]
+        assert 1.5 <= cb["texture"]["r_min"] <= 3.0
+        ca["texture"].pop("r_min"), cb["texture"].pop("r_min")
+        assert ca == cb and a.max_flow_px == b.max_flow_px and a.cache_key() != b.cache_key()
+    assert np.ptp(np.log(radii)) > 0.6 * np.log(SPARSE_LEAVES[1] / SPARSE_LEAVES[0])
+    with pytest.raises(ValueError, match="leaf_size"):
+        SceneConfig.random(1, 32, 32, leaf_size=(8.0, 4.0))
+
+
+def test_larger_leaves_same_motion_fewer_active_pixels_that_follow_the_truth():
+    """The same scene and motion with 8x larger smallest leaves fires on far fewer pixels (fewer
+    edges), with about as many events per firing pixel (the same contrasts), and they still follow
+    the ground truth. An object's small texture canvas caps the leaves instead of failing."""
+    h, w = 48, 64
+    active, per_pixel = {}, {}
+    for r_min in (2.0, 16.0):
+        config = SceneConfig.random(12, h, w, speed_px_s=120.0, leaf_size=(r_min, r_min), noise=False)
+        seq = simulate(config, duration_s=0.2)
+        t0, t1 = int(seq.frame_times[2]), int(seq.frame_times[3])
+        events = seq.events.slice_time(t0, t1)
+        counts = np.bincount(np.asarray(events.y, np.int64) * w + np.asarray(events.x, np.int64), minlength=h * w)
+        active[r_min], per_pixel[r_min] = (counts > 0).mean(), counts[counts > 0].mean()
+        flow, _ = seq.flow_between(t0, t1)
+        assert _iwe_variance(events, flow, t0, t1) > 1.1 * _iwe_variance(events, 0 * flow, t0, t1)
+    assert active[16.0] < 0.6 * active[2.0]
+    assert 0.5 < per_pixel[16.0] / per_pixel[2.0] < 2.0
+
+
 def test_weaker_texture_same_motion_fewer_events_that_follow_the_truth():
     """The same scene and motion with a 4x smaller log-intensity range fires several times fewer
     events (each edge crosses fewer thresholds), and they still follow the ground truth."""

@@ -145,6 +145,7 @@ class SceneConfig:
         zoom: bool = True,
         noise: bool = True,
         contrast: tuple[float, float] | None = None,
+        leaf_size: tuple[float, float] | None = None,
     ) -> "SceneConfig":
         """A random scene drawn from ``seed``.
 
@@ -161,9 +162,16 @@ class SceneConfig:
             drawn log-uniformly in it (default: uniform in 2-3, i.e. 7:1 to 20:1). Fewer units,
             fewer threshold crossings per edge: the same motion with fewer events, as in
             photographs, whose edges are mostly weaker than the default leaves'.
+        leaf_size: (low, high) pixels: the range of the smallest leaf radius (TextureConfig.r_min),
+            drawn log-uniformly in it (default: uniform in 1.5-3). Larger leaves, fewer edges: most
+            of the frame is flat and silent, the events lie on few long edges (as in photographs,
+            where at a given speed far fewer pixels fire than on the default leaves), and a local
+            view sees an edge's normal motion only (the aperture problem).
         """
         if contrast is not None and not (len(contrast) == 2 and 0 < contrast[0] <= contrast[1]):
             raise ValueError(f"contrast must be (low, high) log units with 0 < low <= high, got {contrast!r}")
+        if leaf_size is not None and not (len(leaf_size) == 2 and 0 < leaf_size[0] <= leaf_size[1]):
+            raise ValueError(f"leaf_size must be (low, high) pixels with 0 < low <= high, got {leaf_size!r}")
         rng = np.random.default_rng([int(seed), 0])
         speed = float(speed_px_s) if speed_px_s is not None else 30.0 * rng.uniform(0.5, 10.0)
         centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0])
@@ -191,7 +199,10 @@ class SceneConfig:
             hot_pixels=int(rng.integers(0, 3)) if noise else 0,
             hot_pixel_rate_hz=float(rng.uniform(50.0, 200.0)),
         )
-        r_min = float(rng.uniform(1.5, 3.0))
+        if leaf_size is None:
+            r_min = float(rng.uniform(1.5, 3.0))
+        else:  # one draw either way, as for the contrast
+            r_min = float(np.exp(rng.uniform(np.log(leaf_size[0]), np.log(leaf_size[1]))))
         if contrast is None:
             log_range = float(rng.uniform(2.0, 3.0))
         else:  # one draw either way: the rest of the scene is the default's

@@ -86,7 +86,8 @@ def _leaf_owner(rng: np.random.Generator, size: int, config: TextureConfig) -> t
     if size & (size - 1):
         raise ValueError(f"texture size must be a power of two, got {size}")
     mask = size - 1
-    r_min, r_max = config.r_min, min(config.r_max, size / 4)
+    r_max = min(config.r_max, size / 4)
+    r_min = min(config.r_min, r_max / 2)  # a small canvas (an object's) caps large leaves
     mean_r2 = 2.0 * np.log(r_max / r_min) / (r_min**-2.0 - r_max**-2.0)  # E[r^2] under r^-3
     n = int(np.ceil(config.coverage * size * size / (np.pi * mean_r2)))
     radii = _leaf_radii(rng, n, r_min, r_max)
