@@ -22,13 +22,19 @@ def test_speed_and_density_of_a_known_translation(density_speed, tmp_path, dt):
     np.testing.assert_allclose(rows[:, 0], np.hypot(6.0, -3.0), rtol=1e-5)
     env = EventFlowEnv(str(path), window="frames", window_size=dt, compute_reward=False)
     _, info = env.reset(options={"sequence": 0})
-    counts, truncated = [], False
+    counts, firing, truncated = [], [], False
     while not truncated:
-        counts.append(len(info["window"]["t"]))
+        window = info["window"]
+        counts.append(len(window["t"]))
+        firing.append(len({(int(x), int(y)) for x, y in zip(window["x"], window["y"])}) / (24 * 32))
         _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
     np.testing.assert_allclose(rows[:, 1], np.array(counts) / (24 * 32 * dt))
-    lines = density_speed.table("dots", rows)
-    assert any(line.startswith(f"| [4,8) | {len(rows)} |") for line in lines)  # every window in one bin
+    np.testing.assert_allclose(rows[:, 2], firing)
+    assert 0 < rows[:, 2].min() and rows[:, 2].max() < 1
+    lines = density_speed.table("dots", rows, dt)
+    # every window in one bin, with the median share of firing pixels and events per firing pixel
+    per_firing = np.median(np.array(counts) / (24 * 32 * np.array(firing)))
+    assert any(line.startswith(f"| [4,8) | {len(rows)} |") and line.endswith(f" | {per_firing:.2f} |") for line in lines)
 
 
 def test_a_target_file_of_the_ground_truth_gives_the_ground_truths_rows(density_speed, tmp_path):
@@ -47,4 +53,4 @@ def test_a_target_file_of_the_ground_truth_gives_the_ground_truths_rows(density_
             speeds = [np.linalg.norm(reader.flow_between(int(a), int(b))[0], axis=0).mean() / dt for a, b in spans]
             rows = density_speed.from_targets(str(targets), dt)
             np.testing.assert_allclose(rows[:, 0], speeds, rtol=1e-5)
-            np.testing.assert_allclose(rows[:, 1], density_speed.from_ground_truth(path, dt)[:, 1])
+            np.testing.assert_allclose(rows[:, 1:], density_speed.from_ground_truth(path, dt)[:, 1:])

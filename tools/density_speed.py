@@ -1,6 +1,7 @@
 #!/usr/bin/env python
 """How many events a window holds at a given speed: events per pixel per frame interval, binned by
-the window's mean speed (px per frame), per dataset. A network that learned on data where fast
+the window's mean speed (px per frame), per dataset, with the share of the pixels that fire and the
+events per firing pixel (few edges, or weak ones?). A network that learned on data where fast
 motion always comes with dense events can read the speed off the density; this table shows
 whether a validation set keeps that relation.
 
@@ -32,9 +33,18 @@ from envs.windows import window_bounds, window_grid  # noqa: E402
 SPEED_BINS = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, np.inf)
 
 
+def firing_share(reader, i0: int, i1: int, height: int, width: int) -> float:
+    """The share of the frame's pixels with at least one of the events ``[i0, i1)``."""
+    if i1 <= i0:
+        return 0.0
+    events = reader.events_range(int(i0), int(i1))
+    x, y = np.rint(np.asarray(events.x)).astype(np.int64), np.rint(np.asarray(events.y)).astype(np.int64)
+    return np.unique(y * width + x).size / (height * width)
+
+
 def from_ground_truth(data, dt: int) -> np.ndarray:
-    """(N, 2): per window of ``dt`` frames with ground truth, its mean speed (px per frame) and its
-    events per pixel per frame."""
+    """(N, 3): per window of ``dt`` frames with ground truth, its mean speed (px per frame), its
+    events per pixel per frame and the share of pixels that fire in it."""
     rows = []
     for source in resolve_data(data):
         with source.reader() as reader:
@@ -46,8 +56,9 @@ def from_ground_truth(data, dt: int) -> np.ndarray:
                 flow, valid = gt
                 if valid.any():
                     speed = float(np.linalg.norm(flow, axis=0)[valid].mean()) / dt
-                    rows.append((speed, (int(i1) - int(i0)) / (height * width * dt)))
-    return np.array(rows, float).reshape(-1, 2)
+                    rows.append((speed, (int(i1) - int(i0)) / (height * width * dt),
+                                 firing_share(reader, i0, i1, height, width)))
+    return np.array(rows, float).reshape(-1, 3)
 
 
 def from_targets(path: str, dt: int) -> np.ndarray:
@@ -67,21 +78,25 @@ def from_targets(path: str, dt: int) -> np.ndarray:
                 for (t0, t1), grid in zip(group["bounds"][()], group["grid"][()]):
                     if round((t1 - t0) / frame) != dt:
                         continue
-                    events = reader.index_at(int(t1)) - reader.index_at(int(t0))
-                    rows.append((float(np.linalg.norm(grid, axis=0).mean()) / dt, events / (height * width * dt)))
-    return np.array(rows, float).reshape(-1, 2)
+                    i0, i1 = reader.index_at(int(t0)), reader.index_at(int(t1))
+                    rows.append((float(np.linalg.norm(grid, axis=0).mean()) / dt, (i1 - i0) / (height * width * dt),
+                                 firing_share(reader, i0, i1, height, width)))
+    return np.array(rows, float).reshape(-1, 3)
 
 
-def table(name: str, rows: np.ndarray) -> list[str]:
+def table(name: str, rows: np.ndarray, dt: int = 1) -> list[str]:
     lines = [f"**{name}**: {len(rows)} windows", "",
-             "| mean speed (px/frame) | windows | events/px/frame: median | 10th pct | 90th pct |",
-             "|---|---:|---:|---:|---:|"]
+             "| mean speed (px/frame) | windows | events/px/frame: median | 10th pct | 90th pct "
+             "| pixels that fire: median | events per firing pixel: median |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     for low, high in zip(SPEED_BINS, SPEED_BINS[1:]):
         inside = (rows[:, 0] >= low) & (rows[:, 0] < high)
         if inside.any():
-            d = rows[inside, 1]
+            d, share = rows[inside, 1], rows[inside, 2]
+            per_firing = rows[inside, 1] * dt / np.maximum(share, 1e-12)
             lines.append(f"| [{low:g},{high:g}) | {int(inside.sum())} | {np.median(d):.3f} | "
-                         f"{np.percentile(d, 10):.3f} | {np.percentile(d, 90):.3f} |")
+                         f"{np.percentile(d, 10):.3f} | {np.percentile(d, 90):.3f} | {100 * np.median(share):.0f} % | "
+                         f"{np.median(per_firing):.2f} |")
     return lines + [""]
 
 
@@ -97,9 +112,9 @@ def main(argv=None) -> int:
     for data in args.data:
         value = data[0] if len(data) == 1 else data
         name = value if isinstance(value, str) else f"{Path(data[0]).parent.name} ({len(data)} files)"
-        print("\n".join(table(f"{name}, dt = {args.dt}", from_ground_truth(value, args.dt))))
+        print("\n".join(table(f"{name}, dt = {args.dt}", from_ground_truth(value, args.dt), args.dt)))
     for path in args.targets:
-        print("\n".join(table(f"teacher targets {path}, dt = {args.dt}", from_targets(path, args.dt))))
+        print("\n".join(table(f"teacher targets {path}, dt = {args.dt}", from_targets(path, args.dt), args.dt)))
     return 0
 
 
