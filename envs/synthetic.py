@@ -177,6 +177,9 @@ SOFT_CONTRAST = (0.3, 1.5)
 SPARSE_TRAIN = "synthetic-train-sparse"
 #: the range of ``synthetic-train-sparse``'s smallest leaf radius, pixels (synthetic-train: 1.5-3)
 SPARSE_LEAVES = (6.0, 24.0)
+WIDE_TRAIN = "synthetic-train-wide"
+#: ``synthetic-train-wide``'s frame size: synthetic-train-sparse's scenes on 4x the area
+WIDE_SIZE = 256
 TRAFFIC_SEED = 60_000_000
 TRAFFIC_SIZE = 4
 
@@ -242,11 +245,15 @@ def _build_splits() -> dict[str, list[SequenceSpec]]:
     # the training scenes and motions with larger leaves: fewer, longer edges, most of the frame silent
     sparse = [SequenceSpec(f"synthetic-train-sparse-{i:03d}", spec.seed, 128, 128, 2.0, spec.max_flow_px,
                            leaf_size=SPARSE_LEAVES) for i, spec in enumerate(train)]
+    # the same on 256x256 frames: long edges far apart, for crops that need the context
+    wide = [SequenceSpec(f"synthetic-train-wide-{i:03d}", spec.seed, WIDE_SIZE, WIDE_SIZE, 2.0, spec.max_flow_px,
+                         leaf_size=SPARSE_LEAVES) for i, spec in enumerate(train)]
     mini = [SequenceSpec(f"synthetic-mini-{i}", 3000 + i, 64, 64, 1.0, m) for i, m in enumerate((1.0, 3.0, 8.0))]
     return {
         "synthetic-train": train,
         SOFT_TRAIN: soft,
         SPARSE_TRAIN: sparse,
+        WIDE_TRAIN: wide,
         "synthetic-test": test,
         "synthetic-mini": mini,
         DR_TRAIN: dr_train_specs(DR_TRAIN_DEFAULT_SIZE),

@@ -220,7 +220,7 @@ def test_split_catalogue():
     names = [s.name for split in SPLITS.values() for s in split]
     # every split its own scenes, but synthetic-train-soft and -sparse: synthetic-train's scenes,
     # weaker textured / with larger leaves
-    twins = ("synthetic-train-soft", "synthetic-train-sparse")
+    twins = ("synthetic-train-soft", "synthetic-train-sparse", "synthetic-train-wide")
     seeds = [s.seed for name, split in SPLITS.items() if name not in twins for s in split]
     assert len(set(names)) == len(names) and len(set(seeds)) == len(seeds)
     for twin in twins:
