@@ -239,15 +239,17 @@ def _build_splits() -> dict[str, list[SequenceSpec]]:
         SequenceSpec(f"synthetic-test-256-{i:02d}", 2100 + i, 256, 256, 1.0, m)
         for i, m in enumerate((1.0, 4.0, 12.0))
     ]
-    # the training scenes and motions with weaker textures: the same speeds with fewer events
-    soft = [SequenceSpec(f"synthetic-train-soft-{i:03d}", spec.seed, 128, 128, 2.0, spec.max_flow_px,
-                         contrast=SOFT_CONTRAST) for i, spec in enumerate(train)]
-    # the training scenes and motions with larger leaves: fewer, longer edges, most of the frame silent
-    sparse = [SequenceSpec(f"synthetic-train-sparse-{i:03d}", spec.seed, 128, 128, 2.0, spec.max_flow_px,
-                           leaf_size=SPARSE_LEAVES) for i, spec in enumerate(train)]
+    def twin(split: str, size: int = 128, **texture) -> list[SequenceSpec]:
+        """synthetic-train's scenes and motions under another name, frame size or texture."""
+        return [SequenceSpec(f"{split}-{i:03d}", spec.seed, size, size, 2.0, spec.max_flow_px, **texture)
+                for i, spec in enumerate(train)]
+
+    # weaker textures: the same speeds with fewer events
+    soft = twin(SOFT_TRAIN, contrast=SOFT_CONTRAST)
+    # larger leaves: fewer, longer edges, most of the frame silent
+    sparse = twin(SPARSE_TRAIN, leaf_size=SPARSE_LEAVES)
     # the same on 256x256 frames: long edges far apart, for crops that need the context
-    wide = [SequenceSpec(f"synthetic-train-wide-{i:03d}", spec.seed, WIDE_SIZE, WIDE_SIZE, 2.0, spec.max_flow_px,
-                         leaf_size=SPARSE_LEAVES) for i, spec in enumerate(train)]
+    wide = twin(WIDE_TRAIN, WIDE_SIZE, leaf_size=SPARSE_LEAVES)
     mini = [SequenceSpec(f"synthetic-mini-{i}", 3000 + i, 64, 64, 1.0, m) for i, m in enumerate((1.0, 3.0, 8.0))]
     return {
         "synthetic-train": train,

@@ -28,6 +28,7 @@ import numpy as np  # noqa: E402
 
 from agents.teacher import TeacherTargets  # noqa: E402
 from envs.dataset import resolve_data  # noqa: E402
+from envs.representations import event_mask  # noqa: E402
 from envs.windows import window_bounds, window_grid  # noqa: E402
 
 SPEED_BINS = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, np.inf)
@@ -37,9 +38,7 @@ def firing_share(reader, i0: int, i1: int, height: int, width: int) -> float:
     """The share of the frame's pixels with at least one of the events ``[i0, i1)``."""
     if i1 <= i0:
         return 0.0
-    events = reader.events_range(int(i0), int(i1))
-    x, y = np.rint(np.asarray(events.x)).astype(np.int64), np.rint(np.asarray(events.y)).astype(np.int64)
-    return np.unique(y * width + x).size / (height * width)
+    return float(event_mask(reader.events_range(int(i0), int(i1)), (height, width)).mean())
 
 
 def from_ground_truth(data, dt: int) -> np.ndarray:
