@@ -41,3 +41,10 @@ def test_a_tuple_output_reads_the_last_flow(rf):
 
     grad = rf.gradient_map(Two(), 3, 17, density=1.0)
     assert rf.field_stats(grad)["half_width"] == 2
+
+
+def test_bad_arguments_are_named(rf, capsys):
+    for argv, name in ((["--density", "0"], "--density"), (["--inputs", "0"], "--inputs"), (["--size", "4"], "--size")):
+        with pytest.raises(SystemExit):
+            rf.main(argv)
+        assert name in capsys.readouterr().err

@@ -63,6 +63,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if not 0 < args.density <= 1:
         p.error(f"--density must be in (0, 1], got {args.density}")
+    if args.inputs < 1 or args.size < 8:
+        p.error(f"--inputs must be >= 1 and --size >= 8, got {args.inputs} and {args.size}")
     from agents.pretrained import load_pretrained
 
     model, info = load_pretrained(args.pretrained)
