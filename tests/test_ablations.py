@@ -424,3 +424,23 @@ def test_targets_solved_otherwise_are_refused_even_where_the_recorded_keys_agree
     ok = AblationRunner(tmp_path / "run", TINY, lambda argv: pytest.fail("trained"), seeds=(0,),
                         log=lambda _: None, targets={"hmc": str(plain)})
     assert ok.targets("hmc") == plain  # the budget's own settings pass
+
+
+def test_a_folder_of_recordings_is_a_split_named_by_its_folder_and_read_first():
+    """The budget's compass is a folder (../shared/devval): its columns say "devval", and the
+    quality columns and the second-seed rule read it, the first split."""
+    from evflow_cli.ablations import render_tables
+
+    budget = dataclasses.replace(Budget(), eval_splits=("../shared/devval", "synthetic-test"), eval_dts=(1,))
+    assert Budget().val_data == Budget().eval_splits[0] == "../shared/devval"
+
+    def metrics(aee: float) -> dict:
+        return {"aee": aee, "outlier_pct": 1.0, "cosine": 0.5, "hmc": 0.8, "fwl": 1.2, "rsat": 0.9}
+
+    zero = {"../shared/devval": {"dt1": metrics(2.3)}, "synthetic-test": {"dt1": metrics(3.1)}}
+    row = {"config": "mgr-hmc", "label": CONFIGURATIONS["mgr-hmc"].label, "seed": 0, "parameters": 10,
+           "gflop_per_window": 0.1, "latency_ms": 1.0, "validation": [], "date": "2026-12-04",
+           "eval": {"../shared/devval": {"dt1": metrics(1.234)}, "synthetic-test": {"dt1": metrics(0.567)}}}
+    text = render_tables([row], zero, budget, seeds=(0,))
+    assert "| AEE devval dt1 | AEE test dt1 | % out devval dt1 |" in text
+    assert "| EV-MGRFlowNet, L_HMC | 0 | 1.234 | 0.567 |" in text
