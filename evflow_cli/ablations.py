@@ -41,6 +41,7 @@ import fcntl
 import json
 import math
 import os
+import re
 import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -213,6 +214,12 @@ def _write_json(path: Path, payload) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(payload, indent=1, default=str) + "\n")
     os.replace(tmp, path)
+
+
+def cache_name(split: str) -> str:
+    """A file name for ``split`` inside a cache folder: a split named by a path
+    ("../shared/devval") must not lead out of it, nor two paths share a name."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", split).replace("..", "__")
 
 
 def _validation_points(metrics: Path, offset: int) -> list[tuple[int, float, float]]:
@@ -508,7 +515,7 @@ class AblationRunner:
         out: dict = {}
         for split in self.budget.eval_splits:
             for dt in self.budget.eval_dts:
-                part = folder / f"{split}-dt{dt}.json"
+                part = folder / f"{cache_name(split)}-dt{dt}.json"
                 if not part.exists():
                     rows = evaluate(policy, split, window="frames", window_size=dt,
                                     max_windows=self.budget.eval_windows, progress=False)

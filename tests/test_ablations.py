@@ -444,3 +444,34 @@ def test_a_folder_of_recordings_is_a_split_named_by_its_folder_and_read_first():
     text = render_tables([row], zero, budget, seeds=(0,))
     assert "| AEE devval dt1 | AEE test dt1 | % out devval dt1 |" in text
     assert "| EV-MGRFlowNet, L_HMC | 0 | 1.234 | 0.567 |" in text
+
+
+def test_a_split_named_by_a_path_is_cached_inside_the_evaluation_folder(tmp_path, monkeypatch):
+    """"../shared/devval" as a split once cached its scores beside the evaluation folder
+    (eval/../shared/devval-dt1.json): a deleted evaluation folder then kept a stale score for one
+    window length and recomputed the other. Each split's cache now lies inside the folder, under
+    its own name."""
+    import evflow_cli.ablations as ablations
+    from agents.evaluation import SequenceResult
+
+    scores = {"value": 1.0}
+
+    def fake_evaluate(policy, split, *, window_size, **options):
+        row = SequenceResult("seq", size=(4, 4), windowing="frames", windows=1)
+        row.add("aee", scores["value"] * window_size)
+        return [row]
+
+    monkeypatch.setattr(ablations, "evaluate", fake_evaluate)
+    budget = dataclasses.replace(TINY, eval_splits=("../shared/devval", "../other/devval", "synthetic-mini"), eval_dts=(1, 4))
+    runner = AblationRunner(tmp_path / "run", budget, lambda argv: None, seeds=(0,), log=lambda _: None)
+    folder = tmp_path / "run" / "config-s0" / "eval"
+    first = runner._evaluate(folder, None)
+    assert first["../shared/devval"]["dt4"]["aee"] == 4.0
+    assert sorted(p.name for p in (tmp_path / "run" / "config-s0").iterdir()) == ["eval"]  # nothing beside it
+    assert len(list(folder.iterdir())) == 6  # three splits, two window lengths, none sharing a file
+    import shutil
+
+    shutil.rmtree(folder)
+    scores["value"] = 10.0  # another network: every score must be computed again
+    again = runner._evaluate(folder, None)
+    assert [again[s][d]["aee"] for s in budget.eval_splits for d in ("dt1", "dt4")] == [10.0, 40.0] * 3
