@@ -1,13 +1,14 @@
 """The paper's ablations (its Tables 2-4) with the project's recipe, one budget for all.
 
-Every configuration is trained the same way, in two stages through ``scripts/train.py``:
+Every configuration is trained the same way through ``scripts/train.py``:
 
 1. **teacher**: distil per-window contrast-maximisation targets, solved once for the training
    split (``agents/teacher.py``), into the network from scratch (``--loss teacher
    --teacher-cache``); the targets minimise the configuration's loss (L_HMC, or L_AT: the same
    solver with lambda_1 = 0);
-2. **fine-tune**: the configuration's loss itself (``--loss hmc`` or ``--loss at``) from the
-   teacher stage's weights.
+2. **fine-tune** (only with ``Budget.finetune_steps`` > 0; none in the documented budget since
+   2026-12-04, when it took the full model back to zero flow's devval AEE): the configuration's
+   loss itself (``--loss hmc`` or ``--loss at``) from the teacher stage's weights.
 
 Then each is evaluated on the same splits and window lengths (AEE, outliers, cosine, L_HMC,
 FWL, RSAT), and its cost measured (parameters, arithmetic and time per window). A finished
@@ -28,8 +29,8 @@ budget (Adam's moments dropped, restarted with a warm-up on resume) and kept in 
 clone whose run folder lacks the stage continues from it. The row, once written, replaces them.
 
 Seeds: the full model runs every seed given (3); another configuration runs the first seed, and
-the second too where its primary number (synthetic-test AEE at dt = 1, the first split and
-window length evaluated) differs from the full model's mean by at most two of the full model's
+the second too where its primary number (devval AEE at dt = 1, the first split and window
+length evaluated) differs from the full model's mean by at most two of the full model's
 sample standard deviations (:func:`needs_second_seed`).
 """
 
