@@ -44,6 +44,7 @@ import math
 import os
 import re
 import statistics
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Literal
@@ -120,7 +121,8 @@ class Budget:
     """
 
     teacher_steps: int = 6000
-    """Adam steps of the teacher stage (EV-MGRFlowNet: about 0.9 steps/s on the 2-core CPU, ~1.9 hours)."""
+    """Adam steps of the teacher stage (EV-MGRFlowNet on the 2-core CPUs measured: 0.9 steps/s at
+    two threads on 2026-12-02's machine, 2.1 at one thread on 2026-12-04's: 48 minutes to 1.9 hours)."""
     finetune_steps: int = 0
     """Adam steps of a fine-tuning stage on the configuration's own loss (0: none). None since
     2026-12-04: 1500 steps of L_HMC took the full model's devval validation AEE from 0.83x zero
@@ -219,8 +221,12 @@ def _write_json(path: Path, payload) -> None:
 
 def cache_name(split: str) -> str:
     """A file name for ``split`` inside a cache folder: a split named by a path
-    ("../shared/devval") must not lead out of it, nor two paths share a name."""
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", split).replace("..", "__")
+    ("../shared/devval") must not lead out of it. A plain split name is kept; any other gets its
+    characters outside ``[A-Za-z0-9_-]`` replaced and a checksum of the whole string, so that two
+    paths that differ only there ("a/b", "a_b") do not share a file."""
+    if re.fullmatch(r"[A-Za-z0-9_-]+", split):
+        return split
+    return f"{re.sub(r'[^A-Za-z0-9_-]', '_', split)}-{zlib.crc32(split.encode()):08x}"
 
 
 def _validation_points(metrics: Path, offset: int) -> list[tuple[int, float, float]]:

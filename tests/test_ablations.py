@@ -469,6 +469,8 @@ def test_a_split_named_by_a_path_is_cached_inside_the_evaluation_folder(tmp_path
     assert first["../shared/devval"]["dt4"]["aee"] == 4.0
     assert sorted(p.name for p in (tmp_path / "run" / "config-s0").iterdir()) == ["eval"]  # nothing beside it
     assert len(list(folder.iterdir())) == 6  # three splits, two window lengths, none sharing a file
+    assert ablations.cache_name("a/b") != ablations.cache_name("a_b")
+    assert ablations.cache_name("synthetic-test") == "synthetic-test"
     import shutil
 
     shutil.rmtree(folder)

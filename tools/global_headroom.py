@@ -14,7 +14,7 @@ run as scripts/evaluate.py runs it one pass (whole frames, recurrent state carri
   least squares: what a perfect global head added to this network could reach;
 - ``truth affine``: the affine field fitted to the ground truth itself, no network: how much
   of the true motion one affine motion per window explains (independently moving objects,
-  depth and rotation are what it misses);
+  depth and perspective are what it misses);
 - ``own affine``: the affine field fitted to the network's own flow (no ground truth): smoothing
   the network into one motion, something a user could do.
 
