@@ -37,6 +37,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from agents.evaluation import evaluate  # noqa: E402
+from envs.atomic import temporary_path  # noqa: E402
 from envs.representations import event_mask  # noqa: E402
 
 COLUMNS = {"aee": "net", "aee_translation": "+translation", "aee_affine": "+affine",
@@ -127,9 +128,9 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     for path, text in ((out, json.dumps(report, indent=1)), (out.with_suffix(".md"), "\n\n".join(tables) + "\n")):
-        partial = path.with_name(path.name + ".partial")
-        partial.write_text(text)
-        os.replace(partial, path)
+        tmp = temporary_path(path)  # whole files or none
+        tmp.write_text(text)
+        os.replace(tmp, path)
     print(f"wrote {out} and {out.with_suffix('.md')}")
     return 0
 
