@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -30,12 +31,23 @@ def recordings(tmp_path_factory):
                                             velocity=(200.0 - 150 * i, -100.0 + 50 * i))) for i in range(2)]
 
 
+class RankAborted(AssertionError):
+    """A rank ended in gloo's C++ teardown (SIGABRT, "terminate called without an active
+    exception") rather than in the code under test; seen once in CI over many green runs."""
+
+
 def _torchrun(args: list[str]) -> None:
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+    """Two ranks under torchrun; each rank's lines are prefixed with it (--tee), so a failure
+    shows which rank printed what before it ended."""
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "--tee", "3",
            str(ROOT / "tests" / "ddp_record.py"), *args]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
-    assert done.returncode == 0, done.stderr[-4000:]
+    if done.returncode != 0:
+        report = f"exit {done.returncode}\n--- stdout ---\n{done.stdout[-3000:]}\n--- stderr ---\n{done.stderr[-5000:]}"
+        if "terminate called without an active exception" in done.stderr and "]:Traceback" not in done.stderr:
+            raise RankAborted(report)
+        raise AssertionError(report)
 
 
 def _records(out: Path, rank: int) -> list[dict]:
@@ -46,7 +58,19 @@ def test_two_ranks_resume_each_its_own_episodes(recordings, tmp_path):
     """2 ranks train 3 steps and stop; resumed to 6, each rank rolls over exactly the windows of
     the uninterrupted 6-step run (none repeated, none skipped; episodes end and restart within the
     run) with the same losses; the checkpoint holds both ranks' episodes. Validation (steps 3 and
-    6) is spread over the ranks (one sequence: rank 1 scores none) and agrees too."""
+    6) is spread over the ranks (one sequence: rank 1 scores none) and agrees too.
+
+    A rank that aborts in gloo's C++ teardown (:class:`RankAborted`, no Python error on any rank)
+    gets the whole case once more in fresh folders, with a warning; any other failure, or a
+    second abort, fails the test."""
+    try:
+        _two_ranks_resume(recordings, tmp_path / "first")
+    except RankAborted as abort:
+        warnings.warn(f"a torchrun rank aborted in teardown; the case ran again:\n{str(abort)[-1500:]}", stacklevel=1)
+        _two_ranks_resume(recordings, tmp_path / "again")
+
+
+def _two_ranks_resume(recordings, tmp_path: Path) -> None:
     validation = ["--val-data", recordings[0], "--val-windows", "2", "--val-every", "3"]
     common = ["--data", *recordings, "--model", "convgru-ev-flownet", "--width", "4", "--num-envs", "2",
               "--unroll", "3", "--no-progress", "--ckpt-every", "100", "--lr", "1e-3", "--device", "cpu", *validation]

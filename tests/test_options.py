@@ -50,7 +50,7 @@ def command_modules() -> list[str]:
     scripts/ file runs."""
     names = set(re.findall(r'_program\("(\w+)"\)', (ROOT / "evflow_cli" / "commands" / "cli.py").read_text()))
     for script in (ROOT / "scripts").glob("*.py"):
-        names |= set(re.findall(r"from agents\.commands\.(\w+) import main", script.read_text()))
+        names |= set(re.findall(r"from evflow_cli\.commands\.(\w+) import [\w, ]*\bmain\b", script.read_text()))
     return sorted(names)
 
 

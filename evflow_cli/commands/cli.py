@@ -19,7 +19,7 @@ import linecache
 import os
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NoReturn
 
 __all__ = ["USER_ERRORS", "is_user_error", "run"]
 
@@ -61,7 +61,6 @@ def _program(command: str) -> Callable[[list[str] | None], int]:
 
 
 # console commands (pyproject.toml [project.scripts])
-train = _program("train")
 evaluate = _program("evaluate")
 predict = _program("predict")
 convert = _program("convert")
@@ -74,3 +73,13 @@ export_model = _program("export_model")
 ablations = _program("ablations")
 main_job = _program("main_job")
 param_counts = _program("param_counts")
+
+_train = _program("train")
+
+
+def train(argv: list[str] | None = None) -> NoReturn:
+    """The console command of evflow_cli/commands/train.py; a torchrun rank ends as
+    ``train.exit_process`` says."""
+    from evflow_cli.commands.train import exit_process
+
+    exit_process(_train(argv))
