@@ -68,3 +68,11 @@ def test_places_average_their_own_windows(su):
     out = su.by_place(aees)
     assert out == {"first": 1.0, "1-4": 4.0, "5-14": 10.0, "15+": 25.0}
     assert math.isnan(su.by_place([1.0])["1-4"])
+
+
+def test_the_table_has_as_many_cells_in_every_row(su):
+    carried = {"a": [1.0, 2.0], "b": [3.0]}
+    text = su.table("t", carried, carried)
+    rows = [line for line in text.splitlines() if line.startswith("|")]
+    assert len({line.count("|") for line in rows}) == 1 and len(rows) == 5
+    assert rows[-1].endswith("| 2.250 | 2.250 |")  # the mean over sequences of the sequences' means

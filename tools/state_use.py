@@ -98,8 +98,9 @@ def table(title: str, carried: dict[str, list[float]], reset: dict[str, list[flo
         means["reset"].append(whole[1])
         cells = [a[x] for x in labels] + [b[x] for x in labels] + whole
         lines.append(f"| {name} | {len(carried[name])} | " + " | ".join(f"{v:.3f}" for v in cells) + " |")
-    lines.append(f"| mean over sequences | | {' | ' * (2 * len(labels) - 1)} | {np.mean(means['carried']):.3f} | "
-                 f"{np.mean(means['reset']):.3f} |")
+    cells = ["mean over sequences", "", *[""] * (2 * len(labels)), f"{np.mean(means['carried']):.3f}",
+             f"{np.mean(means['reset']):.3f}"]
+    lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
