@@ -1,0 +1,128 @@
+#!/usr/bin/env python
+"""Which ReLU channels of a network never fire: per layer that ends in a ReLU (conv_down, conv_up,
+the residual blocks, the deep memory's conv_up), the channels whose output is zero on every pixel
+of every window of a data set, and the share of all its outputs that are zero.
+
+    python tools/dead_units.py --model runs/ablations/mgr-hmc-s1/teacher/checkpoint.pt --data ../shared/devval
+    python tools/dead_units.py --model ev-mgrflownet-cpu-derived-cycle2 --data synthetic-test --max-windows 5
+
+A channel that never fires passes no gradient either: once every channel of a layer is dead
+(``64 / 64``), nothing behind that layer can learn again or reach the flow. In EV-MGRFlowNet the
+decoder's first stage (``decoder.upsamples.0``) is the only way from the residual module and
+the deepest encoder level to the flow, and ``deep_memory_up`` the only way the deepest state
+reaches the ST-ConvGRU. A model is a shipped name or a checkpoint file (a run's ``checkpoint.pt``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+from torch import nn  # noqa: E402
+
+from agents.evaluation import evaluate  # noqa: E402
+from agents.evmgrflownet import DeepMemoryUp  # noqa: E402
+from agents.layers import ConvDown, ConvUp, ConvUpNearestReflect, ResidualBlock  # noqa: E402
+from envs.atomic import temporary_path  # noqa: E402
+
+#: layers whose output is a ReLU's (zero = not firing)
+RELU_LAYERS = (ConvDown, ConvUp, ConvUpNearestReflect, ResidualBlock, DeepMemoryUp)
+
+
+def relu_layers(model: nn.Module) -> list[tuple[str, nn.Module]]:
+    """(name, layer) of every layer of ``model`` whose output is a ReLU's, in the model's order."""
+    return [(name, module) for name, module in model.named_modules() if isinstance(module, RELU_LAYERS)]
+
+
+class FiringRecord:
+    """Forward hooks on a model's ReLU layers: per layer, which channels were ever positive and
+    how many outputs were zero, over every forward pass while attached."""
+
+    def __init__(self, model: nn.Module) -> None:
+        self.fired: dict[str, torch.Tensor] = {}
+        self.zeros: dict[str, int] = {}
+        self.outputs: dict[str, int] = {}
+        self.handles = [layer.register_forward_hook(self._hook(name)) for name, layer in relu_layers(model)]
+
+    def _hook(self, name: str):
+        def record(_module, _inputs, out: torch.Tensor) -> None:
+            fired = (out > 0).transpose(0, 1).reshape(out.shape[1], -1).any(dim=1).cpu()
+            self.fired[name] = fired if name not in self.fired else self.fired[name] | fired
+            self.zeros[name] = self.zeros.get(name, 0) + int((out == 0).sum())
+            self.outputs[name] = self.outputs.get(name, 0) + out.numel()
+        return record
+
+    def close(self) -> None:
+        for handle in self.handles:
+            handle.remove()
+
+    def summary(self) -> dict[str, dict]:
+        """Per layer: ``dead`` (channels never positive), ``channels``, ``dead_channels`` (their
+        indices) and ``zero_share`` (of all outputs)."""
+        return {name: {"dead": int((~fired).sum()), "channels": int(fired.numel()),
+                       "dead_channels": [int(i) for i in torch.nonzero(~fired).flatten()],
+                       "zero_share": self.zeros[name] / max(self.outputs[name], 1)}
+                for name, fired in self.fired.items()}
+
+
+def dead_units(policy, data, dt: int = 1, max_windows: int | None = 10) -> dict[str, dict]:
+    """:meth:`FiringRecord.summary` of ``policy``'s network (``policy.model``) rolled through
+    ``data`` as scripts/evaluate.py rolls it (windows of ``dt`` ground-truth intervals)."""
+    record = FiringRecord(policy.model)
+    if not record.handles:
+        raise ValueError(f"{type(policy.model).__name__}: no ReLU layer to watch (layers of the kinds "
+                         f"{', '.join(kind.__name__ for kind in RELU_LAYERS)})")
+    try:
+        evaluate(policy, data, window="frames", window_size=dt, max_windows=max_windows, progress=False)
+    finally:
+        record.close()
+    if not record.fired:
+        raise ValueError(f"{data}: no window ran through the network at dt = {dt}")
+    return record.summary()
+
+
+def table(title: str, summary: dict[str, dict]) -> str:
+    lines = [f"**{title}**", "", "| layer | dead channels | zero outputs |", "|---|---:|---:|"]
+    for name, row in summary.items():
+        lines.append(f"| {name} | {row['dead']} / {row['channels']} | {100 * row['zero_share']:.1f} % |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", default=None, help="a shipped name or a checkpoint file (default: the shipped default)")
+    p.add_argument("--data", default="../shared/devval", help="recordings (file or folder) or a split name")
+    p.add_argument("--dt", type=int, default=1, help="ground-truth intervals per window")
+    p.add_argument("--max-windows", type=int, default=10, help="per sequence (0: all)")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--out", default="runs/diagnosis/dead_units.json", help="JSON path (the table also to .md)")
+    args = p.parse_args(argv)
+    if args.dt < 1 or args.max_windows < 0:
+        p.error(f"--dt must be >= 1 and --max-windows >= 0, got {args.dt} and {args.max_windows}")
+    torch.set_num_threads(args.threads)
+    from evflow_cli.predict import load_policy
+
+    policy, provenance = load_policy(args.model)
+    name = provenance.get("name") or provenance.get("path") or args.model
+    summary = dead_units(policy, args.data, args.dt, args.max_windows or None)
+    text = table(f"{name} on {args.data}, dt = {args.dt}: ReLU channels that never fire", summary)
+    print(text)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    report = {"model": name, "data": args.data, "dt": args.dt, "max_windows": args.max_windows, "layers": summary}
+    for path, content in ((out, json.dumps(report, indent=1)), (out.with_suffix(".md"), text + "\n")):
+        tmp = temporary_path(path)  # whole files or none
+        tmp.write_text(content)
+        os.replace(tmp, path)
+    print(f"wrote {out} and {out.with_suffix('.md')}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
