@@ -150,7 +150,11 @@ class Budget:
     unroll: int = 4
     teacher_window_sizes: tuple[int, ...] = (1, 2, 3, 4)
     finetune_window_sizes: tuple[int, ...] = (4,)
-    teacher_lr: float = 1e-3
+    teacher_lr: float = 3e-4
+    """Peak step size of the teacher stage. 3e-4 since 2026-12-05: at 1e-3 every channel of the
+    decoder's first stage died (ReLU never firing) about 575 steps in, cutting the residual module
+    and the deepest encoder level off from the flow, in three of the four network ablations
+    (``tools/dead_units.py``); the rows of that budget are kept in ``docs/ablations/lr-1e-3/``."""
     finetune_lr: float = 3e-4
     warmup_steps: int = 100
     flow_scaling: float = 32.0
@@ -178,7 +182,8 @@ class Budget:
                 "--lr", f"{self.finetune_lr:g}", "--init", str(init), "--steps", str(self.finetune_steps)]
 
     def describe(self) -> str:
-        stages = f"{self.teacher_steps} teacher steps"
+        stages = (f"{self.teacher_steps} teacher steps (Adam, step size {self.teacher_lr:g} after {self.warmup_steps} "
+                  "warm-up steps, cosine decay to 0)")
         if self.finetune_steps:
             stages += f" + {self.finetune_steps} fine-tuning steps"
         return (f"{stages}; {self.train_data}, {self.crop}x{self.crop} random crops, B = {self.num_envs}, "

@@ -52,3 +52,29 @@ def test_a_network_without_relu_layers_is_refused(du):
 
     with pytest.raises(ValueError, match="no ReLU layer"):
         du.dead_units(Fake(), "synthetic-mini", max_windows=1)
+
+
+def test_watch_retrains_the_stored_configuration_and_reports_each_stretch(du, tmp_path):
+    """The watched run is the stored run again (the same losses over its first steps), its lines
+    come every `every` steps, and a layer the network lacks is named."""
+    import json
+
+    import numpy as np
+
+    from evflow_cli.commands import train as train_script
+    from tests.recordings import write_translating_recording
+
+    data = write_translating_recording(tmp_path / "dots.h5", np.random.default_rng(3), sensor_size=(32, 32))
+    out = tmp_path / "run"
+    train_script.main(["--device", "cpu", "--data", str(data), "--model", "convgru-ev-flownet", "--width", "4",
+                       "--num-envs", "2", "--unroll", "3", "--val-data", "", "--no-progress", "--lr", "1e-3",
+                       "--steps", "4", "--out", str(out)])
+    logged = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    lines = du.watch(out / "checkpoint.pt", steps=4, every=2, echo=lambda _: None)
+    assert [line["step"] for line in lines] == [2, 4]
+    for line, pair in zip(lines, (logged[:2], logged[2:4])):
+        expected = sum(r["loss"] for r in pair) / sum(r["zero_flow_loss"] for r in pair)
+        assert line["loss_over_zero"] == pytest.approx(expected, rel=1e-5)
+        assert {"downs.0", "decoder.upsamples.0"} <= set(line)
+    with pytest.raises(ValueError, match="deep_memory_up not ReLU layers of convgru-ev-flownet"):
+        du.watch(out / "checkpoint.pt", steps=1, layers=("deep_memory_up",), echo=lambda _: None)

@@ -5,6 +5,12 @@ of every window of a data set, and the share of all its outputs that are zero.
 
     python tools/dead_units.py --model runs/ablations/mgr-hmc-s1/teacher/checkpoint.pt --data ../shared/devval
     python tools/dead_units.py --model ev-mgrflownet-cpu-derived-cycle2 --data synthetic-test --max-windows 5
+    python tools/dead_units.py --watch runs/ablations/mgr-hmc-s1/teacher/checkpoint.pt --steps 700 --lr 3e-4
+
+``--watch RUN_CHECKPOINT`` trains a fresh network with that run's stored configuration (its data,
+loss, schedule and seed; ``--lr`` and ``--seed`` may change), in memory, and prints every ``--every``
+updates how many channels of the ``--layers`` fired on none of those updates' windows, beside the
+training loss over zero flow's: the step where a layer dies.
 
 A channel that never fires passes no gradient either: once every channel of a layer is dead
 (``64 / 64``), nothing behind that layer can learn again or reach the flow. In EV-MGRFlowNet the
@@ -87,6 +93,51 @@ def dead_units(policy, data, dt: int = 1, max_windows: int | None = 10) -> dict[
     return record.summary()
 
 
+def watch(checkpoint: str | os.PathLike, steps: int, every: int = 25, layers: tuple[str, ...] = (),
+          lr: float | None = None, seed: int | None = None, echo=print) -> list[dict]:
+    """Train a fresh network with the configuration stored in a training checkpoint (overriding
+    ``lr`` and ``seed`` where given) for ``steps`` updates, on CPU, keeping nothing; every
+    ``every`` updates one line (echoed and returned): the step, the loss over zero flow's over
+    those updates, and per layer of ``layers`` (default: every ReLU layer) the channels that fired
+    on none of their windows."""
+    import dataclasses
+
+    from agents.checkpoint import load_checkpoint
+    from agents.learner import Learner, TrainConfig
+
+    stored = load_checkpoint(checkpoint).get("config")
+    if not stored:
+        raise ValueError(f"{checkpoint}: no training configuration stored (a training run's checkpoint.pt is needed)")
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    changes = {k: v for k, v in (("lr", lr), ("seed", seed)) if v is not None}
+    cfg = dataclasses.replace(TrainConfig(**{k: v for k, v in stored.items() if k in known}), device="cpu", **changes)
+    learner = Learner(cfg)
+    names = [name for name, _ in relu_layers(learner.policy.model)]
+    unknown = sorted(set(layers) - set(names))
+    if unknown:
+        learner.close()
+        raise ValueError(f"--layers: {', '.join(unknown)} not ReLU layers of {cfg.model}; they are {', '.join(names)}")
+    lines, record, loss, zero = [], FiringRecord(learner.policy.model), 0.0, 0.0
+    try:
+        for step in range(1, steps + 1):
+            stats = learner.update()
+            loss += stats["loss"]
+            zero += stats.get("zero_flow_teacher", stats["zero_flow_loss"])
+            if step % every == 0 or step == steps:
+                summary = record.summary()
+                line = {"step": learner.step, "loss_over_zero": loss / max(zero, 1e-12),
+                        **{name: summary[name]["dead"] for name in (layers or names)}}
+                echo(f"step {line['step']}: loss / zero flow's {line['loss_over_zero']:.3f}; silent channels "
+                     + ", ".join(f"{name} {summary[name]['dead']}/{summary[name]['channels']}" for name in (layers or names)))
+                lines.append(line)
+                record.close()
+                record, loss, zero = FiringRecord(learner.policy.model), 0.0, 0.0
+    finally:
+        record.close()
+        learner.close()
+    return lines
+
+
 def table(title: str, summary: dict[str, dict]) -> str:
     lines = [f"**{title}**", "", "| layer | dead channels | zero outputs |", "|---|---:|---:|"]
     for name, row in summary.items():
@@ -102,10 +153,24 @@ def main(argv=None) -> int:
     p.add_argument("--max-windows", type=int, default=10, help="per sequence (0: all)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", default="runs/diagnosis/dead_units.json", help="JSON path (the table also to .md)")
+    w = p.add_argument_group("watching a run's configuration train (--watch)")
+    w.add_argument("--watch", default=None, metavar="RUN_CHECKPOINT",
+                   help="train its stored configuration afresh and report the layers' silent channels as it goes")
+    w.add_argument("--steps", type=int, default=700, help="updates to watch")
+    w.add_argument("--every", type=int, default=25, help="updates per line")
+    w.add_argument("--lr", type=float, default=None, help="peak step size (default: the run's)")
+    w.add_argument("--seed", type=int, default=None, help="seed (default: the run's)")
+    w.add_argument("--layers", nargs="+", default=["decoder.upsamples.0", "deep_memory_up"],
+                   help="layers to report (default: EV-MGRFlowNet's decoder first stage and deep memory)")
     args = p.parse_args(argv)
     if args.dt < 1 or args.max_windows < 0:
         p.error(f"--dt must be >= 1 and --max-windows >= 0, got {args.dt} and {args.max_windows}")
     torch.set_num_threads(args.threads)
+    if args.watch:
+        if args.steps < 1 or args.every < 1:
+            p.error(f"--steps and --every must be >= 1, got {args.steps} and {args.every}")
+        watch(args.watch, args.steps, args.every, tuple(args.layers), args.lr, args.seed)
+        return 0
     from evflow_cli.predict import load_policy
 
     policy, provenance = load_policy(args.model)
