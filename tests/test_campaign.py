@@ -173,6 +173,25 @@ def test_validation_exports_the_best_and_the_curve_accumulates(recording, tmp_pa
     assert campaign.reference_path.stat().st_mtime_ns == stamp
 
 
+def test_an_export_another_campaign_starts_from_is_left_alone(recording, tmp_path):
+    """A campaign whose export is another campaign's init writes EXPORT-latest instead: the
+    shipped file the other configuration names stays byte for byte."""
+    root, runs = tmp_path / "campaigns", tmp_path / "runs"
+    campaign_script.main(["new", "c", "--campaigns-dir", str(root), "--export", "c-model", "--val-data",
+                          str(recording), "--val-dt", "1", "--reference", "zero", "--interval-minutes", "10", "--",
+                          *_recipe(recording, 2)])
+    (root / "d").mkdir()
+    (root / "d" / "campaign.json").write_text(json.dumps({"name": "d", "init": "c-model"}))
+    weights = root / "weights"
+    weights.mkdir()
+    (weights / "c-model.pt").write_bytes(b"the lineage's file")
+    assert _resume(root, runs) == 0
+    assert (weights / "c-model.pt").read_bytes() == b"the lineage's file"
+    record = json.loads((weights / "c-model-latest.json").read_text())
+    assert record["campaign"] == "c" and "c-model is the init of d" in record["note"]
+    assert Campaign("c", root, runs).curve()[0]["exported"]
+
+
 def test_a_score_in_the_shipped_mode_rescores_the_export_before_it_competes(recording, tmp_path, monkeypatch):
     """val_split "dt": the score is taken from evaluate.py's --split dt row (the network stepped
     once per ground-truth interval), the one pass kept beside it; when a running campaign switches

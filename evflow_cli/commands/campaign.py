@@ -349,8 +349,9 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
                 log(f"[campaign] step {step}: score {row['score']:.4f} {row['aee']} "
                     f"(best before: {best['score'] if best else '-'})")
                 if improved:
-                    export(campaign, spec, row, step, here, weights_dir)
-                    log(f"[campaign] exported to {weights_dir / spec.export}.pt")
+                    name, users = export(campaign, spec, row, step, here, weights_dir)
+                    kept = f" ({spec.export} is the init of {', '.join(users)}: left as it is)" if users else ""
+                    log(f"[campaign] exported to {weights_dir / name}.pt{kept}")
             size, dropped = campaign.write_state(campaign.checkpoint, progress, int(spec.state_budget_mb * 2**20))
             log(f"[campaign] state at step {step}: {campaign.state_path} ({size / 2**20:.1f} MB; left out to fit "
                 f"{spec.state_budget_mb:g} MB: {dropped})")
@@ -367,8 +368,31 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
     return 0
 
 
-def export(campaign: Campaign, spec: CampaignSpec, row: dict, step: int, here: str, weights_dir: Path) -> None:
+def pinned_by(campaign: Campaign, model: str) -> list[str]:
+    """The other campaigns beside ``campaign`` whose ``init`` is the shipped ``model``: replacing
+    that file would change what their configurations reproduce."""
+    users = []
+    for path in sorted(campaign.dir.parent.glob("*/campaign.json")):
+        if path.parent.name == campaign.name:
+            continue
+        try:
+            init = json.loads(path.read_text()).get("init")
+        except (OSError, ValueError):  # not a campaign this check can read: it names no init
+            continue
+        if init == model:
+            users.append(path.parent.name)
+    return users
+
+
+def export(campaign: Campaign, spec: CampaignSpec, row: dict, step: int, here: str,
+           weights_dir: Path) -> tuple[str, list[str]]:
+    """Export the campaign's checkpoint as ``spec.export``, or as ``spec.export + "-latest"`` when
+    another campaign starts from ``spec.export`` (:func:`pinned_by`). Returns (the name written,
+    the campaigns that start from ``spec.export``)."""
     from agents.pretrained import export_pretrained
+
+    users = pinned_by(campaign, spec.export)
+    name = f"{spec.export}-latest" if users else spec.export
 
     provenance = {
         "command": f"python scripts/campaign.py resume {campaign.name} (agents/campaigns/{campaign.name}/campaign.json:"
@@ -383,7 +407,11 @@ def export(campaign: Campaign, spec: CampaignSpec, row: dict, step: int, here: s
                                      + (f", the network run with --split {spec.val_split}" if spec.val_split else ""),
                        "mode": spec.mode or "one pass", "step": step},
     }
-    export_pretrained(campaign.checkpoint, spec.export, provenance, directory=weights_dir)
+    if users:
+        provenance["note"] = (f"{spec.note} (exported as {name}: {spec.export} is the init of "
+                              f"{', '.join(users)})").lstrip()
+    export_pretrained(campaign.checkpoint, name, provenance, directory=weights_dir)
+    return name, users
 
 
 def _data_of(recipe: list[str]) -> list[str]:
