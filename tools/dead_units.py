@@ -22,7 +22,6 @@ reaches the ST-ConvGRU. A model is a shipped name or a checkpoint file (a run's 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -35,7 +34,7 @@ from torch import nn  # noqa: E402
 from agents.evaluation import evaluate  # noqa: E402
 from agents.evmgrflownet import DeepMemoryUp  # noqa: E402
 from agents.layers import ConvDown, ConvUp, ConvUpNearestReflect, ResidualBlock  # noqa: E402
-from envs.atomic import temporary_path  # noqa: E402
+from tools._report import add_model_options, check_model_options, load_named_policy, write_report  # noqa: E402
 
 #: layers whose output is a ReLU's (zero = not firing)
 RELU_LAYERS = (ConvDown, ConvUp, ConvUpNearestReflect, ResidualBlock, DeepMemoryUp)
@@ -147,12 +146,7 @@ def table(title: str, summary: dict[str, dict]) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model", default=None, help="a shipped name or a checkpoint file (default: the shipped default)")
-    p.add_argument("--data", default="../shared/devval", help="recordings (file or folder) or a split name")
-    p.add_argument("--dt", type=int, default=1, help="ground-truth intervals per window")
-    p.add_argument("--max-windows", type=int, default=10, help="per sequence (0: all)")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--out", default="runs/diagnosis/dead_units.json", help="JSON path (the table also to .md)")
+    add_model_options(p, max_windows=10, out="runs/diagnosis/dead_units.json")
     w = p.add_argument_group("watching a run's configuration train (--watch)")
     w.add_argument("--watch", default=None, metavar="RUN_CHECKPOINT",
                    help="train its stored configuration afresh and report the layers' silent channels as it goes")
@@ -163,29 +157,19 @@ def main(argv=None) -> int:
     w.add_argument("--layers", nargs="+", default=["decoder.upsamples.0", "deep_memory_up"],
                    help="layers to report (default: EV-MGRFlowNet's decoder first stage and deep memory)")
     args = p.parse_args(argv)
-    if args.dt < 1 or args.max_windows < 0:
-        p.error(f"--dt must be >= 1 and --max-windows >= 0, got {args.dt} and {args.max_windows}")
+    check_model_options(p, args)
     torch.set_num_threads(args.threads)
     if args.watch:
         if args.steps < 1 or args.every < 1:
             p.error(f"--steps and --every must be >= 1, got {args.steps} and {args.every}")
         watch(args.watch, args.steps, args.every, tuple(args.layers), args.lr, args.seed)
         return 0
-    from evflow_cli.predict import load_policy
-
-    policy, provenance = load_policy(args.model)
-    name = provenance.get("name") or provenance.get("path") or args.model
+    policy, name = load_named_policy(args.model)
     summary = dead_units(policy, args.data, args.dt, args.max_windows or None)
     text = table(f"{name} on {args.data}, dt = {args.dt}: ReLU channels that never fire", summary)
     print(text)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    report = {"model": name, "data": args.data, "dt": args.dt, "max_windows": args.max_windows, "layers": summary}
-    for path, content in ((out, json.dumps(report, indent=1)), (out.with_suffix(".md"), text + "\n")):
-        tmp = temporary_path(path)  # whole files or none
-        tmp.write_text(content)
-        os.replace(tmp, path)
-    print(f"wrote {out} and {out.with_suffix('.md')}")
+    write_report(args.out, {"model": name, "data": args.data, "dt": args.dt, "max_windows": args.max_windows,
+                            "layers": summary}, text)
     return 0
 
 

@@ -26,7 +26,6 @@ they are not methods.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -37,8 +36,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from agents.evaluation import evaluate  # noqa: E402
-from envs.atomic import temporary_path  # noqa: E402
 from envs.representations import event_mask  # noqa: E402
+from tools._report import write_report  # noqa: E402
 
 COLUMNS = {"aee": "net", "aee_translation": "+translation", "aee_affine": "+affine",
            "aee_truth_affine": "truth affine", "aee_own_affine": "own affine"}
@@ -125,13 +124,7 @@ def main(argv=None) -> int:
         report["dt"][f"dt{dt}"] = per_sequence
         tables.append(table(f"{name} on {args.data}, dt = {dt}, AEE (px)", per_sequence))
         print(tables[-1] + "\n", flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    for path, text in ((out, json.dumps(report, indent=1)), (out.with_suffix(".md"), "\n\n".join(tables) + "\n")):
-        tmp = temporary_path(path)  # whole files or none
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    print(f"wrote {out} and {out.with_suffix('.md')}")
+    write_report(args.out, report, "\n\n".join(tables))
     return 0
 
 

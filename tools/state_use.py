@@ -16,8 +16,6 @@ checkpoint file (a run's ``checkpoint.pt``).
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 from pathlib import Path
 
@@ -27,9 +25,9 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from agents.evaluation import evaluate  # noqa: E402
-from envs.atomic import temporary_path  # noqa: E402
 from envs.representations import event_mask  # noqa: E402
 from losses import flow_error  # noqa: E402
+from tools._report import add_model_options, check_model_options, load_named_policy, write_report  # noqa: E402
 
 #: (label, first place, end place or None) of the table's columns
 PLACES = (("first", 0, 1), ("1-4", 1, 5), ("5-14", 5, 15), ("15+", 15, None))
@@ -106,20 +104,11 @@ def table(title: str, carried: dict[str, list[float]], reset: dict[str, list[flo
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model", default=None, help="a shipped name or a checkpoint file (default: the shipped default)")
-    p.add_argument("--data", default="../shared/devval", help="recordings (file or folder) or a split name")
-    p.add_argument("--dt", type=int, default=1, help="ground-truth intervals per window")
-    p.add_argument("--max-windows", type=int, default=40, help="per sequence (0: all)")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--out", default="runs/diagnosis/state_use.json", help="JSON path (the table also to .md)")
+    add_model_options(p, max_windows=40, out="runs/diagnosis/state_use.json")
     args = p.parse_args(argv)
-    if args.dt < 1 or args.max_windows < 0:
-        p.error(f"--dt must be >= 1 and --max-windows >= 0, got {args.dt} and {args.max_windows}")
+    check_model_options(p, args)
     torch.set_num_threads(args.threads)
-    from evflow_cli.predict import load_policy
-
-    policy, provenance = load_policy(args.model)
-    name = provenance.get("name") or provenance.get("path") or args.model
+    policy, name = load_named_policy(args.model)
     windows = args.max_windows or None
     carried = per_window_aee(policy, args.data, args.dt, windows)
     reset = per_window_aee(ResetEveryWindow(policy), args.data, args.dt, windows)
@@ -127,14 +116,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"{args.data}: no window with ground truth and events at dt = {args.dt}")
     text = table(f"{name} on {args.data}, dt = {args.dt}, AEE (px) by the window's place", carried, reset)
     print(text)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    report = {"model": name, "data": args.data, "dt": args.dt, "carried": carried, "reset": reset}
-    for path, content in ((out, json.dumps(report, indent=1)), (out.with_suffix(".md"), text + "\n")):
-        tmp = temporary_path(path)  # whole files or none
-        tmp.write_text(content)
-        os.replace(tmp, path)
-    print(f"wrote {out} and {out.with_suffix('.md')}")
+    write_report(args.out, {"model": name, "data": args.data, "dt": args.dt, "carried": carried, "reset": reset}, text)
     return 0
 
 
