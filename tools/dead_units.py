@@ -102,14 +102,14 @@ def watch(checkpoint: str | os.PathLike, steps: int, every: int = 25, layers: tu
     import dataclasses
 
     from agents.checkpoint import load_checkpoint
-    from agents.learner import Learner, TrainConfig
+    from agents.learner import Learner
+    from evflow_cli.commands.train import stored_config
 
     stored = load_checkpoint(checkpoint).get("config")
     if not stored:
         raise ValueError(f"{checkpoint}: no training configuration stored (a training run's checkpoint.pt is needed)")
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
     changes = {k: v for k, v in (("lr", lr), ("seed", seed)) if v is not None}
-    cfg = dataclasses.replace(TrainConfig(**{k: v for k, v in stored.items() if k in known}), device="cpu", **changes)
+    cfg = dataclasses.replace(stored_config(stored), device="cpu", **changes)
     learner = Learner(cfg)
     names = [name for name, _ in relu_layers(learner.policy.model)]
     unknown = sorted(set(layers) - set(names))

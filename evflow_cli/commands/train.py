@@ -190,16 +190,21 @@ def _comparable(value):
     return json.loads(json.dumps(value, default=str))  # tuples and lists alike
 
 
+def stored_config(stored: dict) -> TrainConfig:
+    """The TrainConfig a checkpoint's stored config trained with, older checkpoints included."""
+    # checkpoints from before the border rule's ramp existed trained with the plain rule, and
+    # those from before loss_scales with the finest flow only in the accumulated loss
+    before = {"border_ramp": 0.0, "loss_scales": "finest" if stored.get("loss_mode") == "accumulated" else "all"}
+    return TrainConfig(**{**before, **stored})
+
+
 def resume_config(stored: dict, args, given: set[str], source: Path) -> tuple[TrainConfig, set[str]]:
     """The configuration a resume continues with, and the fields it changed.
 
     stored: the checkpoint's config. Each option given on the command line (``given``) must agree
     with it, except run options, ``steps`` (unless the step size decays over the steps) and the
     fields listed in ``--allow-changes``; otherwise ValueError names every differing field."""
-    # checkpoints from before the border rule's ramp existed trained with the plain rule, and
-    # those from before loss_scales with the finest flow only in the accumulated loss
-    before = {"border_ramp": 0.0, "loss_scales": "finest" if stored.get("loss_mode") == "accumulated" else "all"}
-    old = TrainConfig(**{**before, **stored})
+    old = stored_config(stored)
     asked = config_from_args(args)
     allowed = {name.strip() for name in args.allow_changes.split(",") if name.strip()}
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
