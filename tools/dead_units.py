@@ -29,51 +29,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
-from torch import nn  # noqa: E402
 
+from agents.dormant import RELU_LAYERS, FiringRecord, relu_layers  # noqa: E402
 from agents.evaluation import evaluate  # noqa: E402
-from agents.evmgrflownet import DeepMemoryUp  # noqa: E402
-from agents.layers import ConvDown, ConvUp, ConvUpNearestReflect, ResidualBlock  # noqa: E402
 from tools._report import add_model_options, check_model_options, load_named_policy, write_report  # noqa: E402
-
-#: layers whose output is a ReLU's (zero = not firing)
-RELU_LAYERS = (ConvDown, ConvUp, ConvUpNearestReflect, ResidualBlock, DeepMemoryUp)
-
-
-def relu_layers(model: nn.Module) -> list[tuple[str, nn.Module]]:
-    """(name, layer) of every layer of ``model`` whose output is a ReLU's, in the model's order."""
-    return [(name, module) for name, module in model.named_modules() if isinstance(module, RELU_LAYERS)]
-
-
-class FiringRecord:
-    """Forward hooks on a model's ReLU layers: per layer, which channels were ever positive and
-    how many outputs were zero, over every forward pass while attached."""
-
-    def __init__(self, model: nn.Module) -> None:
-        self.fired: dict[str, torch.Tensor] = {}
-        self.zeros: dict[str, int] = {}
-        self.outputs: dict[str, int] = {}
-        self.handles = [layer.register_forward_hook(self._hook(name)) for name, layer in relu_layers(model)]
-
-    def _hook(self, name: str):
-        def record(_module, _inputs, out: torch.Tensor) -> None:
-            fired = (out > 0).transpose(0, 1).reshape(out.shape[1], -1).any(dim=1).cpu()
-            self.fired[name] = fired if name not in self.fired else self.fired[name] | fired
-            self.zeros[name] = self.zeros.get(name, 0) + int((out == 0).sum())
-            self.outputs[name] = self.outputs.get(name, 0) + out.numel()
-        return record
-
-    def close(self) -> None:
-        for handle in self.handles:
-            handle.remove()
-
-    def summary(self) -> dict[str, dict]:
-        """Per layer: ``dead`` (channels never positive), ``channels``, ``dead_channels`` (their
-        indices) and ``zero_share`` (of all outputs)."""
-        return {name: {"dead": int((~fired).sum()), "channels": int(fired.numel()),
-                       "dead_channels": [int(i) for i in torch.nonzero(~fired).flatten()],
-                       "zero_share": self.zeros[name] / max(self.outputs[name], 1)}
-                for name, fired in self.fired.items()}
 
 
 def dead_units(policy, data, dt: int = 1, max_windows: int | None = 10) -> dict[str, dict]:

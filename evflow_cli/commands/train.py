@@ -54,6 +54,7 @@ from tqdm import tqdm
 from agents import pretrained as shipped
 from agents.checkpoint import load_checkpoint, save_checkpoint
 from agents.distributed import all_reduce_sums
+from agents.dormant import FiringRecord, revive_decoder
 from agents.evaluation import evaluate, first_window_panel
 from agents.learner import PRESETS, Learner, TrainConfig, data_options
 from agents.options import (
@@ -84,6 +85,8 @@ class RunOptions(Progress):
     """with --resume: comma-separated config fields this command may change, e.g. lr,steps"""
     init: str | None = option(None, metavar="CHECKPOINT")
     """fine-tune from the weights of CHECKPOINT or of a shipped model (a fresh optimizer; the same network)"""
+    revive: int = option(0, type=non_negative_int, metavar="WINDOWS")
+    """with --init: first give the flow decoder's channels that fire on none of the first WINDOWS windows of each training sequence fresh incoming and zero outgoing weights (the flow is unchanged; agents.dormant)"""
     minutes: float | None = option(None, type=non_negative_float)
     """also stop (and save) after this many minutes (0: after the first step)"""
     ckpt_every: int = option(100, type=positive_int)
@@ -167,6 +170,27 @@ def init_weights(learner, path: Path) -> None:
             f"this run builds {learner.cfg.model} {learner.model_config}"
         )
     learner.policy.model.load_state_dict(payload["model"])
+
+
+def revive_dormant(learner: Learner, windows: int, echo=print) -> dict[str, int]:
+    """``--revive``: roll the network through the first ``windows`` windows (dt = 1) of every
+    training sequence, then re-initialise its decoder channels that fired on none of them
+    (:func:`agents.dormant.revive_decoder`, seeded by the run's seed; every rank computes the same).
+    Returns and echoes the channels revived per decoder stage."""
+    cfg, model = learner.cfg, learner.policy.model
+    policy = RecurrentPolicy(model, device=learner.device, input_key=cfg.input, voxel_bins=cfg.voxel_bins)
+    record = FiringRecord(model)
+    try:
+        evaluate(policy, cfg.data, window="frames", window_size=1, crop=None if cfg.random_crop else cfg.crop,
+                 max_windows=windows, progress=False, flow_scaling=learner.flow_scaling,
+                 data_options=data_options(cfg))
+    finally:
+        record.close()
+    revived = revive_decoder(model, record.fired, seed=cfg.seed)
+    sizes = {name: row["channels"] for name, row in record.summary().items()}
+    echo("[train] --revive: dormant decoder channels re-initialised: "
+         + (", ".join(f"{name} {count}/{sizes[name]}" for name, count in revived.items()) or "none"))
+    return revived
 
 
 #: fields that shape the network: a resume cannot change them (fine-tune with --init)
@@ -327,7 +351,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     known, _ = parser.parse_known_args(argv)
     if known.preset is not None:
         parser.set_defaults(**PRESETS[known.preset])
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    if args.revive and not args.init:
+        parser.error("--revive re-initialises the dormant channels of the --init weights: give --init")
+    return args
 
 
 def open_run(args, argv: list[str] | None, rank: int) -> tuple[TrainConfig, Learner, dict | None]:
@@ -348,6 +375,8 @@ def open_run(args, argv: list[str] | None, rank: int) -> tuple[TrainConfig, Lear
         learner.load_state_dict(payload, restore_episodes=same_world and not changed & EPISODE_FIELDS)
     elif args.init:
         init_weights(learner, Path(args.init))
+        if args.revive:
+            revive_dormant(learner, args.revive, echo=print if rank == 0 else lambda *_: None)
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(out / "checkpoint.pt")  # left by a run killed while saving
