@@ -305,6 +305,12 @@ def test_anneal_continues_the_recipe_from_the_export_with_a_decaying_step_size(r
 def test_refusals(recording, tmp_path):
     with pytest.raises(SystemExit, match="--out"):
         campaign_script.main(["new", "c", "--campaigns-dir", str(tmp_path), "--export", "x", "--", "--out", "elsewhere"])
+    with pytest.raises(SystemExit):  # train.py refuses --revive without the --init the campaign would give it
+        campaign_script.main(["new", "r", "--campaigns-dir", str(tmp_path), "--export", "x", "--", "--revive", "2"])
+    assert not (tmp_path / "r").exists()
+    campaign_script.main(["new", "r", "--campaigns-dir", str(tmp_path), "--export", "x", "--init", "some-weights",
+                          "--", "--revive", "2"])
+    assert json.loads((tmp_path / "r" / "campaign.json").read_text())["train"] == ["--revive", "2"]
     with pytest.raises(FileNotFoundError, match="no campaign 'nope'"):
         campaign_script.main(["resume", "nope", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")])
     _new(tmp_path, recording, 2)

@@ -195,7 +195,8 @@ def cmd_new(args, rest: list[str]) -> int:
         raise SystemExit(f"the recipe (after --) must not set {', '.join(banned)}: the campaign sets them")
     from evflow_cli.commands.train import parse_args
 
-    parse_args([*rest, "--out", str(campaign.work / "train")])  # a recipe train.py would refuse fails here
+    # a recipe train.py would refuse fails here, as the first stretch runs it (with the campaign's --init)
+    parse_args([*rest, "--out", str(campaign.work / "train"), *(["--init", args.init] if args.init else [])])
     spec = CampaignSpec(name=args.name, export=args.export, train=rest, init=args.init, val_data=args.val_data,
                         val_dt=args.val_window_size, val_windows=args.val_windows, val_split=args.val_split,
                         reference=args.reference,
