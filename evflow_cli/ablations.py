@@ -632,10 +632,12 @@ def render_tables(rows: list[dict], zero: dict, budget: Budget, seeds: tuple[int
     dates = sorted({r["date"] for r in rows})
     lines = [
         START,
-        f"Budget per configuration: {budget.describe()}. Seeds {', '.join(map(str, seeds))} for the full model; "
-        f"the others seed {seeds[0]}, and seed {seeds[1] if len(seeds) > 1 else '-'} too where their "
-        f"{short(splits[0])} {dts[0]} AEE is within 2 standard deviations of the full model's. "
-        f"Mean ± sample standard deviation over seeds. Evaluated on every window"
+        f"Budget per configuration: {budget.describe()}. "
+        + (f"Seeds {', '.join(map(str, seeds))} for the full model; the others seed {seeds[0]}, and seed {seeds[1]} "
+           f"too where their {short(splits[0])} {dts[0]} AEE is within 2 standard deviations of the full model's. "
+           if len(seeds) > 1 else
+           f"Seed {seeds[0]} for every configuration so far (the seed column says which rows have more). ")
+        + "Mean ± sample standard deviation over seeds. Evaluated on every window"
         + (f" (the first {budget.eval_windows} per sequence)" if budget.eval_windows else "")
         + f" of {', '.join(f'`{s}`' for s in splits)} at their own sensor size. "
         f"Runs finished (configuration x seed): {len(rows)}" + (f", {dates[0]} to {dates[-1]}" if dates else "") + ". "

@@ -445,6 +445,9 @@ def test_a_folder_of_recordings_is_a_split_named_by_its_folder_and_read_first():
     text = render_tables([row], zero, budget, seeds=(0,))
     assert "| AEE devval dt1 | AEE test dt1 | % out devval dt1 |" in text
     assert "| EV-MGRFlowNet, L_HMC | 0 | 1.234 | 0.567 |" in text
+    assert "Seed 0 for every configuration so far" in text and "seed -" not in text  # one seed asked
+    two = render_tables([row], zero, budget, seeds=(0, 1))
+    assert "Seeds 0, 1 for the full model; the others seed 0, and seed 1 too where their devval dt1 AEE" in two
 
 
 def test_a_split_named_by_a_path_is_cached_inside_the_evaluation_folder(tmp_path, monkeypatch):
