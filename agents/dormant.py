@@ -74,14 +74,14 @@ def revive_decoder(model: nn.Module, fired: dict[str, torch.Tensor], seed: int =
     fresh weights, drawn as the stage's own class draws them (a new layer of the same shape).
     Returns the number of channels revived per stage name."""
     decoder = getattr(model, "decoder", None)
-    if not isinstance(decoder, FlowDecoder):
+    if type(decoder) is not FlowDecoder:  # a subclass may concatenate its stages' inputs otherwise
         raise ValueError(f"{type(model).__name__}: reviving dormant channels needs a FlowDecoder as .decoder, "
                          f"found {type(decoder).__name__}")
     dormant = {level: torch.nonzero(~fired[f"decoder.upsamples.{level}"].to(torch.bool)).flatten().tolist()
                for level in range(len(decoder.upsamples)) if f"decoder.upsamples.{level}" in fired}
     dormant = {level: channels for level, channels in dormant.items() if channels}
     with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
+        torch.default_generator.manual_seed(seed)  # the CPU generator only: fork_rng restores it, and no other
         for level, channels in dormant.items():  # incoming first, so that no fresh row reads a revived channel
             conv = decoder.upsamples[level].conv
             fresh = type(decoder.upsamples[level])(conv.in_channels, conv.out_channels).conv

@@ -302,15 +302,21 @@ def test_anneal_continues_the_recipe_from_the_export_with_a_decaying_step_size(r
     assert record["campaign"] == "c-cooldown" and "annealed from its export c-model" in record["note"]
 
 
-def test_refusals(recording, tmp_path):
+def test_refusals(recording, tmp_path, capsys):
     with pytest.raises(SystemExit, match="--out"):
         campaign_script.main(["new", "c", "--campaigns-dir", str(tmp_path), "--export", "x", "--", "--out", "elsewhere"])
     with pytest.raises(SystemExit):  # train.py refuses --revive without the --init the campaign would give it
         campaign_script.main(["new", "r", "--campaigns-dir", str(tmp_path), "--export", "x", "--", "--revive", "2"])
+    assert "--revive re-initialises the dormant channels of the --init weights" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
     campaign_script.main(["new", "r", "--campaigns-dir", str(tmp_path), "--export", "x", "--init", "some-weights",
-                          "--", "--revive", "2"])
-    assert json.loads((tmp_path / "r" / "campaign.json").read_text())["train"] == ["--revive", "2"]
+                          "--", "--revive", "2", "--steps", "10"])
+    assert json.loads((tmp_path / "r" / "campaign.json").read_text())["train"] == ["--revive", "2", "--steps", "10"]
+    # annealing it starts from weights already revived: the recipe goes on without --revive
+    campaign_script.main(["anneal", "r", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "runs"),
+                          "--init", "other-weights", "--steps", "4", "--warmup-steps", "1"])
+    annealed = json.loads((tmp_path / "r-cooldown" / "campaign.json").read_text())
+    assert "--revive" not in annealed["train"] and annealed["init"] == "other-weights"
     with pytest.raises(FileNotFoundError, match="no campaign 'nope'"):
         campaign_script.main(["resume", "nope", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")])
     _new(tmp_path, recording, 2)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from agents.checkpoint import load_checkpoint
+from agents.checkpoint import load_checkpoint, save_checkpoint
 from agents.distributed import _buckets
 from evflow_cli.commands import train as train_script
 from tests.recordings import write_translating_recording
@@ -105,6 +105,32 @@ def _two_ranks_resume(recordings, tmp_path: Path) -> None:
                        "--device", "cpu", "--allow-changes", "world_size"])
     payload = load_checkpoint(part / "checkpoint.pt")
     assert payload["step"] == 7 and payload["world_size"] == 1 and payload["rank_episodes"] == []
+
+
+def test_two_ranks_revive_the_channels_one_process_revives(recordings, tmp_path):
+    """--revive under torchrun: each rank rolls its own sequence and the ranks agree on the channels
+    that fired anywhere, so the weights after it (a step at step size 0) are those of one process
+    rolling both sequences. A teardown abort (:class:`RankAborted`) reruns the case once."""
+    common = ["--data", *recordings, "--model", "ev-mgrflownet", "--width", "4", "--num-envs", "2", "--unroll", "2",
+              "--no-progress", "--lr", "0", "--device", "cpu", "--val-data", "", "--steps", "1"]
+    train_script.main([*common, "--out", str(tmp_path / "first")])
+    payload = load_checkpoint(tmp_path / "first" / "checkpoint.pt")
+    payload["model"]["decoder.upsamples.0.conv.bias"][[1, 3, 6]] = -1e6  # dead on every window
+    save_checkpoint(tmp_path / "killed.pt", payload)
+    revive = ["--init", str(tmp_path / "killed.pt"), "--revive", "2"]
+    train_script.main([*common, *revive, "--out", str(tmp_path / "one")])
+    try:
+        _torchrun([*common, *revive, "--out", str(tmp_path / "two")])
+    except RankAborted as abort:
+        warnings.warn(f"a torchrun rank aborted in teardown; the case ran again:\n{str(abort)[-1500:]}", stacklevel=1)
+        _torchrun([*common, *revive, "--out", str(tmp_path / "two-again")])
+    two = tmp_path / ("two" if (tmp_path / "two" / "checkpoint.pt").exists() else "two-again")
+    one, both = (load_checkpoint(out / "checkpoint.pt")["model"] for out in (tmp_path / "one", two))
+    killed = payload["model"]
+    revived = [k for k in killed if k.startswith("decoder.") and not torch.equal(killed[k], one[k])]
+    assert "decoder.upsamples.0.conv.weight" in revived and "decoder.heads.0.weight" in revived
+    for key in killed:
+        assert torch.equal(one[key], both[key]), key
 
 
 def test_gradient_buckets_keep_order_dtype_and_size():

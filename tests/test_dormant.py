@@ -100,6 +100,18 @@ def test_the_fresh_weights_follow_the_seed_and_spare_live_channels():
     assert torch.equal(wa[0], live)
 
 
+def test_the_global_generator_is_left_as_it_was():
+    model = network()
+    kill(model)
+    x = torch.rand(1, 5, 32, 32)
+    mask = fired(model, x)
+    torch.manual_seed(7)
+    expected = torch.rand(3)
+    torch.manual_seed(7)
+    revive_decoder(model, mask, seed=0)
+    assert torch.equal(torch.rand(3), expected)
+
+
 def test_a_network_without_a_flow_decoder_is_refused():
     model = network("xlif-ev-flownet")
     with pytest.raises(ValueError, match="XLIFEVFlowNet: reviving dormant channels needs a FlowDecoder"):
@@ -132,3 +144,6 @@ def test_train_revive_starts_on_the_same_loss_and_needs_init(tmp_path, capsys):
     with pytest.raises(SystemExit):
         train_script.parse_args(["--revive", "2"])
     assert "--revive re-initialises the dormant channels of the --init weights" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        train_script.parse_args(["--revive", "2", "--init", "w.pt", "--resume"])
+    assert "not --resume (a resumed run keeps its weights)" in capsys.readouterr().err

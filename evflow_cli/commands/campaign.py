@@ -160,9 +160,8 @@ def _steps_of(recipe: list[str]) -> list[str]:
     return []
 
 
-def _set_option(recipe: list[str], flag: str, value: str) -> list[str]:
-    """``recipe`` with the single-valued option ``flag`` set to ``value`` (replaced where present,
-    in either spelling, else appended)."""
+def _drop_option(recipe: list[str], flag: str) -> list[str]:
+    """``recipe`` without the single-valued option ``flag`` (in either spelling)."""
     out, i = [], 0
     while i < len(recipe):
         arg = recipe[i]
@@ -172,7 +171,13 @@ def _set_option(recipe: list[str], flag: str, value: str) -> list[str]:
         if not arg.startswith(f"{flag}="):
             out.append(arg)
         i += 1
-    return [*out, flag, value]
+    return out
+
+
+def _set_option(recipe: list[str], flag: str, value: str) -> list[str]:
+    """``recipe`` with the single-valued option ``flag`` set to ``value`` (replaced where present,
+    in either spelling, else appended)."""
+    return [*_drop_option(recipe, flag), flag, value]
 
 
 def _pid_alive(pid: int) -> bool:
@@ -238,14 +243,15 @@ def cmd_anneal(args) -> int:
         origin = (f"from its export {spec.export} (step {validation.get('step', '?')}, validation score "
                   f"{validation.get('score', '?')}, {validation.get('mode', 'one pass')})" if validation
                   else f"from its export {spec.export}")
-    recipe = _set_option(spec.train, "--steps", str(args.steps))
+    # --revive acts once, on the weights a campaign starts from: the annealed one starts from revived weights
+    recipe = _set_option(_drop_option(spec.train, "--revive"), "--steps", str(args.steps))
     recipe = _set_option(recipe, "--warmup-steps", str(args.warmup_steps))
     recipe = _set_option(recipe, "--decay", "cosine")
     if args.lr is not None:
         recipe = _set_option(recipe, "--lr", str(args.lr))
     from evflow_cli.commands.train import parse_args
 
-    parsed = parse_args([*recipe, "--out", str(target.work / "train")])  # a recipe train.py would refuse fails here
+    parsed = parse_args([*recipe, "--out", str(target.work / "train"), "--init", init])  # as its first stretch runs it
     note = (f"campaign {args.name}'s recipe annealed {origin}: {args.steps} steps, {args.warmup_steps} of warm-up "
             f"to {parsed.lr:g}, then a cosine decay of the step size to zero")
     annealed = CampaignSpec(**{**vars(spec), "name": into, "export": args.export or f"{spec.export}-cooldown",

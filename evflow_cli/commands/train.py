@@ -173,23 +173,39 @@ def init_weights(learner, path: Path) -> None:
 
 
 def revive_dormant(learner: Learner, windows: int, echo=print) -> dict[str, int]:
-    """``--revive``: roll the network through the first ``windows`` windows (dt = 1) of every
-    training sequence, then re-initialise its decoder channels that fired on none of them
-    (:func:`agents.dormant.revive_decoder`, seeded by the run's seed; every rank computes the same).
+    """``--revive``: roll the network through the first ``windows`` windows of every training
+    sequence at each of the run's window lengths (whole frames or its fixed crop, its autocast), then
+    re-initialise its decoder channels that fired on none of them
+    (:func:`agents.dormant.revive_decoder`, seeded by the run's seed). Under torchrun each rank
+    rolls its share of the sequences and the ranks agree on the channels that fired anywhere.
     Returns and echoes the channels revived per decoder stage."""
     cfg, model = learner.cfg, learner.policy.model
-    policy = RecurrentPolicy(model, device=learner.device, input_key=cfg.input, voxel_bins=cfg.voxel_bins)
+    stages = {f"decoder.upsamples.{level}": stage.conv.out_channels
+              for level, stage in enumerate(getattr(getattr(model, "decoder", None), "upsamples", []))}
+    policy = RecurrentPolicy(model, device=learner.device, input_key=cfg.input, voxel_bins=cfg.voxel_bins,
+                             autocast=learner.autocast)
     record = FiringRecord(model)
     try:
-        evaluate(policy, cfg.data, window="frames", window_size=1, crop=None if cfg.random_crop else cfg.crop,
-                 max_windows=windows, progress=False, flow_scaling=learner.flow_scaling,
-                 data_options=data_options(cfg))
+        for size in cfg.window_sizes() or [None]:
+            evaluate(policy, cfg.data, window=cfg.window, window_size=size, crop=None if cfg.random_crop else cfg.crop,
+                     max_windows=windows, progress=False, flow_scaling=learner.flow_scaling,
+                     data_options=data_options(cfg), shard=(learner.rank, learner.world))
     finally:
         record.close()
-    revived = revive_decoder(model, record.fired, seed=cfg.seed)
-    sizes = {name: row["channels"] for name, row in record.summary().items()}
+    # per stage: on how many ranks' windows each channel fired (a rank without sequences adds zeros)
+    counts = [float(record.fired[name][c]) if name in record.fired else 0.0
+              for name, size in stages.items() for c in range(size)] + [float(bool(record.fired))]
+    if learner.world > 1:
+        counts = all_reduce_sums(counts, learner.device)
+    if not counts[-1]:
+        raise ValueError(f"--revive: no window of {cfg.data} ran through the network")
+    fired, at = {}, 0
+    for name, size in stages.items():
+        fired[name] = torch.tensor(counts[at:at + size]) > 0
+        at += size
+    revived = revive_decoder(model, fired, seed=cfg.seed)
     echo("[train] --revive: dormant decoder channels re-initialised: "
-         + (", ".join(f"{name} {count}/{sizes[name]}" for name, count in revived.items()) or "none"))
+         + (", ".join(f"{name} {count}/{stages[name]}" for name, count in revived.items()) or "none"))
     return revived
 
 
@@ -352,8 +368,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if known.preset is not None:
         parser.set_defaults(**PRESETS[known.preset])
     args = parser.parse_args(argv)
-    if args.revive and not args.init:
-        parser.error("--revive re-initialises the dormant channels of the --init weights: give --init")
+    if args.revive and (not args.init or args.resume):
+        parser.error("--revive re-initialises the dormant channels of the --init weights of a new run: give --init"
+                     + (", not --resume (a resumed run keeps its weights)" if args.resume else ""))
     return args
 
 
