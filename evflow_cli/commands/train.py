@@ -86,7 +86,7 @@ class RunOptions(Progress):
     init: str | None = option(None, metavar="CHECKPOINT")
     """fine-tune from the weights of CHECKPOINT or of a shipped model (a fresh optimizer; the same network)"""
     revive: int = option(0, type=non_negative_int, metavar="WINDOWS")
-    """with --init: first give the flow decoder's channels that fire on none of the first WINDOWS windows of each training sequence fresh incoming and zero outgoing weights (the flow is unchanged; agents.dormant)"""
+    """with --init: first give the flow decoder's channels that fire on none of the first WINDOWS windows of each training sequence fresh incoming and zero outgoing weights (the flow on those windows is unchanged; agents.dormant)"""
     minutes: float | None = option(None, type=non_negative_float)
     """also stop (and save) after this many minutes (0: after the first step)"""
     ckpt_every: int = option(100, type=positive_int)
