@@ -83,6 +83,8 @@ class EVMGRFlowNet(FlowNetBase):
         flow_scaling: pixels per unit of tanh output (Hagenaars: 128, the training crop side).
         use_st_convgru: False = ablation "without ST-ConvGRU" (module 1 is a plain ConvGRU).
         use_prior_flow: False = ablation "without prior flows" (u_l = uhat_l).
+        input_norm: "none" (the paper's input) or "nonzero-rms" (each window scaled by the root
+            mean square of its nonzero entries: the flownet module's ``normalise_input``).
     """
 
     def __init__(
@@ -93,9 +95,10 @@ class EVMGRFlowNet(FlowNetBase):
         flow_scaling: float = 128.0,
         use_st_convgru: bool = True,
         use_prior_flow: bool = True,
+        input_norm: str = "none",
     ):
         c = resolve_base_width(base_width, width)
-        super().__init__(in_channels, c, flow_scaling, use_prior_flow)
+        super().__init__(in_channels, c, flow_scaling, use_prior_flow, input_norm=input_norm)
         self.use_st_convgru = bool(use_st_convgru)
         channels = [2 * c, 4 * c, 8 * c, 16 * c]
         inputs = [in_channels] + channels[:-1]
@@ -110,6 +113,8 @@ class EVMGRFlowNet(FlowNetBase):
             "use_st_convgru": self.use_st_convgru,
             "use_prior_flow": self.use_prior_flow,
         }
+        if self.input_norm != "none":  # older checkpoints' configs stay as they were
+            self.config["input_norm"] = self.input_norm
 
     def encode(self, x: Tensor, state: State, new_state: State) -> list[Tensor]:
         skips = []

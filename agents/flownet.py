@@ -21,6 +21,9 @@ from losses import cpu_kernels_enabled, forward_warp_flow
 
 from .layers import ConvGRU, ConvUp, ResidualBlock, is_channels_last, refine_flow
 
+#: How a network may scale its input before encoding it (:func:`normalise_input`).
+INPUT_NORMS = ("none", "nonzero-rms")
+
 #: Named base widths: the paper's size and a size that trains on a laptop CPU.
 WIDTHS: dict[str, int] = {"paper": 32, "cpu": 8}
 
@@ -51,6 +54,22 @@ def pad_to_multiple(x: Tensor, multiple: int = PAD_MULTIPLE) -> Tensor:
     if pad_h == 0 and pad_w == 0:
         return x
     return F.pad(x, (0, pad_w, 0, pad_h))
+
+
+def normalise_input(x: Tensor, mode: str = "none") -> Tensor:
+    """The network input scaled per sample: ``"none"`` returns ``x``; ``"nonzero-rms"`` divides
+    each sample (all channels) by the root mean square of its nonzero entries, so that the
+    pixels an event touched read about 1 whatever the recording's events per pixel, and a
+    pixel without events stays 0 (a sample without events is returned unchanged)."""
+    if mode == "none":
+        return x
+    if mode != "nonzero-rms":
+        raise ValueError(f"unknown input normalisation {mode!r}; expected one of {INPUT_NORMS}")
+    flat = x.reshape(x.shape[0], -1)
+    count = (flat != 0).sum(dim=1).clamp(min=1).to(x.dtype)
+    rms = torch.sqrt(flat.square().sum(dim=1) / count)
+    rms = torch.where(rms > 0, rms, torch.ones_like(rms))
+    return x / rms.view(-1, 1, 1, 1)
 
 
 class FlowDecoder(nn.Module):
@@ -146,8 +165,12 @@ class FlowNetBase(nn.Module):
         use_prior_flow: bool,
         residual: nn.Module | None = None,
         decoder: nn.Module | None = None,
+        input_norm: str = "none",
     ):
         super().__init__()
+        if input_norm not in INPUT_NORMS:
+            raise ValueError(f"unknown input_norm {input_norm!r}; expected one of {INPUT_NORMS}")
+        self.input_norm = input_norm
         self.in_channels = int(in_channels)
         self.base_width = int(base_width)
         self.flow_scaling = float(flow_scaling)
@@ -185,7 +208,7 @@ class FlowNetBase(nn.Module):
             )
         state = {} if state is None else state
         height, width = x.shape[-2:]
-        padded = pad_to_multiple(x)
+        padded = pad_to_multiple(normalise_input(x, self.input_norm))
         layout = torch.channels_last if self._use_channels_last(x) else torch.contiguous_format
         padded = padded.contiguous(memory_format=layout)
         new_state: State = {}

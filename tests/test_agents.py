@@ -388,6 +388,39 @@ def test_registry_names_and_config_round_trip():
     }
 
 
+def test_nonzero_rms_input_norm_against_a_per_sample_loop():
+    from agents.flownet import normalise_input
+
+    gen = torch.Generator().manual_seed(3)
+    x = torch.randn(3, 5, 7, 9, generator=gen) * (torch.rand(3, 5, 7, 9, generator=gen) < 0.2)
+    x[2] = 0.0  # a window without events stays zero
+    out = normalise_input(x, "nonzero-rms")
+    for b in range(3):
+        values = x[b].numpy()[x[b].numpy() != 0]
+        expected = x[b].numpy() / math.sqrt((values**2).mean()) if values.size else x[b].numpy()
+        np.testing.assert_allclose(out[b].numpy(), expected, rtol=1e-6, atol=0)
+    assert torch.equal(normalise_input(x, "none"), x)
+    with pytest.raises(ValueError, match="input normalisation 'max'"):
+        normalise_input(x, "max")
+
+
+def test_input_norm_makes_the_flow_blind_to_the_events_per_pixel():
+    """With nonzero-rms a window whose every event is repeated k times gives the same flow; the
+    paper's input does not; the setting survives the config round trip and shapes no weight."""
+    torch.manual_seed(0)
+    normed = make_model("ev-mgrflownet", base_width=4, in_channels=5, input_norm="nonzero-rms")
+    plain = make_model("ev-mgrflownet", base_width=4, in_channels=5)
+    plain.load_state_dict(normed.state_dict())
+    x = torch.randn(1, 5, 32, 32) * (torch.rand(1, 5, 32, 32) < 0.3)
+    with torch.no_grad():
+        torch.testing.assert_close(normed(3 * x, None)[0][-1], normed(x, None)[0][-1], rtol=1e-4, atol=1e-5)
+        assert not torch.allclose(plain(3 * x, None)[0][-1], plain(x, None)[0][-1], rtol=1e-3, atol=1e-4)
+    assert normed.config["input_norm"] == "nonzero-rms" and "input_norm" not in plain.config
+    assert make_model("ev-mgrflownet", **normed.config).input_norm == "nonzero-rms"
+    with pytest.raises(ValueError, match="unknown input_norm 'max'"):
+        make_model("ev-mgrflownet", base_width=4, input_norm="max")
+
+
 def test_unknown_names_and_bad_widths_fail_clearly():
     with pytest.raises(ModelLoadError, match="unknown model 'nope'"):
         make_model("nope")

@@ -154,6 +154,13 @@ def test_init_fine_tunes_from_checkpoint_weights_and_names_a_mismatch(recording,
     with pytest.raises(ValueError, match="--init .*checkpoint.pt"):
         train_script.main(common + ["--steps", "0", "--width", "8", "--init", str(tmp_path / "a" / "checkpoint.pt"),
                                     "--out", str(tmp_path / "c")])
+    # a setting that shapes no weight may change: the same weights, the new setting stored
+    train_script.main(common + ["--steps", "0", "--model-kwarg", "input_norm=nonzero-rms", "--init",
+                                str(tmp_path / "a" / "checkpoint.pt"), "--out", str(tmp_path / "d")])
+    normed = load_checkpoint(tmp_path / "d" / "checkpoint.pt")
+    assert normed["model_config"]["input_norm"] == "nonzero-rms"
+    for key, value in source["model"].items():
+        torch.testing.assert_close(normed["model"][key], value, rtol=0, atol=0)
 
 
 def test_logged_baselines_match_a_network_at_zero_flow(recording, tmp_path):

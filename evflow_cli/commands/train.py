@@ -155,16 +155,25 @@ def log_validation(board: TensorBoardLog, learner: Learner, data: str, val: dict
     board.flush()
 
 
+#: model config keys that shape no weight: ``--init`` may change them (fine-tuning to a new setting)
+WEIGHTLESS_MODEL_KEYS = frozenset({"input_norm"})
+
+
+def _shaping(config) -> dict | None:
+    return None if config is None else {k: v for k, v in config.items() if k not in WEIGHTLESS_MODEL_KEYS}
+
+
 def init_weights(learner, path: Path) -> None:
     """Load the network weights of a training checkpoint, or of a shipped model given by name,
-    into a new run (``--init``)."""
+    into a new run (``--init``). The model and its config must agree, except settings that shape
+    no weight (:data:`WEIGHTLESS_MODEL_KEYS`, e.g. ``--model-kwarg input_norm=nonzero-rms``)."""
     if not path.exists():
         if str(path) not in shipped.list_pretrained():
             raise FileNotFoundError(f"--init {path}: no such checkpoint, nor a shipped model "
                                     f"(shipped: {', '.join(shipped.list_pretrained()) or 'none'})")
         path = shipped.WEIGHTS_DIR / f"{path}.pt"
     payload = load_checkpoint(path)
-    if payload.get("model_config") != learner.model_config or payload.get("model_name") != learner.cfg.model:
+    if _shaping(payload.get("model_config")) != _shaping(learner.model_config) or payload.get("model_name") != learner.cfg.model:
         raise ValueError(
             f"--init {path}: checkpoint holds {payload.get('model_name')} {payload.get('model_config')}, "
             f"this run builds {learner.cfg.model} {learner.model_config}"
