@@ -360,3 +360,20 @@ def test_ev_flownet_trains_on_its_four_channel_input():
         learner.close()
     assert np.isfinite(stats["loss"])
     assert any(not torch.equal(a, b) for a, b in zip(before, learner.policy.parameters()))
+
+
+def test_threads_sets_torch_threads_and_is_a_run_option(recording, tmp_path):
+    """--threads N sets torch's CPU threads for the run; it is not part of what the run learns, so
+    a resume may change it."""
+    before = torch.get_num_threads()
+    common = ["--device", "cpu", "--data", str(recording), "--width", "4", "--num-envs", "1", "--unroll", "2",
+              "--val-data", "", "--no-progress", "--out", str(tmp_path / "a")]
+    try:
+        torch.set_num_threads(2)
+        train_script.main(common + ["--steps", "1", "--threads", "1"])
+        assert torch.get_num_threads() == 1
+        assert "threads" not in load_checkpoint(tmp_path / "a" / "checkpoint.pt")["config"]
+        train_script.main(common + ["--steps", "2", "--resume", "--threads", "2"])
+        assert torch.get_num_threads() == 2 and load_checkpoint(tmp_path / "a" / "checkpoint.pt")["step"] == 2
+    finally:
+        torch.set_num_threads(before)

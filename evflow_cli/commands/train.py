@@ -101,6 +101,8 @@ class RunOptions(Progress):
     """jsonl: the curves in OUT/metrics.jsonl (always written; the docs' curves come from it); tensorboard: also in OUT/tensorboard/, the step and validation scalars and a flow panel at each validation (needs the 'tensorboard' extra)"""
     overwrite: bool = False
     """start a new run in an OUT that holds an earlier run's checkpoint or metrics (they are replaced)"""
+    threads: int | None = option(None, type=positive_int)
+    """torch CPU threads of this process (default: torch's choice; under torchrun, of each rank)"""
 
 
 #: options that say how long and where a run goes, not what it learns: free to change on --resume
@@ -511,6 +513,8 @@ def main(argv=None) -> int:
             return 2
     if not args.resume:
         check_new_run_folder(out, args.overwrite)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     rank = setup_distributed(args)
     cfg, learner, payload = open_run(args, argv, rank)
     record = RunRecord(args, learner, rank, resumed=payload is not None)
