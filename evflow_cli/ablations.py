@@ -13,9 +13,10 @@ Every configuration is trained the same way through ``scripts/train.py``:
 Then each is evaluated on the same splits and window lengths (AEE, outliers, cosine, L_HMC,
 FWL, RSAT), and its cost measured (parameters, arithmetic and time per window). A finished
 configuration's row is appended at once to ``RECORD/rows.jsonl`` (``RECORD`` defaults to ``OUT``;
-``scripts/ablations.py`` keeps it in the repository, ``docs/ablations``, and commits it after
-every row, so finished rows outlive the machine); the Markdown tables and the validation curves
-are regenerated there from those rows after every row.
+``scripts/ablations.py`` keeps it in the repository, ``docs/ablations``; committing it is the
+user's step, e.g. ``python tools/campaign_commit.py --ablations``, so that finished rows outlive
+the machine); the Markdown tables and the validation curves are regenerated there from those
+rows after every row.
 
 Resumable: a (configuration, seed) with a row is skipped; a stage with a checkpoint but no
 ``done.json`` continues from it (``--resume``); an evaluation keeps its finished parts. A stage
@@ -681,7 +682,7 @@ def plot_validation_curves(rows: list[dict], path: Path, size: tuple[int, int] =
     from PIL import Image, ImageDraw
 
     width, height = size
-    left, right, top, bottom = 60, 20, 30, 40
+    left, right, top, bottom = 60, 20, 46, 40  # the title and, below it, the legend above the box
     image = Image.new("RGB", size, "white")
     draw = ImageDraw.Draw(image)
     curves = [[(p[0], p[1], p[2]) for p in r.get("validation") or []] for r in rows]
@@ -721,15 +722,18 @@ def plot_validation_curves(rows: list[dict], path: Path, size: tuple[int, int] =
         for (s0, z0), (s1, z1) in zip(zero, zero[1:]):
             _dashed(draw, xy(s0, z0), xy(s1, z1), "gray")
         colours = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd"]
-        for i, (row, curve) in enumerate(zip(rows, curves)):
+        for i, curve in enumerate(curves):
             colour = colours[i % len(colours)]
             line = [xy(s, v) for s, v, _ in curve]
             if len(line) > 1:
                 draw.line(line, fill=colour, width=2)
             for x, y in line:
                 draw.ellipse([x - 2, y - 2, x + 2, y + 2], fill=colour)
-            draw.text((width - right - 150, top + 6 + 14 * i), f"seed {row['seed']}", fill=colour)
-        draw.text((width - right - 150, top + 6 + 14 * len(rows)), "zero flow (dashed)", fill="gray")
+        legend = [(f"seed {row['seed']}", colours[i % len(colours)]) for i, row in enumerate(rows)]
+        x = left
+        for text, colour in legend + [("zero flow (dashed)", "gray")]:
+            draw.text((x, 26), text, fill=colour)
+            x += draw.textlength(text) + 16
     else:
         draw.text((left, height // 2), "no validation points", fill="black")
     path.parent.mkdir(parents=True, exist_ok=True)
