@@ -448,6 +448,11 @@ def test_a_folder_of_recordings_is_a_split_named_by_its_folder_and_read_first():
     assert "Seed 0 for every configuration so far" in text and "seed -" not in text  # one seed asked
     two = render_tables([row], zero, budget, seeds=(0, 1))
     assert "Seeds 0, 1 for the full model; the others seed 0, and seed 1 too where their devval dt1 AEE" in two
+    rows = [dict(row, seed=seed) for seed in (0, 1)] + [dict(row, config="mgr-at", label="L_AT", seed=seed)
+                                                        for seed in (0, 1)]
+    every = render_tables(rows, zero, budget, seeds=(0, 1))  # every row ran both: no rule to quote
+    assert "Seeds 0, 1 for every configuration." in every and "too where" not in every
+    assert "Seeds 0, 1 for every configuration." not in render_tables(rows[:3], zero, budget, seeds=(0, 1))
 
 
 def test_a_split_named_by_a_path_is_cached_inside_the_evaluation_folder(tmp_path, monkeypatch):
