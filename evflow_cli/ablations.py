@@ -631,12 +631,13 @@ def render_tables(rows: list[dict], zero: dict, budget: Budget, seeds: tuple[int
         table4.append(f"| {by_name[name][0]['label']} | {', '.join(str(r['seed']) for r in by_name[name])} | "
                       + " | ".join(_cell(metric(name, s, d, k), 4) for s, d, k in quality) + f" | {_paper(name)} |")
     dates = sorted({r["date"] for r in rows})
-    seed_sets = {tuple(sorted(r["seed"] for r in group)) for group in by_name.values()}
-    same_seeds = next(iter(seed_sets)) if len(seed_sets) == 1 else ()
+    seed_sets = [{r["seed"] for r in group} for group in by_name.values()]
+    common = sorted(set.intersection(*seed_sets)) if seed_sets else []
+    more = "" if all(len(s) == len(common) for s in seed_sets) else ", more where the seeds column lists them"
     lines = [
         START,
         f"Budget per configuration: {budget.describe()}. "
-        + (f"Seeds {', '.join(map(str, same_seeds))} for every configuration. " if len(same_seeds) > 1 else
+        + (f"Seeds {', '.join(map(str, common))} for every configuration{more}. " if len(common) > 1 else
            f"Seeds {', '.join(map(str, seeds))} for the full model; the others seed {seeds[0]}, and seed {seeds[1]} "
            f"too where their {short(splits[0])} {dts[0]} AEE is within 2 standard deviations of the full model's. "
            if len(seeds) > 1 else

@@ -452,7 +452,10 @@ def test_a_folder_of_recordings_is_a_split_named_by_its_folder_and_read_first():
                                                         for seed in (0, 1)]
     every = render_tables(rows, zero, budget, seeds=(0, 1))  # every row ran both: no rule to quote
     assert "Seeds 0, 1 for every configuration." in every and "too where" not in every
-    assert "Seeds 0, 1 for every configuration." not in render_tables(rows[:3], zero, budget, seeds=(0, 1))
+    assert "Seeds 0, 1 for every configuration" not in render_tables(rows[:3], zero, budget, seeds=(0, 1))
+    third = render_tables(rows + [dict(row, seed=2)], zero, budget, seeds=(0, 1, 2))
+    assert "Seeds 0, 1 for every configuration, more where the seeds column lists them." in third
+    assert "| EV-MGRFlowNet, L_HMC | 0, 1, 2 |" in third
 
 
 def test_a_split_named_by_a_path_is_cached_inside_the_evaluation_folder(tmp_path, monkeypatch):
