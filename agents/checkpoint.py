@@ -3,7 +3,8 @@
 A checkpoint is a dict saved with ``torch.save``:
 
     format: "evflow-checkpoint", version: 2
-    model_name: registry name or "package.module:factory"; model_config: its kwargs
+    model_name: registry name or "package.module:factory"; model_config: its kwargs (a dotted
+        path is rebuilt only when the user names it too: :func:`load_model`)
     model: state_dict; optimizer, scheduler: state_dicts (training checkpoints)
     step: optimizer steps done; config: the training configuration (a dict)
     rng: python / numpy / torch generator states, and CUDA's of the training device only
@@ -37,7 +38,7 @@ import torch
 
 from envs.atomic import remove_stale_temporaries, temporary_path
 
-from .registry import make_model
+from .registry import MODELS, make_model
 
 __all__ = [
     "save_checkpoint",
@@ -49,6 +50,7 @@ __all__ = [
     "rng_state",
     "set_rng_state",
     "CheckpointError",
+    "check_model_name",
 ]
 
 FORMAT = "evflow-checkpoint"
@@ -202,9 +204,15 @@ def upgrade_checkpoint(path: str | os.PathLike, out: str | os.PathLike | None = 
 
 
 def load_model(
-    path: str | os.PathLike, map_location: str | torch.device = "cpu", *, expect_model: str | None = None
+    path: str | os.PathLike, map_location: str | torch.device = "cpu", *, expect_model: str | None = None,
+    plugin: str | None = None,
 ) -> tuple[torch.nn.Module, dict]:
     """Rebuild the model stored in a checkpoint; returns (model in eval mode, checkpoint).
+
+    The file's ``model_name`` must be a registered model (``agents.registry.MODELS``): a dotted
+    path ``package.module:factory`` imports and runs code, so it is taken only when the caller's
+    user named that same path (``plugin``, or ``expect_model``): a checkpoint alone never
+    chooses the code that runs. ``model_config`` must be a dict of keyword arguments.
 
     expect_model: raise CheckpointError unless the checkpoint holds this model (registry name
     or dotted path). Weights that do not fit the rebuilt model raise CheckpointError too.
@@ -213,7 +221,14 @@ def load_model(
     name = payload["model_name"]
     if expect_model is not None and expect_model != name:
         raise CheckpointError(f"{path}: checkpoint holds model {name!r}, not {expect_model!r}")
-    model = make_model(name, **payload["model_config"])
+    check_model_name(name, path, trusted=plugin or expect_model)
+    config = payload["model_config"]
+    if not isinstance(config, dict) or not all(isinstance(k, str) for k in config):
+        raise CheckpointError(f"{path}: model_config must be a dict of keyword arguments, got {type(config).__name__}")
+    try:
+        model = make_model(name, **config)
+    except (TypeError, ValueError) as err:
+        raise CheckpointError(f"{path}: model {name!r} cannot be built with config {config}: {err}") from err
     try:
         model.load_state_dict(payload["model"])
     except RuntimeError as err:
@@ -224,3 +239,25 @@ def load_model(
     model.to(map_location)
     model.eval()
     return model, payload
+
+
+def check_model_name(name: Any, source: str | os.PathLike, trusted: str | None = None) -> str:
+    """``name``, a model name read from a file (``source``: a checkpoint, campaign or export),
+    if it is a registered model, or a dotted path equal to ``trusted`` (the one the user named
+    on their own command line or in code). Anything else raises CheckpointError naming the file:
+    a file never picks code to import."""
+    if not isinstance(name, str) or not name:
+        raise CheckpointError(f"{source}: model name must be a non-empty string, got {name!r}")
+    if name in MODELS and ":" not in name:
+        return name
+    if ":" in name and trusted is not None and name == trusted:
+        return name
+    if ":" in name:
+        raise CheckpointError(
+            f"{source}: names the plug-in model {name!r} (a dotted path, whose import runs code); a file may only "
+            f"name a registered model ({', '.join(sorted(MODELS))}). If you trust this file and that code, name the "
+            f"plug-in yourself (evaluate.py --checkpoint FILE --model {name}, predict.py FILE --model FILE --plugin {name}, "
+            f"train.py --resume/--init with --model {name}, "
+            f"or load_model(path, plugin={name!r}))")
+    raise CheckpointError(f"{source}: unknown model {name!r}; registered: {', '.join(sorted(MODELS))} "
+                          "(a model registered with agents.register_model must be registered before loading)")

@@ -35,6 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from envs.representations import IMAGE_INPUTS
+
 State = dict[str, Tensor]
 
 #: ``--amp`` values: auto (bf16 on a CUDA device that supports it, else off), bf16, fp16 (CUDA only), off
@@ -158,6 +160,10 @@ class RecurrentPolicy(nn.Module):
     ):
         super().__init__()
         self.autocast = autocast  # the forward's reduced precision (None: float32)
+        if input_key not in IMAGE_INPUTS:  # read from checkpoints and provenance files: checked, not trusted
+            raise ValueError(f"input_key must be one of {IMAGE_INPUTS}, got {input_key!r}")
+        if not 1 <= int(voxel_bins) <= 64:
+            raise ValueError(f"voxel_bins must be in [1, 64], got {voxel_bins!r}")
         self.input_key = input_key  # which observation part the model reads
         self.voxel_bins = int(voxel_bins)  # its size, when the input is "voxel_grid"
         if device is None:

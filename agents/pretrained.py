@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -23,11 +24,24 @@ import torch
 
 from envs.atomic import remove_stale_temporaries, temporary_path
 
-from .checkpoint import CheckpointError, load_checkpoint, load_model, save_checkpoint
+from .checkpoint import CheckpointError, check_model_name, load_checkpoint, load_model, save_checkpoint
 
-__all__ = ["WEIGHTS_DIR", "DEFAULT_PRETRAINED", "default_choice", "list_pretrained", "pretrained_info", "load_pretrained", "export_pretrained"]
+__all__ = ["WEIGHTS_DIR", "DEFAULT_PRETRAINED", "default_choice", "list_pretrained", "pretrained_info", "load_pretrained",
+           "export_pretrained", "check_model_file_name"]
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+
+#: a shipped model's name: one path component of lower-case letters, digits, '.', '_' and '-'
+NAME_PATTERN = re.compile(r"[a-z0-9][a-z0-9._-]{0,99}")
+
+
+def check_model_file_name(name: object, what: str = "model name") -> str:
+    """``name`` if it is a valid shipped model's name (:data:`NAME_PATTERN`, no '..'): the
+    export never writes outside its weights folder. ValueError naming the problem otherwise."""
+    if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name) or ".." in name:
+        raise ValueError(f"{what} {name!r}: must be one file-name component of lower-case letters, digits, '.', '_' "
+                         "and '-' (e.g. ev-mgrflownet-cpu-mine), starting with a letter or digit, without '..'")
+    return name
 
 
 def default_choice(directory: str | os.PathLike | None = None) -> dict[str, Any]:
@@ -101,13 +115,25 @@ def load_pretrained(
 
 
 def export_pretrained(
-    checkpoint: str | os.PathLike, name: str, provenance: dict[str, Any], directory: str | os.PathLike | None = None
+    checkpoint: str | os.PathLike, name: str, provenance: dict[str, Any], directory: str | os.PathLike | None = None,
+    *, overwrite: bool = False,
 ) -> tuple[Path, Path]:
     """Write ``NAME.pt`` (weights only, float32, CPU) and ``NAME.json`` from a training
     checkpoint. Both files are written atomically; the weights are checked to load first.
     Floating-point weights are stored as float16 (half the size; loading casts them back to the
-    model's float32, a relative change below 1e-3 per weight)."""
+    model's float32, a relative change below 1e-3 per weight).
+
+    ``name`` must be one file-name component (:func:`check_model_file_name`); a model of that
+    name already in ``directory`` is replaced only with ``overwrite`` (FileExistsError otherwise).
+    The checkpoint must hold a registered model (a shipped file never names code to import)."""
+    check_model_file_name(name)
+    directory = Path(WEIGHTS_DIR if directory is None else directory)
+    existing = [p.name for p in (directory / f"{name}.pt", directory / f"{name}.json") if os.path.lexists(p)]
+    if existing and not overwrite:
+        raise FileExistsError(f"{directory}: already holds {', '.join(existing)}; choose another name, or replace "
+                              "it on purpose (--overwrite)")
     payload = load_checkpoint(checkpoint)
+    check_model_name(payload["model_name"], checkpoint)
     config = payload.get("config") or {}
     slim = {
         "model_name": payload["model_name"],
@@ -117,7 +143,6 @@ def export_pretrained(
         "step": payload.get("step"),
         "config": config,
     }
-    directory = Path(WEIGHTS_DIR if directory is None else directory)
     weights = save_checkpoint(directory / f"{name}.pt", slim)
     try:
         load_model(weights)

@@ -83,7 +83,29 @@ class CampaignSpec:
             raise ValueError(f"{path}: unknown field(s) {', '.join(unknown)}; fields: {', '.join(sorted(known))}")
         if data.get("val_split") not in (None, "dt"):  # refused here, not after a stretch of training
             raise ValueError(f"{path}: val_split must be \"dt\" or null, got {data['val_split']!r}")
-        return cls(**data)
+        try:
+            spec = cls(**data)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{path}: {err}") from None
+        return spec
+
+    def __post_init__(self) -> None:
+        """What a campaign file may say is checked as a file's word, not the user's: its names are
+        file-name components, its recipe a list of strings that names no plug-in model (a dotted
+        path imports code; train plug-ins with scripts/train.py --model directly)."""
+        from agents.pretrained import check_model_file_name
+
+        check_model_file_name(self.name, "campaign name")
+        check_model_file_name(self.export, "campaign export")
+        if not isinstance(self.train, list) or not all(isinstance(a, str) for a in self.train):
+            raise ValueError(f"campaign {self.name}: train must be a list of strings, got {self.train!r}")
+        for i, arg in enumerate(self.train):
+            flag, eq, value = arg.partition("=")
+            if flag == "--model":
+                value = value if eq else (self.train[i + 1] if i + 1 < len(self.train) else "")
+                if ":" in value:
+                    raise ValueError(f"campaign {self.name}: its recipe names the plug-in model {value!r} (a dotted "
+                                     "path, whose import runs code); a campaign may only train a registered model")
 
     def write(self, path: Path) -> None:
         _write_text(path, json.dumps(asdict(self), indent=1) + "\n")

@@ -91,12 +91,15 @@ class PredictResult:
         return self.windows / self.seconds if self.seconds > 0 else float("nan")
 
 
-def load_policy(model: str | None = None, *, device: str = "cpu", width: str | int = "cpu") -> tuple[RecurrentPolicy, dict]:
+def load_policy(model: str | None = None, *, device: str = "cpu", width: str | int = "cpu",
+                plugin: str | None = None) -> tuple[RecurrentPolicy, dict]:
     """The policy and its provenance for ``model``:
 
     - None or a shipped name (``agents/weights``): ``RecurrentPolicy.from_pretrained``;
     - a path to a checkpoint file written by training: ``agents.checkpoint.load_model``;
     - a registry name or ``package.module:factory``: a fresh, untrained model of ``width``.
+
+    plugin: the dotted path a checkpoint may name (a file alone may only name a registered model).
     """
     from agents.checkpoint import load_model
     from agents.pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info
@@ -113,7 +116,7 @@ def load_policy(model: str | None = None, *, device: str = "cpu", width: str | i
             provenance["default"] = {k: choice[k] for k in ("mode", "chosen_on", "date") if k in choice}
         return RecurrentPolicy.from_pretrained(name, device=device), provenance
     if os.path.isfile(model):
-        net, payload = load_model(model, map_location=device)
+        net, payload = load_model(model, map_location=device, plugin=plugin)
         cfg = payload.get("config") or {}
         provenance = {"kind": "checkpoint", "path": os.path.abspath(model), "model_name": payload.get("model_name"),
                       "model_config": payload.get("model_config"), "step": payload.get("step")}

@@ -417,7 +417,7 @@ def export(campaign: Campaign, spec: CampaignSpec, row: dict, step: int, here: s
     if users:
         provenance["note"] = (f"{spec.note} (exported as {name}: {spec.export} is the init of "
                               f"{', '.join(users)})").lstrip()
-    export_pretrained(campaign.checkpoint, name, provenance, directory=weights_dir)
+    export_pretrained(campaign.checkpoint, name, provenance, directory=weights_dir, overwrite=True)  # its own export
     return name, users
 
 

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from agents.checkpoint import load_checkpoint, upgrade_checkpoint
 from agents.options import command_parser, option, options_from_args
-from agents.pretrained import export_pretrained
+from agents.pretrained import check_model_file_name, export_pretrained
 
 
 @dataclass(kw_only=True)
@@ -49,6 +49,8 @@ class ExportOptions:
     """where the weights go (default: agents/weights/)"""
     metrics: str | None = None
     """the run's metrics.jsonl (default: beside the checkpoint)"""
+    overwrite: bool = False
+    """replace a model of that name already in the weights folder"""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -64,6 +66,10 @@ def main(argv=None) -> int:
         return 0
     if args.name is None or len(args.checkpoint) != 1:
         p.error("exporting takes one checkpoint and --name NAME")
+    try:
+        check_model_file_name(args.name, "--name")
+    except ValueError as err:
+        p.error(str(err))
     ckpt = Path(args.checkpoint[0])
     step = int(load_checkpoint(ckpt)["step"])
     metrics = Path(args.metrics) if args.metrics else ckpt.parent / "metrics.jsonl"
@@ -86,7 +92,7 @@ def main(argv=None) -> int:
     provenance = {"command": args.command, "date": datetime.date.today().isoformat(), "budget": budget, "note": args.note}
     if args.eval:
         provenance["evaluation"] = json.loads(Path(args.eval).read_text())
-    weights, meta = export_pretrained(ckpt, args.name, provenance, args.dir)
+    weights, meta = export_pretrained(ckpt, args.name, provenance, args.dir, overwrite=args.overwrite)
     print(f"wrote {weights} ({weights.stat().st_size / 1e6:.1f} MB) and {meta}")
     return 0
 

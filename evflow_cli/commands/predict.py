@@ -61,6 +61,8 @@ class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progr
     """recording file (or folder / synthetic split, with --sequence)"""
     model: str | None = None
     """shipped name, checkpoint file, or registry name / package.module:factory"""
+    plugin: str | None = option(None, metavar="MODULE:FACTORY")
+    """with --model CHECKPOINT: the plug-in model (dotted path) the checkpoint names, trusted because you name it here (a checkpoint alone may only name a registered model)"""
     out: str | None = None
     """flow h5 to write (default: runs/predict/<recording>.flow.h5)"""
     video: str | None = None
@@ -117,7 +119,7 @@ def main(argv=None) -> int:  # opens as the other commands do: parse, then set t
     json_out = Output(args.json, inputs=[("recording", args.recording)], overwrite=args.overwrite,
                       option="--json") if args.json else None
     with json_out or contextlib.nullcontext():
-        policy, provenance = load_policy(args.model, device=args.device, width=args.width)
+        policy, provenance = load_policy(args.model, device=args.device, width=args.width, plugin=args.plugin)
         split = args.split
         if split is None:
             split = default_steps(args.window, args.window_size, args.no_gt_window) if args.model is None else 1

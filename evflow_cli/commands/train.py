@@ -52,7 +52,7 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from agents import pretrained as shipped
-from agents.checkpoint import load_checkpoint, save_checkpoint
+from agents.checkpoint import check_model_name, load_checkpoint, save_checkpoint
 from agents.distributed import all_reduce_sums
 from agents.dormant import FiringRecord, revive_decoder
 from agents.evaluation import evaluate, first_window_panel
@@ -394,7 +394,11 @@ def open_run(args, argv: list[str] | None, rank: int) -> tuple[TrainConfig, Lear
     payload, changed, same_world = None, set(), True
     if args.resume:
         source, payload = open_training_checkpoint(args.resume, out)
-        cfg, changed = resume_config(payload["config"], args, given_options(argv), source)
+        given = given_options(argv)
+        trusted = args.model if "model" in given else None  # a plug-in only when named on this command line
+        for name in (payload.get("model_name"), (payload.get("config") or {}).get("model")):
+            check_model_name(name, source, trusted=trusted)
+        cfg, changed = resume_config(payload["config"], args, given, source)
         same_world = check_world_size(payload, world, args.allow_changes, source)
     else:
         cfg = config_from_args(args)

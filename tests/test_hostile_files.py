@@ -1,0 +1,152 @@
+"""Hostile files, round three: nothing a checkpoint, a campaign file or an export name says may
+run code or write outside what the user named. Each test first builds the attack as a hostile
+user would (plain data that the safe loader accepts) and checks that no code ran."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from agents.checkpoint import CheckpointError, load_model, save_checkpoint
+from agents.registry import make_model
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _evil_checkpoint(path: Path, marker: Path, **extra) -> Path:
+    """A checkpoint of plain data whose model name is a dotted path that, imported and called,
+    writes ``marker`` (os.system would run a shell command the same way)."""
+    payload = {"model_name": "os:system", "model_config": {"command": f"touch {marker}"}, "model": {}, **extra}
+    save_checkpoint(path, payload)
+    return path
+
+
+def test_a_checkpoint_naming_a_dotted_path_runs_nothing(tmp_path):
+    marker = tmp_path / "pwned"
+    path = _evil_checkpoint(tmp_path / "evil.pt", marker)
+    with pytest.raises(CheckpointError, match=r"evil\.pt.*plug-in model 'os:system'.*registered"):
+        load_model(path)
+    assert not marker.exists()
+
+
+def test_a_plugin_checkpoint_loads_when_the_user_names_the_plugin(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT / "tests" / "plugin_example"))
+    model = make_model("tiny_flow:build")
+    path = save_checkpoint(tmp_path / "tiny.pt", {"model_name": "tiny_flow:build", "model_config": model.config,
+                                                  "model": model.state_dict()})
+    with pytest.raises(CheckpointError, match="plug-in model 'tiny_flow:build'"):
+        load_model(path)
+    loaded, _ = load_model(path, plugin="tiny_flow:build")
+    for key, value in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[key], value)
+    with pytest.raises(CheckpointError, match="plug-in model"):  # naming another plug-in does not vouch for this one
+        load_model(path, plugin="other_pkg:build")
+
+
+def test_a_checkpoint_with_unknown_names_or_bad_config_is_refused(tmp_path):
+    save_checkpoint(tmp_path / "a.pt", {"model_name": "no-such-model", "model_config": {}, "model": {}})
+    with pytest.raises(CheckpointError, match="unknown model 'no-such-model'"):
+        load_model(tmp_path / "a.pt")
+    save_checkpoint(tmp_path / "b.pt", {"model_name": "ev-mgrflownet", "model_config": {"bogus": 1}, "model": {}})
+    with pytest.raises(CheckpointError, match="cannot be built"):
+        load_model(tmp_path / "b.pt")
+
+
+@pytest.mark.parametrize("command", ["evaluate", "predict", "train"])
+def test_commands_refuse_the_dotted_path_of_a_checkpoint(tmp_path, command):
+    """evaluate.py --checkpoint, predict.py --model and train.py --resume on the planted file:
+    a one-line error naming it, exit 2, and no code ran."""
+    from tests.recordings import write_translating_recording
+
+    marker = tmp_path / "pwned"
+    import numpy as np
+
+    recording = write_translating_recording(tmp_path / "rec.h5", np.random.default_rng(0))
+    cfg = {"model": "os:system", "steps": 10}
+    evil = _evil_checkpoint(tmp_path / "run" / "checkpoint.pt", marker, optimizer={}, scheduler={}, step=1,
+                            config=cfg, rng={})
+    argv = {"evaluate": ["--checkpoint", str(evil), "--data", str(recording), "--max-windows", "1", "--no-progress",
+                         "--out", str(tmp_path / "eval")],
+            "predict": [str(recording), "--model", str(evil), "--out", str(tmp_path / "f.h5"), "--no-video"],
+            "train": ["--resume", str(evil), "--out", str(tmp_path / "run")]}[command]
+    run = subprocess.run([sys.executable, str(ROOT / "scripts" / f"{command}.py"), *argv], capture_output=True,
+                         text=True, cwd=ROOT, timeout=300)
+    assert run.returncode == 2, run.stderr[-2000:]
+    assert "os:system" in run.stderr and "Traceback" not in run.stderr, run.stderr[-2000:]
+    assert not marker.exists()
+
+
+def test_hub_and_pretrained_loader_refuse_a_planted_weights_file(tmp_path):
+    from agents.pretrained import load_pretrained
+
+    marker = tmp_path / "pwned"
+    _evil_checkpoint(tmp_path / "planted.pt", marker)
+    (tmp_path / "planted.json").write_text(json.dumps({"name": "planted"}))
+    with pytest.raises(CheckpointError, match="plug-in model"):
+        load_pretrained("planted", directory=tmp_path)
+    assert not marker.exists()
+
+
+def test_a_campaign_file_may_not_name_a_plugin_or_a_path(tmp_path):
+    from evflow_cli.campaign import CampaignSpec
+
+    good = {"name": "mine", "export": "ev-mgrflownet-cpu-mine", "train": ["--steps", "10"]}
+    (tmp_path / "ok.json").write_text(json.dumps(good))
+    assert CampaignSpec.read(tmp_path / "ok.json").export == "ev-mgrflownet-cpu-mine"
+    for bad, message in [({"train": ["--model", "os:system"]}, "plug-in model 'os:system'"),
+                         ({"train": ["--model=os:system"]}, "plug-in model 'os:system'"),
+                         ({"export": "../../x"}, "campaign export '../../x'"),
+                         ({"export": "a/b"}, "campaign export 'a/b'"),
+                         ({"name": ".."}, "campaign name '..'")]:
+        (tmp_path / "bad.json").write_text(json.dumps({**good, **bad}))
+        with pytest.raises(ValueError, match=message.replace("(", r"\(")):
+            CampaignSpec.read(tmp_path / "bad.json")
+
+
+def test_export_validates_its_name_and_replaces_only_when_asked(tmp_path):
+    from agents.pretrained import export_pretrained, list_pretrained
+
+    model = make_model("ev-flownet", width="cpu")
+    ckpt = save_checkpoint(tmp_path / "run" / "checkpoint.pt", {"model_name": "ev-flownet", "model_config": model.config,
+                                                                "model": model.state_dict(), "step": 3, "config": {}})
+    weights = tmp_path / "weights"
+    for name in ("../../x", "a/b", "", "..", "UPPER"):
+        with pytest.raises(ValueError, match="one file-name component"):
+            export_pretrained(ckpt, name, {}, directory=weights)
+    assert not (tmp_path / "x.pt").exists() and not weights.exists()
+    export_pretrained(ckpt, "mine", {"note": "first"}, directory=weights)
+    before = (weights / "mine.json").read_bytes()
+    with pytest.raises(FileExistsError, match="mine.pt, mine.json.*--overwrite"):
+        export_pretrained(ckpt, "mine", {"note": "second"}, directory=weights)
+    assert (weights / "mine.json").read_bytes() == before
+    export_pretrained(ckpt, "mine", {"note": "second"}, directory=weights, overwrite=True)
+    assert json.loads((weights / "mine.json").read_text())["note"] == "second"
+    assert list_pretrained(weights) == ["mine"]
+
+
+def test_export_command_refuses_a_shipped_name_without_overwrite(tmp_path):
+    from agents.pretrained import DEFAULT_PRETRAINED, WEIGHTS_DIR
+
+    model = make_model("ev-flownet", width="cpu")
+    ckpt = save_checkpoint(tmp_path / "checkpoint.pt", {"model_name": "ev-flownet", "model_config": model.config,
+                                                        "model": model.state_dict(), "step": 3, "config": {}})
+    shipped = (WEIGHTS_DIR / f"{DEFAULT_PRETRAINED}.pt").read_bytes()
+    for name in (DEFAULT_PRETRAINED, "../../escaped"):
+        run = subprocess.run([sys.executable, str(ROOT / "scripts" / "export_model.py"), str(ckpt), "--name", name],
+                             capture_output=True, text=True, cwd=ROOT, timeout=120)
+        assert run.returncode == 2, run.stderr[-2000:]
+        assert "Traceback" not in run.stderr
+    assert (WEIGHTS_DIR / f"{DEFAULT_PRETRAINED}.pt").read_bytes() == shipped
+    assert not (ROOT.parent / "escaped.pt").exists()
+
+
+def test_policy_refuses_an_unknown_input_read_from_a_file():
+    from agents.policy import RecurrentPolicy
+
+    with pytest.raises(ValueError, match="input_key must be one of"):
+        RecurrentPolicy(make_model("ev-flownet", width="cpu"), input_key="__class__")
