@@ -13,12 +13,14 @@ the name) are judged by the process id on this host, as they always were.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import socket
 from pathlib import Path
+from typing import TextIO
 
-__all__ = ["temporary_path", "remove_stale_temporaries", "same_file", "host_name"]
+__all__ = ["temporary_path", "remove_stale_temporaries", "same_file", "host_name", "open_no_follow", "write_atomic"]
 
 
 def host_name() -> str:
@@ -85,3 +87,45 @@ def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
         return os.path.samefile(a, b)
     except OSError:  # one of them does not exist
         return False
+
+
+def _no_follow_fd(path: Path, flags: int) -> int:
+    """``os.open`` that refuses a symbolic link at ``path`` (a link planted where an output goes
+    must not redirect the write onto whatever it points at)."""
+    try:
+        return os.open(path, flags | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0), 0o644)
+    except OSError as err:
+        if err.errno == errno.ELOOP or os.path.islink(path):
+            raise FileExistsError(f"{path}: is a symbolic link; refusing to write through it (remove the link, "
+                                  "or write elsewhere)") from None
+        raise
+
+
+def open_no_follow(path: str | os.PathLike, mode: str = "a") -> TextIO:
+    """A text file opened for writing (``"w"``: truncated, ``"a"``: appended, ``"x"``: new) that
+    is never a symbolic link: a planted link raises FileExistsError naming the path."""
+    flags = {"w": os.O_WRONLY | os.O_CREAT | os.O_TRUNC, "a": os.O_WRONLY | os.O_CREAT | os.O_APPEND,
+             "x": os.O_WRONLY | os.O_CREAT | os.O_EXCL}[mode]
+    return os.fdopen(_no_follow_fd(Path(path), flags), mode if mode != "x" else "w")
+
+
+def write_atomic(path: str | os.PathLike, data: str | bytes) -> Path:
+    """Write ``data`` to ``path`` whole or not at all: a new temporary (created exclusively, never
+    through a link) renamed over ``path``. A symbolic link at ``path`` is replaced by the file,
+    not followed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(path)
+    tmp = temporary_path(path)
+    if os.path.islink(tmp):
+        tmp.unlink()
+    fd = _no_follow_fd(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path

@@ -26,14 +26,15 @@ removed at the next claim (:mod:`envs.atomic`).
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
 from pathlib import Path
 from typing import Iterable
 
-from envs.atomic import remove_stale_temporaries, same_file, temporary_path
+from envs.atomic import open_no_follow, remove_stale_temporaries, same_file, temporary_path
 
-__all__ = ["Output", "lock_path"]
+__all__ = ["Output", "lock_path", "hold_folder", "release_folder", "folder_holder"]
 
 #: realpath -> what claimed it, for the outputs this process holds now
 _CLAIMED: dict[str, str] = {}
@@ -88,6 +89,8 @@ class Output:
         elif not os.access(self.path.parent, os.W_OK | os.X_OK):
             raise PermissionError(f"{self.where}: cannot write in the folder {self.path.parent}")
         remove_stale_temporaries(self.path)
+        if os.path.islink(self.temporary):  # a link planted at our temporary's name: never written through
+            self.temporary.unlink()
         self._held = True
         if key is not None:
             self._key = key
@@ -105,8 +108,11 @@ class Output:
         lock = lock_path(self.path)
         while True:
             try:
-                fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+                fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)  # a planted link is refused
             except OSError as err:
+                if err.errno == errno.ELOOP:
+                    raise FileExistsError(f"{self.where}: its lock {lock} is a symbolic link; refusing to write "
+                                          "through it (remove the link)") from None
                 raise type(err)(f"{self.where}: cannot write in the folder {self.path.parent}: {err.strerror}") from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -168,7 +174,8 @@ class Output:
 
     def write_text(self, text: str) -> Path:
         """Write ``text`` to the temporary and commit it."""
-        self.temporary.write_text(text)
+        with open_no_follow(self.temporary, "w") as f:
+            f.write(text)
         return self.commit()
 
     def __enter__(self) -> "Output":
@@ -187,3 +194,64 @@ class Output:
             self._release()
         except Exception:
             pass
+
+
+#: the folder locks this process holds (kept open for its life; the kernel releases them at exit)
+_FOLDER_LOCKS: dict[str, int] = {}
+
+
+def hold_folder(folder: str | os.PathLike, option: str = "--out") -> Path:
+    """Make this process the one writer of ``folder`` (a run folder, a campaign's work folder)
+    for the rest of its life: ``FOLDER/writer.lock`` held with ``flock``, which the kernel
+    releases when the process ends however it ends (no stale pid file). A second process gets
+    FileExistsError naming the first's pid; a symbolic link at the lock's place is refused."""
+    folder = Path(folder)
+    key = os.path.realpath(folder)
+    lock = folder / "writer.lock"
+    if key in _FOLDER_LOCKS:
+        return lock
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise FileExistsError(f"{option} {folder}: {lock.name} is a symbolic link; refusing to write through it") from None
+        raise type(err)(f"{option} {folder}: cannot write in it: {err.strerror}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        raise FileExistsError(f"{option} {folder}: another process (pid {holder}) is writing this folder now; "
+                              "wait for it to finish, stop it, or write elsewhere") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    _FOLDER_LOCKS[key] = fd
+    return lock
+
+
+def release_folder(folder: str | os.PathLike) -> None:
+    """Give up :func:`hold_folder`'s lock of ``folder`` (no-op when this process does not hold it)."""
+    fd = _FOLDER_LOCKS.pop(os.path.realpath(folder), None)
+    if fd is not None:
+        os.close(fd)
+
+
+def folder_holder(folder: str | os.PathLike) -> int | None:
+    """The pid of the process holding ``folder``'s writer lock now, or None when nobody holds it
+    (the lock is free: its last holder died or finished)."""
+    lock = Path(folder) / "writer.lock"
+    if os.path.realpath(folder) in _FOLDER_LOCKS:
+        return os.getpid()
+    try:
+        fd = os.open(lock, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        text = os.read(fd, 64).decode(errors="replace").strip()
+        return int(text) if text.isdigit() else -1
+    finally:
+        os.close(fd)
+    return None

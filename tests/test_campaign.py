@@ -2,6 +2,7 @@
 with the uninterrupted run's losses; the slim state drops Adam's moments only when over budget,
 and then the step size warms up again; validation, export and the curve accumulate."""
 
+import contextlib
 import copy
 import json
 import os
@@ -284,12 +285,10 @@ def test_anneal_continues_the_recipe_from_the_export_with_a_decaying_step_size(r
     with pytest.raises(SystemExit, match="fewer than --steps"):
         campaign_script.main(["anneal", "c", "--into", "c2", "--campaigns-dir", str(root), *weights, "--steps", "5",
                               "--warmup-steps", "5"])
-    pid_file = runs / "c" / "campaign.pid"
-    pid_file.write_text(str(os.getppid()))  # a live process holds the source campaign
-    with pytest.raises(SystemExit, match="is running here"):
-        campaign_script.main(["anneal", "c", "--into", "c2", "--campaigns-dir", str(root), "--runs", str(runs),
-                              *weights])
-    pid_file.unlink()
+    with holding(runs / "c"):  # a live process holds the source campaign
+        with pytest.raises(SystemExit, match="is running here"):
+            campaign_script.main(["anneal", "c", "--into", "c2", "--campaigns-dir", str(root), "--runs", str(runs),
+                                  *weights])
     assert campaign_script.main(["resume", "c-cooldown", "--campaigns-dir", str(root), "--runs", str(runs), "--quiet",
                                  "--threads", "1", *weights]) == 0
     rows = [json.loads(line) for line in (runs / "c-cooldown" / "train" / "metrics.jsonl").read_text().splitlines()]
@@ -327,11 +326,27 @@ def test_refusals(recording, tmp_path, capsys):
         campaign_script.main(["resume", "c", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")])
     assert not (tmp_path / "r" / "c" / "train").exists()  # refused before any training
     spec_path.write_text(good)
-    pid_file = tmp_path / "r" / "c" / "campaign.pid"
-    pid_file.parent.mkdir(parents=True)
-    pid_file.write_text(str(os.getppid()))  # a live process holds the campaign
-    with pytest.raises(SystemExit, match="already running"):
-        campaign_script.main(["resume", "c", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")])
+    (tmp_path / "r" / "c").mkdir(parents=True)
+    (tmp_path / "r" / "c" / "campaign.pid").write_text(str(os.getppid()))  # an old pid file means nothing now
+    with holding(tmp_path / "r" / "c") as holder:  # a live process holds the campaign
+        with pytest.raises(SystemExit, match=f"already running \\(pid {holder.pid}\\)"):
+            campaign_script.main(["resume", "c", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")])
+    # its holder gone (killed), the lock is free: stop signals nobody
+    assert campaign_script.main(["stop", "c", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")]) == 0
+    assert "not running here" in capsys.readouterr().out
+
+
+@contextlib.contextmanager
+def holding(folder: Path):
+    """Another process that holds ``folder``'s writer lock until the block ends (then killed)."""
+    code = "import sys, time; from envs.outputs import hold_folder; hold_folder(sys.argv[1]); print('held', flush=True); time.sleep(120)"
+    proc = subprocess.Popen([sys.executable, "-c", code, str(folder)], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert proc.stdout.readline().strip() == "held"
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 def test_device_leg_on_cpu_writes_state_and_weights_to_its_output(recording, tmp_path):

@@ -4,9 +4,13 @@ user would (plain data that the safe loader accepts) and checks that no code ran
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -150,3 +154,122 @@ def test_policy_refuses_an_unknown_input_read_from_a_file():
 
     with pytest.raises(ValueError, match="input_key must be one of"):
         RecurrentPolicy(make_model("ev-flownet", width="cpu"), input_key="__class__")
+
+
+# -- outputs never follow a planted link; one writer per run folder --------------------------------------------------
+
+
+def _train_argv(tmp_path: Path, out: Path, *extra) -> list[str]:
+    import numpy as np
+
+    from tests.recordings import write_translating_recording
+
+    data = tmp_path / "dots.h5"
+    if not data.exists():
+        write_translating_recording(data, np.random.default_rng(3), sensor_size=(32, 32))
+    return ["--data", str(data), "--width", "4", "--num-envs", "1", "--unroll", "1", "--steps", "1", "--out", str(out),
+            "--val-data", "", "--no-progress", *extra]
+
+
+def test_train_replaces_a_planted_config_link_instead_of_writing_through_it(tmp_path):
+    from evflow_cli.commands import train as train_script
+
+    victim = tmp_path / "recording.h5"
+    victim.write_bytes(b"precious events" * 100)
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").symlink_to(victim)
+    train_script.main(_train_argv(tmp_path, out))
+    assert victim.read_bytes() == b"precious events" * 100
+    assert not (out / "config.json").is_symlink() and json.loads((out / "config.json").read_text())["steps"] == 1
+
+
+def test_train_refuses_a_planted_metrics_link(tmp_path):
+    from evflow_cli.commands import train as train_script
+
+    victim = tmp_path / "notes.txt"
+    victim.write_text("mine")
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "metrics.jsonl").symlink_to(victim)
+    with pytest.raises(FileExistsError, match=r"metrics.jsonl: is a symbolic link"):
+        train_script.main(_train_argv(tmp_path, out, "--overwrite"))
+    assert victim.read_text() == "mine"
+
+
+def test_an_output_lock_planted_as_a_link_is_refused(tmp_path):
+    from envs.outputs import Output
+
+    victim = tmp_path / "recording.h5"
+    victim.write_bytes(b"x" * 1000)
+    (tmp_path / "flow.h5.lock").symlink_to(victim)
+    with pytest.raises(FileExistsError, match="lock .* is a symbolic link"):
+        Output(tmp_path / "flow.h5")
+    assert victim.read_bytes() == b"x" * 1000
+
+
+def test_atomic_writes_replace_a_link_and_never_follow_it(tmp_path):
+    from envs.atomic import open_no_follow, write_atomic
+
+    victim = tmp_path / "victim"
+    victim.write_text("keep")
+    (tmp_path / "a.json").symlink_to(victim)
+    write_atomic(tmp_path / "a.json", "{}")
+    assert victim.read_text() == "keep" and (tmp_path / "a.json").read_text() == "{}"
+    (tmp_path / "b.log").symlink_to(victim)
+    for mode in ("w", "a", "x"):
+        with pytest.raises(FileExistsError, match="symbolic link"):
+            open_no_follow(tmp_path / "b.log", mode)
+    assert victim.read_text() == "keep"
+
+
+@contextlib.contextmanager
+def _holding(folder: Path):
+    """Another process holding ``folder``'s writer lock until the block ends (then killed)."""
+    code = ("import sys, time; from envs.outputs import hold_folder; hold_folder(sys.argv[1]); "
+            "print('held', flush=True); time.sleep(120)")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(folder)], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert proc.stdout.readline().strip() == "held"
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_two_trainers_never_share_a_run_folder(tmp_path):
+    from envs.outputs import folder_holder
+    from evflow_cli.commands import train as train_script
+
+    out = tmp_path / "run"
+    with _holding(out) as other:
+        assert folder_holder(out) == other.pid
+        with pytest.raises(FileExistsError, match=rf"another process \(pid {other.pid}\) is writing this folder"):
+            train_script.main(_train_argv(tmp_path, out))
+        assert not (out / "config.json").exists() and not (out / "metrics.jsonl").exists()
+    assert folder_holder(out) is None  # killed: the kernel released its lock
+    train_script.main(_train_argv(tmp_path, out))
+    assert (out / "checkpoint.pt").exists()
+
+
+def test_a_campaigns_trainer_dies_with_its_campaign(tmp_path):
+    """kill -9 of the campaign: its child gets SIGTERM from the kernel (train.py saves and stops)."""
+    code = ("import subprocess, sys, time\n"
+            "from evflow_cli.commands.campaign import _die_with_parent\n"
+            "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'], preexec_fn=_die_with_parent)\n"
+            "print(child.pid, flush=True)\n"
+            "time.sleep(120)\n")
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    child = int(parent.stdout.readline())
+    os.kill(parent.pid, signal.SIGKILL)
+    parent.wait()
+    deadline = time.time() + 20
+    while time.time() < deadline:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(child, signal.SIGKILL)
+        pytest.fail("the campaign's child outlived it")

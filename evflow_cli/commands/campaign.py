@@ -45,6 +45,7 @@ from agents.options import (
     positive_float,
     positive_int,
 )
+from envs.outputs import folder_holder, hold_folder, release_folder
 from evflow_cli.campaign import STATE_BUDGET, Campaign, CampaignSpec, machine, plot_curve
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout
@@ -190,6 +191,18 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def _die_with_parent() -> None:
+    """In a campaign's child, before it runs: the kernel sends it SIGTERM (train.py saves and stops)
+    when the campaign dies, even by SIGKILL, so no trainer outlives its campaign (Linux; elsewhere
+    a no-op)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def cmd_new(args, rest: list[str]) -> int:
     campaign = Campaign(args.name, args.campaigns_dir)
     if campaign.spec_path.exists() and not args.force:
@@ -223,8 +236,7 @@ def cmd_anneal(args) -> int:
     if target.spec_path.exists() and not args.force:
         raise SystemExit(f"campaign {into!r} exists ({target.spec_path}); --force replaces its description "
                          "(not its state)")
-    pid_file = source.work / "campaign.pid"
-    if pid_file.exists() and pid_file.read_text().strip().isdigit() and _pid_alive(int(pid_file.read_text())):
+    if folder_holder(source.work) is not None:
         raise SystemExit(f"campaign {args.name!r} is running here: its export may still change; stop it first "
                          f"(python scripts/campaign.py stop {args.name})")
     if args.warmup_steps >= args.steps:
@@ -267,12 +279,10 @@ def cmd_resume(args) -> int:
     campaign = Campaign(args.name, args.campaigns_dir, args.runs)
     spec = campaign.spec()
     campaign.work.mkdir(parents=True, exist_ok=True)
-    pid_file = campaign.work / "campaign.pid"
-    if pid_file.exists() and pid_file.read_text().strip().isdigit():
-        pid = int(pid_file.read_text())
-        if pid != os.getpid() and _pid_alive(pid):
-            raise SystemExit(f"campaign {args.name!r} is already running (pid {pid}); stop it with "
-                             f"scripts/campaign.py stop {args.name}")
+    holder = folder_holder(campaign.work)
+    if holder is not None and holder != os.getpid():
+        raise SystemExit(f"campaign {args.name!r} is already running (pid {holder}); stop it with "
+                         f"scripts/campaign.py stop {args.name}")
     if args.background:
         log = campaign.work / "campaign.log"
         argv = [a for a in sys.argv[1:] if a != "--background"]
@@ -284,11 +294,14 @@ def cmd_resume(args) -> int:
         print(f"campaign {args.name} resumed in the background (pid {child.pid}); progress: {log}; "
               f"stop it with: python scripts/campaign.py stop {args.name}")
         return 0
-    pid_file.write_text(str(os.getpid()))
+    try:  # the campaign's one runner for the life of this process: the kernel releases it however it ends
+        hold_folder(campaign.work, f"campaign {args.name}:")
+    except FileExistsError as err:
+        raise SystemExit(str(err)) from None
     try:
         return _resume(campaign, spec, args)
     finally:
-        pid_file.unlink(missing_ok=True)
+        release_folder(campaign.work)
 
 
 def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
@@ -335,7 +348,8 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
             else:
                 train = [*spec.train, *train, *(["--init", spec.init] if spec.init else [])]
             started = time.time()
-            child["proc"] = subprocess.Popen([PYTHON, str(ROOT / "scripts" / "train.py"), *train], env=env)
+            child["proc"] = subprocess.Popen([PYTHON, str(ROOT / "scripts" / "train.py"), *train], env=env,
+                                             preexec_fn=_die_with_parent)
             code = child["proc"].wait()
             child["proc"] = None
             progress["wall_s"] = float(progress.get("wall_s", 0.0)) + time.time() - started
@@ -452,14 +466,9 @@ def cmd_prepare(args) -> int:
 
 def cmd_stop(args) -> int:
     campaign = Campaign(args.name, args.campaigns_dir, args.runs)
-    pid_file = campaign.work / "campaign.pid"
-    if not pid_file.exists():
-        print(f"campaign {args.name!r} is not running here ({pid_file} missing)")
-        return 0
-    pid = int(pid_file.read_text())
-    if not _pid_alive(pid):
-        pid_file.unlink(missing_ok=True)
-        print(f"campaign {args.name!r}: pid {pid} is gone (a stale pid file, removed)")
+    pid = folder_holder(campaign.work)  # only the process holding the campaign's lock is signalled
+    if pid is None or pid <= 0:
+        print(f"campaign {args.name!r} is not running here (nobody holds {campaign.work / 'writer.lock'})")
         return 0
     os.kill(pid, signal.SIGTERM)
     deadline = time.time() + args.timeout
@@ -479,8 +488,7 @@ def cmd_status(args) -> int:
     progress = campaign.progress()
     best = campaign.best(spec.mode)
     size = campaign.state_path.stat().st_size / 2**20 if campaign.state_path.exists() else 0.0
-    pid_file = campaign.work / "campaign.pid"
-    running = pid_file.exists() and _pid_alive(int(pid_file.read_text() or 0))
+    running = folder_holder(campaign.work) is not None
     print(f"campaign {campaign.name}: exports {spec.export}; state step {campaign.state_step()} ({size:.1f} MB); "
           f"{progress.get('wall_s', 0) / 3600:.2f} training hours over {progress.get('stretches', 0)} stretches; "
           f"{'running here' if running else 'not running here'}")

@@ -67,7 +67,8 @@ from agents.options import (
     positive_int,
 )
 from agents.policy import RecurrentPolicy
-from envs.atomic import remove_stale_temporaries, temporary_path
+from envs.atomic import open_no_follow, remove_stale_temporaries, write_atomic
+from envs.outputs import hold_folder, release_folder
 from evflow_cli.tensorboard_log import TensorBoardLog, require_tensorboard
 
 
@@ -302,7 +303,9 @@ def open_training_checkpoint(resume: str, out: Path) -> tuple[Path, dict]:
 
 def truncate_metrics(path: Path, step: int) -> None:
     """Keep the lines of metrics.jsonl up to ``step`` (a resumed run logs the later ones again)
-    and drop a line cut by a kill; rewritten atomically."""
+    and drop a line cut by a kill; rewritten atomically (a symbolic link there is refused)."""
+    if path.is_symlink():
+        raise FileExistsError(f"{path}: is a symbolic link; refusing to read or write through it (remove the link)")
     if not path.exists():
         return
     kept = []
@@ -313,10 +316,7 @@ def truncate_metrics(path: Path, step: int) -> None:
             continue
         if isinstance(row, dict) and row.get("step", 0) <= step:
             kept.append(line)
-    remove_stale_temporaries(path)
-    tmp = temporary_path(path)
-    tmp.write_text("".join(line + "\n" for line in kept))
-    os.replace(tmp, path)
+    write_atomic(path, "".join(line + "\n" for line in kept))
 
 
 def check_new_run_folder(out: Path, overwrite: bool) -> None:
@@ -410,9 +410,11 @@ def open_run(args, argv: list[str] | None, rank: int) -> tuple[TrainConfig, Lear
         if args.revive:
             revive_dormant(learner, args.revive, echo=print if rank == 0 else lambda *_: None)
     if rank == 0:
-        out.mkdir(parents=True, exist_ok=True)
+        hold_folder(out)  # one writer per run folder, for the run's life (torchrun: rank 0 writes it)
+        if payload is None:  # checked again under the lock: a run that finished meanwhile is not replaced
+            check_new_run_folder(out, args.overwrite)
         remove_stale_temporaries(out / "checkpoint.pt")  # left by a run killed while saving
-        (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2, default=str))
+        write_atomic(out / "config.json", json.dumps(cfg.to_dict(), indent=2, default=str))
         if payload is not None:
             truncate_metrics(out / "metrics.jsonl", learner.step)
     return cfg, learner, payload
@@ -425,7 +427,7 @@ class RunRecord:
     def __init__(self, args, learner: Learner, rank: int, resumed: bool) -> None:
         out = Path(args.out)
         self.args, self.learner = args, learner
-        self.log = open(out / "metrics.jsonl", "a" if resumed else "w") if rank == 0 else None
+        self.log = open_no_follow(out / "metrics.jsonl", "a" if resumed else "w") if rank == 0 else None
         self.board = (TensorBoardLog(out / "tensorboard", learner.step)
                       if rank == 0 and args.logger == "tensorboard" else None)
         self.bar = tqdm(total=learner.cfg.steps, initial=learner.step, unit="step",
@@ -508,6 +510,13 @@ def exit_process(code: int) -> NoReturn:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    try:
+        return _main(args, argv)
+    finally:
+        release_folder(args.out)  # (a killed process's lock is released by the kernel)
+
+
+def _main(args, argv) -> int:
     out = Path(args.out)
     if args.logger == "tensorboard":
         try:
