@@ -69,6 +69,7 @@ from .options import (
     positive_float,
     positive_int,
     to_argv,
+    torch_device,
 )
 from .policy import RecurrentPolicy, autocast_dtype
 from .registry import make_model, width_kwargs
@@ -180,7 +181,7 @@ class TrainConfig(ModelWidth, Windows, SensorSizeOptions):
     """re-draw the flow heads' weights from U(-A, A), biases 0 (start near zero flow)"""
     seed: int = option(0, type=non_negative_int)
     """seeds the initial weights, the episodes and the flips"""
-    device: str = "cpu"
+    device: str = option("cpu", type=torch_device)
     """torch device"""
     amp: Literal["auto", "bf16", "fp16", "off"] = "auto"
     """mixed precision of the network's forward (losses stay float32): auto = bf16 on a CUDA device that supports it, else off; fp16: CUDA only"""

@@ -74,6 +74,28 @@ def number(kind: type, low: float | None = None, high: float | None = None, *, l
     return parse
 
 
+def torch_device(text: str) -> str:
+    """``--device``: a torch device this machine has (cpu, cuda, cuda:1, mps), else an argparse
+    error naming what is missing (not an AssertionError from deep inside torch later)."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected a torch device (cpu, cuda, cuda:1), got {text!r}") from None
+    if device.type == "cuda":
+        if torch.version.cuda is None or not torch.cuda.is_available():
+            why = "this torch is built without CUDA" if torch.version.cuda is None else "no CUDA device is visible"
+            raise argparse.ArgumentTypeError(f"{text}: {why} (torch {torch.__version__}); use --device cpu")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise argparse.ArgumentTypeError(f"{text}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise argparse.ArgumentTypeError(f"{text}: no MPS device on this machine; use --device cpu")
+    return text
+
+
+torch_device.__name__ = "a torch device"
+
 #: the numeric option types of the commands (evflow_cli/commands), each naming its accepted range
 positive_int = number(int, 1, name="a positive integer")
 non_negative_int = number(int, 0, name="an integer >= 0")
@@ -407,7 +429,7 @@ class DeviceOptions:
 
     GROUP = "device"
 
-    device: str = "cpu"
+    device: str = option("cpu", type=torch_device)
     """torch device: cpu, cuda, cuda:1..."""
     threads: int | None = option(None, type=positive_int)
     """torch CPU threads (default: torch's choice; 1 on a busy machine)"""

@@ -15,7 +15,7 @@ from envs.events import Events
 from envs.readers._common import check_flow_gt, resolve_crop
 from envs.representations import IMAGE_INPUTS, count_image, image_input
 from envs.visualize import count_image_to_rgb, flow_to_rgb
-from envs.windows import WINDOW_MODES, Window, window_bounds, window_grid
+from envs.windows import WINDOW_MODES, Window, check_window_fits, window_bounds, window_grid
 from losses import LOSS_NAMES, LossWeights, check_border_ramp, window_loss
 
 __all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "Window", "NoWindowsError"]
@@ -350,9 +350,14 @@ class EventFlowEnv(gym.Env):
         return index
 
     # ------------------------------------------------------------------------------------------
+    RESET_OPTIONS = ("sequence", "start", "windows")
+
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
         options = dict(options or {})
+        unknown = sorted(str(k) for k in options if k not in self.RESET_OPTIONS)
+        if unknown:  # a misspelt key would silently do nothing
+            raise ValueError(f"reset options {unknown}: unknown; EventFlowEnv.reset takes {list(self.RESET_OPTIONS)}")
+        super().reset(seed=seed)
         if "sequence" in options:
             index = self._sequence_index(options["sequence"])
         else:
@@ -366,6 +371,10 @@ class EventFlowEnv(gym.Env):
         else:
             if len(self.window_sizes) > 1:
                 self.window_size = self.window_sizes[int(self.np_random.integers(len(self.window_sizes)))]
+            try:
+                check_window_fits(reader, self.window, self.window_size)
+            except ValueError as err:  # a window longer than the recording: name the recording
+                raise ValueError(f"recording {self.sources[index].name!r}: {err}") from None
             bounds = window_bounds(reader, self.window, self.window_size, t_from=options.get("start"))
             self._windowing = window_grid(reader)[1] if self.window == "frames" else self.window
         if len(bounds) == 0:
@@ -566,6 +575,10 @@ class EventFlowEnv(gym.Env):
         flow = self._last_action if self._last_action is not None else np.zeros((2,) + size, np.float32)
         right = flow_to_rgb(flow)
         return np.concatenate([left, right], axis=1)
+
+    def __getstate__(self):
+        raise TypeError("EventFlowEnv holds open recordings and cannot be pickled or copied: build another with "
+                        "gymnasium.make('EventFlow-v0', ...) (a vector env takes a function that builds one)")
 
     def close(self) -> None:
         for source in self.sources:

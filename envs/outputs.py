@@ -80,6 +80,7 @@ class Output:
             raise FileExistsError(f"{self.where}: is also {_CLAIMED[key]} of this command; give each output its own path")
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.where}: exists; pass overwrite=True (--overwrite) to replace it")
+        self._made = [f for f in (self.path.parent, *self.path.parent.parents) if not f.exists()]  # deepest first
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as err:
@@ -161,11 +162,17 @@ class Output:
         return self.path
 
     def discard(self) -> None:
-        """Remove the temporary and release the claim; the path is left as it was."""
+        """Remove the temporary and release the claim; the path is left as it was, and the folders
+        this output created are removed again while empty (a failed run leaves no empty folder)."""
         try:
             self.temporary.unlink(missing_ok=True)
         finally:
             self._release()
+            for folder in self._made:
+                try:
+                    folder.rmdir()  # only while empty: another output's file keeps it
+                except OSError:
+                    break
 
     def release(self) -> None:
         """Release the claim of a writer that wrote the path itself (its own temporary and rename:

@@ -29,7 +29,7 @@ from envs.events import Events
 from envs.readers.base import EventReader
 from losses import EventBatch
 
-__all__ = ["Window", "iter_windows", "window_bounds", "window_grid", "WINDOW_MODES", "FALLBACK_INTERVAL_US"]
+__all__ = ["Window", "check_window_fits", "iter_windows", "window_bounds", "window_grid", "WINDOW_MODES", "FALLBACK_INTERVAL_US"]
 
 WINDOW_MODES = ("time", "count", "frames")
 #: The ``frames`` grid's interval on a recording with neither ground truth nor frames (30 Hz).
@@ -132,6 +132,16 @@ def window_grid(reader: EventReader, fallback_interval_us: int = FALLBACK_INTERV
     t0, t1 = reader.t_start, reader.t_end
     n = max(1, -(-(t1 - t0) // int(fallback_interval_us)))
     return t0 + int(fallback_interval_us) * np.arange(n + 1, dtype=np.int64), "time"
+
+
+def check_window_fits(reader: EventReader, mode: str, size: int) -> None:
+    """ValueError when a ``time`` or ``count`` window of ``size`` is longer than the whole
+    recording: its one window would be the recording cut short (:func:`window_bounds` gives that
+    clipped window; the env refuses it, since a user asking for it has mistyped a size)."""
+    span = {"time": (reader.t_end - reader.t_start, "us"), "count": (reader.num_events, "events")}.get(mode)
+    if span is not None and span[0] > 0 and size > span[0]:
+        raise ValueError(f"a {mode} window of {size} {span[1]} is longer than the whole recording ({span[0]} {span[1]}): "
+                         f"its one window would be the recording cut short; choose a window size <= {span[0]}")
 
 
 def window_bounds(

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from agents.checkpoint import load_checkpoint, save_checkpoint
-from envs.atomic import remove_stale_temporaries, temporary_path
+from envs.atomic import temporary_path, write_atomic
 
 __all__ = ["CAMPAIGNS_DIR", "STATE_BUDGET", "CampaignSpec", "Campaign", "slim_state", "unslim_state", "machine",
            "plot_curve"]
@@ -116,12 +116,22 @@ class CampaignSpec:
         return f"split {self.val_split}" if self.val_split else None
 
 
+def read_json(path: Path, what: str):
+    """The JSON in ``path``, or ValueError naming the file and what it is (a file cut short by a
+    kill or a full disk, edited by hand): never a raw JSONDecodeError."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: not a readable {what} ({err})") from None
+
+
+def write_json(path: Path, data) -> None:
+    """``data`` as indented JSON, written to a temporary and renamed over ``path``."""
+    _write_text(path, json.dumps(data, indent=1) + "\n")
+
+
 def _write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(path)
-    tmp = temporary_path(path)
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    write_atomic(path, text)
 
 
 def _size(payload: dict[str, Any]) -> int:

@@ -57,7 +57,7 @@ from envs.visualize import (
     panel,
     save_animation,
 )
-from envs.windows import WINDOW_MODES, Window, window_bounds
+from envs.windows import WINDOW_MODES, Window, check_window_fits, window_bounds
 from losses import flow_error, fwl, rsat
 
 __all__ = ["FLOW_FORMAT", "PredictResult", "load_policy", "predict", "summary_table"]
@@ -154,6 +154,10 @@ def _windows(env: EventFlowEnv, reader, recording, window: str, start_s, end_s,
     mode, size = window, env.window_size
     if window == "frames" and reader.flow_timestamps() is None:
         mode, size = "time", no_gt_window_us
+    try:
+        check_window_fits(reader, mode, size)
+    except ValueError as err:
+        raise ValueError(f"{recording}: {err}") from None
     bounds = window_bounds(reader, mode, size, t_from=start_us)[:, :2]
     if end_us is not None:
         bounds = bounds[bounds[:, 1] <= end_us]

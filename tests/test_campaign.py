@@ -172,6 +172,15 @@ def test_validation_exports_the_best_and_the_curve_accumulates(recording, tmp_pa
     rows = Campaign("c", root).curve()
     assert [r["step"] for r in rows] == [2, 4] and [r["stretch"] for r in rows] == [1, 2]
     assert campaign.reference_path.stat().st_mtime_ns == stamp
+    # a reference cut short (a kill, a full disk) is derived data: computed again, not a raw JSONDecodeError
+    text = campaign.reference_path.read_text()
+    campaign.reference_path.write_text(text[: len(text) // 2])
+    spec["train"][spec["train"].index("--steps") + 1] = "6"
+    campaign.spec_path.write_text(json.dumps(spec))
+    assert campaign_script.main(["resume", "c", "--campaigns-dir", str(root), "--runs", str(tmp_path / "fresh"),
+                                 "--quiet", "--weights-dir", str(root / "weights")]) == 0
+    assert json.loads(campaign.reference_path.read_text())["aee"] == json.loads(text)["aee"]
+    assert [r["step"] for r in Campaign("c", root).curve()] == [2, 4, 6]
 
 
 def test_an_export_another_campaign_starts_from_is_left_alone(recording, tmp_path):

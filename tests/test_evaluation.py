@@ -164,7 +164,7 @@ def test_the_acceptance_gate_keeps_the_refinement_only_where_the_loss_drops_enou
 
 
 def test_an_unknown_refinement_solver_is_refused():
-    with pytest.raises(ValueError, match=r"solver must be one of \('fine', 'cmax'\), got 'coarse'"):
+    with pytest.raises(ValueError, match=r"solver must be one of \('fine', 'cmax', 'mid'\), got 'coarse'"):
         RefinedPolicy(_Constant(np.zeros((2, 4, 4), np.float32)), solver="coarse")
 
 

@@ -273,3 +273,48 @@ def test_a_campaigns_trainer_dies_with_its_campaign(tmp_path):
     else:
         os.kill(child, signal.SIGKILL)
         pytest.fail("the campaign's child outlived it")
+
+
+# --- wrong input and users' faults (items 7 and 8): one clear line, nothing left behind ---------
+
+
+def test_env_refuses_unknown_reset_options_copies_and_windows_longer_than_the_recording(tmp_path, rng):
+    import copy
+    import pickle
+
+    from envs.env import EventFlowEnv
+    from tests.recordings import write_translating_recording
+
+    path = write_translating_recording(tmp_path / "dots.h5", rng, duration_us=200_000)
+    env = EventFlowEnv(str(path))
+    with pytest.raises(ValueError, match=r"reset options \['sequnce'\]: unknown"):
+        env.reset(options={"sequnce": 0})
+    for copier in (copy.deepcopy, pickle.dumps):
+        with pytest.raises(TypeError, match="cannot be pickled or copied"):
+            copier(env)
+    too_long = EventFlowEnv(str(path), window="time", window_size=10**9)
+    with pytest.raises(ValueError, match=r"'dots': a time window of 1000000000 us is longer than the whole recording"):
+        too_long.reset()
+    whole = EventFlowEnv(str(path), window="time", window_size=200_000)  # exactly the recording: one window
+    _, info = whole.reset()
+    assert (info["window"]["t_start"], info["window"]["t_end"]) == (0, 200_000)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["predict.py", "{rec}", "--window", "time", "--window-size", "1000000000", "--out", "{out}/a/flow.h5"],
+     "longer than the whole recording"),
+    (["predict.py", "{rec}", "--device", "cuda", "--out", "{out}/a/flow.h5"], "--device: cuda"),
+    (["train.py", "--device", "cuda:x", "--steps", "1", "--out", "{out}/a"], "expected a torch device"),
+])
+def test_users_faults_end_in_one_line_and_leave_no_folder(tmp_path, rng, argv, message):
+    from tests.recordings import write_translating_recording
+
+    if "cuda" in " ".join(argv) and torch.cuda.is_available() and "cuda:x" not in argv:
+        pytest.skip("this machine has CUDA")
+    rec = write_translating_recording(tmp_path / "dots.h5", rng, duration_us=150_000)
+    out = tmp_path / "out"
+    argv = [a.format(rec=rec, out=out) for a in argv]
+    done = subprocess.run([sys.executable, str(ROOT / "scripts" / argv[0]), *argv[1:]], capture_output=True, text=True,
+                          timeout=300, cwd=tmp_path)
+    assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert not out.exists()  # no empty output folder either

@@ -31,7 +31,9 @@ class RefinedPolicy:
     decaying 3x): a local correction; "cmax", the ``--cmax`` row's coarse-to-fine solve (4-8-16
     cells on 4x-2x-1x coarser sensor grids, its step size) started from the network's flow,
     ``steps`` shared 40/30/30 among the levels: it can move as far as the solve from zero, and
-    starts nearer the truth wherever the network is. prior_weight: how strongly the solve is held
+    starts nearer the truth wherever the network is; "mid", that solve's two finer levels only
+    (8-16 cells on 2x-1x sensor grids, ``steps`` shared 50/50): the proposal is trusted for the
+    coarse motion and corrected at the scales it gets wrong. prior_weight: how strongly the solve is held
     to the network's flow (``CMaxSettings.prior_weight``). settings: any other solve (its steps
     and prior then override ``steps`` and ``prior_weight``).
 
@@ -44,7 +46,7 @@ class RefinedPolicy:
     by ``tools/refine_gate.py`` (docs/history/2026-12-02-round-11.md).
     """
 
-    SOLVERS = ("fine", "cmax")
+    SOLVERS = ("fine", "cmax", "mid")
 
     def __init__(self, policy, *, steps: int = 30, solver: str = "fine", prior_weight: float = 0.0,
                  settings: CMaxSettings | None = None, accept: float | None = None) -> None:
@@ -61,6 +63,10 @@ class RefinedPolicy:
         if settings is None and solver == "fine":
             settings = CMaxSettings(grids=(16,), sensor_scales=(1,), steps=(int(steps),), lr_per_frame=0.1,
                                     lr_decay=3.0, prior_weight=prior_weight)
+        elif settings is None and solver == "mid":
+            first = round(0.5 * int(steps))
+            settings = CMaxSettings(grids=(8, 16), sensor_scales=(2, 1), steps=(first, int(steps) - first),
+                                    prior_weight=prior_weight)
         elif settings is None:
             first, second = round(0.4 * int(steps)), round(0.3 * int(steps))
             settings = CMaxSettings(steps=(first, second, int(steps) - first - second), prior_weight=prior_weight)

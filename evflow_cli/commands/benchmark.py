@@ -12,7 +12,9 @@ generation per sensor size), losses, agents, env, training (windows/s per model;
 2-process torchrun rows), precision (bf16 autocast against float32, interleaved A/B:
 evflow_cli/commands/bench_precision.py), update (a profile of one training update at a campaign's
 settings and interleaved A/B of ways to make it cheaper: evflow_cli/commands/bench_update.py),
-readers, prophesee (RAW reading at 1280x720), predict (evflow_cli/predict.py end to end). Timings
+readers, prophesee (RAW reading at 1280x720), predict (evflow_cli/predict.py end to end), tradeoff
+(AEE and ms per window: the network, the network finished by a short solve, --cmax at two
+budgets, on the same windows; the whole measurement: scripts/tradeoff.py). Timings
 are wall-clock on whatever machine runs them; compare rows of one run. --device applies to the
 losses, agents, training and precision sections.
 """
@@ -37,7 +39,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 SECTIONS = ("foundation", "simulator", "losses", "agents", "env", "training", "precision", "update", "readers",
-            "prophesee", "predict")
+            "prophesee", "predict", "tradeoff")
 
 
 def report(section: str, row: str, value: float, unit: str) -> None:
@@ -228,7 +230,26 @@ def main(argv=None) -> int:
             events = 50_000 if tiny else 4_000_000 if quick else bench_prophesee.DEFAULT_EVENTS
             bench_prophesee.run(report, num_events=events, max_windows=10 if tiny else 2000, sections=(section,),
                                 tiny=tiny)
+        elif section == "tradeoff":
+            bench_tradeoff(quick, tiny, args.device)
     return 0
+
+
+def bench_tradeoff(quick: bool, tiny: bool, device: str) -> None:
+    """AEE and ms per window of the network alone, the network finished by a short solve and the
+    model-free solve at two budgets, on the same windows (the full measurement with its picture:
+    scripts/tradeoff.py). On devval beside the checkout when it is there, else synthetic-stress."""
+    from evflow_cli import tradeoff
+
+    devval = sorted((ROOT.parent / "shared" / "devval").glob("*.h5"))
+    data, label = (devval, "devval") if devval and not tiny else ("synthetic-stress", "synthetic-stress")
+    modes = ("split", "split+fine:3") if tiny else ("split", "split+fine:3", "net+mid:10", "cmax:20", "cmax:100")
+    windows = 1 if tiny else 3 if quick else 8
+    points = tradeoff.measure(data, label, modes, (1,) if tiny else (1, 4), max_windows=windows, device=device,
+                              progress=False, echo=lambda line: None, sequences=1 if tiny else None)
+    for p in points:
+        report("tradeoff", f"{label} dt={p.dt} {p.mode}: AEE", p.mean_aee, "px")
+        report("tradeoff", f"{label} dt={p.dt} {p.mode}: time per window", p.ms, "ms")
 
 
 if __name__ == "__main__":

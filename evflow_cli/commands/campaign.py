@@ -46,7 +46,7 @@ from agents.options import (
     positive_int,
 )
 from envs.outputs import folder_holder, hold_folder, release_folder
-from evflow_cli.campaign import STATE_BUDGET, Campaign, CampaignSpec, machine, plot_curve
+from evflow_cli.campaign import STATE_BUDGET, Campaign, CampaignSpec, machine, plot_curve, read_json, write_json
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout
 PYTHON = sys.executable
@@ -75,7 +75,7 @@ def _evaluate(args: list[str], out: Path, device: str, env: dict | None = None) 
     cmd = [PYTHON, str(ROOT / "scripts" / "evaluate.py"), *args, "--pictures", "0", "--no-progress",
            "--out", str(out), "--device", device]
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=env)
-    return json.loads((out / "results.json").read_text())
+    return read_json(out / "results.json", "evaluation result")
 
 
 def _eval_data_args(spec: CampaignSpec) -> list[str]:
@@ -91,8 +91,12 @@ def reference(campaign: Campaign, spec: CampaignSpec, device: str, log, env: dic
     """The reference row's AEE per dt on the validation data (computed once, then read)."""
     key = {"data": spec.val_data, "dt": spec.val_dt, "windows": spec.val_windows, "reference": spec.reference}
     if campaign.reference_path.exists():
-        stored = json.loads(campaign.reference_path.read_text())
-        if {k: stored.get(k) for k in key} == key:
+        try:
+            stored = read_json(campaign.reference_path, "reference row")
+        except ValueError as err:  # derived data: computed again rather than trusted or fatal
+            log(f"[campaign] {err}; computing it again")
+            stored = {}
+        if isinstance(stored, dict) and {k: stored.get(k) for k in key} == key:
             return stored
     log(f"[campaign] computing the reference row ({spec.reference}) on the validation data, once")
     start = time.time()
@@ -103,7 +107,7 @@ def reference(campaign: Campaign, spec: CampaignSpec, device: str, log, env: dic
                  for name, seq in block["sequences"].items()}
     stored = {**key, "aee": _aee(block, spec.val_dt), "sequences": sequences, "seconds": round(time.time() - start),
               "date": datetime.date.today().isoformat()}
-    campaign.reference_path.write_text(json.dumps(stored, indent=1) + "\n")
+    write_json(campaign.reference_path, stored)
     return stored
 
 
@@ -140,7 +144,7 @@ def rescore_export(campaign: Campaign, spec: CampaignSpec, weights_dir: Path, he
     if not rows or any(r.get("mode") == mode for r in rows) or not (weights_dir / f"{spec.export}.pt").exists():
         return
     meta = weights_dir / f"{spec.export}.json"
-    step = json.loads(meta.read_text()).get("validation", {}).get("step") if meta.exists() else None
+    step = read_json(meta, "weights' provenance").get("validation", {}).get("step") if meta.exists() else None
     row = validate(campaign, spec, ["--checkpoint", str(weights_dir / f"{spec.export}.pt")], "export", device, log,
                    env)
     campaign.append_curve({"step": step, **row, "wall_h": round(progress.get("wall_s", 0.0) / 3600, 4),
@@ -250,7 +254,7 @@ def cmd_anneal(args) -> int:
             raise SystemExit(f"campaign {args.name!r} has no export yet ({exported}): let a validation export it, "
                              "or give the weights to anneal with --init")
         record = weights_dir / f"{spec.export}.json"
-        validation = json.loads(record.read_text()).get("validation", {}) if record.exists() else {}
+        validation = read_json(record, "weights' provenance").get("validation", {}) if record.exists() else {}
         init = spec.export if weights_dir.resolve() == (ROOT / "agents" / "weights").resolve() else str(exported.resolve())
         origin = (f"from its export {spec.export} (step {validation.get('step', '?')}, validation score "
                   f"{validation.get('score', '?')}, {validation.get('mode', 'one pass')})" if validation

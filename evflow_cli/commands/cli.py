@@ -73,6 +73,7 @@ export_model = _program("export_model")
 ablations = _program("ablations")
 main_job = _program("main_job")
 param_counts = _program("param_counts")
+tradeoff = _program("tradeoff")
 
 _train = _program("train")
 

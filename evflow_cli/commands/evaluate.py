@@ -100,12 +100,14 @@ class EvaluateOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Prog
     """also add the --cmax solve held toward zero flow with weight C / the window's events (30000 as measured: still, sparse windows stay still)"""
     refine: int | None = option(None, metavar="K", type=non_negative_int)
     """also evaluate each model with its flow refined by K contrast-maximisation steps"""
-    refine_solver: Literal["fine", "cmax"] = "fine"
-    """--refine's solve: 'fine' (one 16-cell level, a local correction) or 'cmax' (the --cmax coarse-to-fine solve started from the network's flow, K steps over its levels)"""
+    refine_solver: Literal["fine", "cmax", "mid"] = "fine"
+    """--refine's solve: 'fine' (one 16-cell level, a local correction), 'cmax' (the --cmax coarse-to-fine solve started from the network's flow, K steps over its levels) or 'mid' (its two finer levels)"""
     refine_prior: float = option(0.0, type=non_negative_float)
     """--refine holds the flow to the network's with this weight (mean square of the correction in flow-scaling units; 0: none)"""
     refine_accept: float | None = option(None, metavar="A", type=fraction)
     """--refine keeps the refined flow of a window only where it lowers the env's loss (L_HMC with the border rule) by at least the fraction A of the network's (else the network's flow); default: always"""
+    still: bool = False
+    """also evaluate every network row guarded by zero flow: a window's flow is kept only where it lowers the env's loss below zero flow's (agents/wrappers/still.py)"""
     split: str | None = option(None, metavar="N|dt")
     """also evaluate each model stepped through N equal sub-windows of every window, their flows composed (agents/wrappers/subwindows.py); 'dt': one per ground-truth interval (N = the table's dt)"""
     mirror: int | None = option(None, nargs="?", const=4, metavar="N")
@@ -190,6 +192,7 @@ def build_policies(args) -> dict:
     """Row name -> policy (None: zero flow), in table order."""
     from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
     from agents.wrappers.refine import RefinedPolicy
+    from agents.wrappers.still import StillGuard
 
     policies: dict = {}
     names = args.name or []
@@ -223,11 +226,14 @@ def build_policies(args) -> dict:
                 policies[name + suffix] = MirrorPolicy(policy, mirrors)
     if args.refine:
         for name, policy in list(policies.items()):
-            label = f"{name} + refine {args.refine}" + (" (cmax)" if args.refine_solver == "cmax" else "")
+            label = f"{name} + refine {args.refine}" + (f" ({args.refine_solver})" if args.refine_solver != "fine" else "")
             label += f" prior {args.refine_prior:g}" if args.refine_prior else ""
             label += f" accept {args.refine_accept:g}" if args.refine_accept is not None else ""
             policies[label] = RefinedPolicy(policy, steps=args.refine, solver=args.refine_solver,
                                             prior_weight=args.refine_prior, accept=args.refine_accept)
+    if args.still:
+        for name, policy in list(policies.items()):
+            policies[f"{name} + still"] = StillGuard(policy)
     if args.cmax:
         policies["contrast maximisation (no network)"] = ContrastMaximisationPolicy(device=args.device)
     if args.cmax_prior is not None:

@@ -1,0 +1,217 @@
+"""Accuracy against time per window: the network alone, the network finished by K steps of a
+solve on the window's own events, and the model-free solve at full and reduced iterations, on
+the same windows in one run (``scripts/tradeoff.py``; a small version is the benchmark's
+``tradeoff`` section).
+
+Modes (one point each; ``K`` and ``N`` are solver steps):
+
+- ``zero``: zero flow (its AEE is the scale: a mode above it invents motion).
+- ``net``: the network, one pass per window.
+- ``split``: the network stepped once per ground-truth interval (``--split dt``, the default's mode).
+- ``split+fine:K`` / ``split+cmax:K``: ``split`` finished by K steps of the refinement solver
+  'fine' (one 16-cell level on sensor pixels) or 'cmax' (the coarse-to-fine solve started from
+  the network's flow; agents/wrappers/refine.py). ``net+...`` starts from one pass instead.
+  A suffix ``@P`` holds the solve to the proposal with prior weight P.
+- a suffix ``+still`` on any network mode (``split+fine:3+still``): zero flow wherever the mode's
+  flow does not lower the window's loss below zero flow's (agents/wrappers/still.py).
+- ``cmax:N``: per-window contrast maximisation from zero flow with N steps shared 40/30/30 over
+  its three levels (``cmax:100`` is the ``--cmax`` row, agents/cmax.py).
+
+Sequences are interleaved: every mode runs on a sequence before the next sequence starts, so a
+slow spell of the machine touches every mode alike. ``ms`` is the mean time a mode takes to give
+a window's flow (the first window of each sequence left out: warm-up), the network's proposal
+included in a finished mode's time.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
+from agents.evaluation import evaluate
+from agents.policy import RecurrentPolicy
+from agents.wrappers.refine import RefinedPolicy
+from agents.wrappers.still import StillGuard
+from agents.wrappers.subwindows import SubWindowPolicy
+from envs.atomic import temporary_path
+from envs.dataset import resolve_data
+
+__all__ = ["DEFAULT_MODES", "Point", "build_mode", "measure", "table", "plot"]
+
+DEFAULT_MODES = ("zero", "net", "split", "split+fine:3", "split+fine:10", "split+fine:30", "split+cmax:3",
+                 "split+cmax:10", "split+cmax:30", "cmax:10", "cmax:30", "cmax:100")
+
+
+def cmax_settings(steps: int) -> CMaxSettings:
+    """The ``--cmax`` solve with ``steps`` in all, shared 40/30/30 over its levels (each >= 1)."""
+    first, second = max(1, round(0.4 * steps)), max(1, round(0.3 * steps))
+    return CMaxSettings(steps=(first, second, max(1, steps - first - second)))
+
+
+def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu"):
+    """The policy of ``mode`` (module docstring) for windows of ``dt`` ground-truth intervals;
+    None for zero flow. ValueError naming the mode when it is not one of the forms above."""
+    kind, _, rest = mode.partition(":")
+    if mode == "zero":
+        return None
+    if mode.endswith("+still"):
+        inner = build_mode(mode[: -len("+still")], model, dt, device)
+        if inner is None or isinstance(inner, ContrastMaximisationPolicy):
+            raise ValueError(f"mode {mode!r}: +still guards a network mode (net..., split...)")
+        return StillGuard(inner)
+    if kind == "cmax":
+        if not rest.isdigit() or int(rest) < 1:
+            raise ValueError(f"mode {mode!r}: cmax takes a number of steps, e.g. cmax:30")
+        return ContrastMaximisationPolicy(cmax_settings(int(rest)), device=device)
+    start, plus, finish = mode.partition("+")
+    if start not in ("net", "split"):
+        raise ValueError(f"unknown mode {mode!r}; forms: zero, net, split, net+fine:K, split+cmax:K[@P], cmax:N")
+    policy = RecurrentPolicy.from_pretrained(model, device=device)
+    if start == "split":
+        policy = SubWindowPolicy(policy, splits=dt)
+    if not plus:
+        return policy
+    solver, _, steps = finish.partition(":")
+    steps, _, prior = steps.partition("@")
+    if solver not in RefinedPolicy.SOLVERS or not steps.isdigit():
+        raise ValueError(f"mode {mode!r}: the finish is fine:K or cmax:K (K steps), optionally @P (prior weight)")
+    return RefinedPolicy(policy, steps=int(steps), solver=solver, prior_weight=float(prior or 0.0))
+
+
+@dataclass
+class Point:
+    """One mode on one data set at one dt: means over windows, pooled over sequences."""
+
+    data: str
+    dt: int
+    mode: str
+    aee: list = field(default_factory=list)  # per sequence
+    hmc: list = field(default_factory=list)
+    hmc_zero: list = field(default_factory=list)
+    ms_sum: float = 0.0
+    ms_count: int = 0
+    windows: int = 0
+
+    @property
+    def ms(self) -> float:
+        return self.ms_sum / self.ms_count if self.ms_count else float("nan")
+
+    @property
+    def mean_aee(self) -> float:
+        values = [v for v in self.aee if math.isfinite(v)]
+        return float(np.mean(values)) if values else float("nan")
+
+    def as_dict(self) -> dict:
+        return {"data": self.data, "dt": self.dt, "mode": self.mode, "aee": self.mean_aee, "ms": self.ms,
+                "aee_per_sequence": self.aee, "hmc_per_sequence": self.hmc, "hmc_zero_per_sequence": self.hmc_zero,
+                "windows": self.windows}
+
+
+def measure(data: str, label: str, modes, dts, *, model: str | None = None, max_windows: int | None = None,
+            device: str = "cpu", progress: bool = True, echo=print, sequences: int | None = None) -> list[Point]:
+    """Every mode at every dt on every sequence of ``data`` (interleaved by sequence; the first
+    ``sequences`` only, when given)."""
+    total = len(resolve_data(data))
+    points = {(dt, mode): Point(label, dt, mode) for dt in dts for mode in modes}
+    for dt in dts:  # warm-up, not counted: kernels compiled and caches filled for every mode alike
+        for mode in modes:
+            evaluate(build_mode(mode, model, dt, device), data, window="frames", window_size=dt, max_windows=2,
+                     progress=False, shard=(0, total))
+    for index in range(total if sequences is None else min(sequences, total)):
+        for dt in dts:
+            for mode in modes:
+                policy = build_mode(mode, model, dt, device)
+                [row] = evaluate(policy, data, window="frames", window_size=dt, max_windows=max_windows,
+                                 progress=progress, shard=(index, total))
+                point = points[(dt, mode)]
+                point.aee.append(row.mean("aee"))
+                point.hmc.append(row.mean("hmc"))
+                point.hmc_zero.append(row.mean("hmc_zero"))
+                point.ms_sum += row.sums.get("ms", 0.0)
+                point.ms_count += row.counts.get("ms", 0)
+                point.windows += row.windows
+            echo(f"[tradeoff] {label} {index + 1}/{total} {row.name} dt={dt}: "
+                 + ", ".join(f"{m} {points[(dt, m)].aee[-1]:.3f}" for m in modes))
+    return list(points.values())
+
+
+def table(points: list[Point], reference: str = "cmax:100") -> str:
+    """Markdown: per data set and dt, each mode's AEE, its ratio to ``reference``'s, the
+    sequences where it is below zero flow's AEE, and ms per window with the ratio of times."""
+    lines = []
+    for data, dt in dict.fromkeys((p.data, p.dt) for p in points):
+        rows = [p for p in points if (p.data, p.dt) == (data, dt)]
+        ref = next((p for p in rows if p.mode == reference), None)
+        zero = next((p for p in rows if p.mode == "zero"), None)
+        n = len(rows[0].aee)
+        lines += [f"\n{data}, dt = {dt} ({n} sequences, {rows[0].windows} windows)\n",
+                  f"| mode | AEE | / {reference} | below zero flow | ms / window | time / {reference} |",
+                  "|---|---:|---:|---:|---:|---:|"]
+        for p in rows:
+            ratio = p.mean_aee / ref.mean_aee if ref else float("nan")
+            below = (sum(a < z for a, z in zip(p.aee, zero.aee)) if zero and p is not zero else None)
+            time_ratio = p.ms / ref.ms if ref and ref.ms else float("nan")
+            lines.append(f"| {p.mode} | {p.mean_aee:.3f} | {ratio:.2f}x | {'-' if below is None else f'{below}/{n}'} "
+                         f"| {p.ms:.0f} | {time_ratio:.2f} |")
+    return "\n".join(lines).lstrip("\n")
+
+
+FAMILIES = (("net/split", ("net", "split")), ("+ fine", ("+fine",)), ("+ cmax", ("+cmax",)), ("cmax alone", ("cmax:",)))
+
+
+def plot(points: list[Point], path: Path, reference: str = "cmax:100") -> Path | None:
+    """AEE against ms per window (log), one panel per data set and dt; None without matplotlib."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    panels = list(dict.fromkeys((p.data, p.dt) for p in points))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.8), squeeze=False)
+    for ax, (data, dt) in zip(axes[0], panels):
+        rows = [p for p in points if (p.data, p.dt) == (data, dt)]
+        for (label, keys), marker in zip(FAMILIES, "osD^"):
+            family = [p for p in rows if any(k in p.mode for k in keys) and p.mode != "zero"]
+            if label == "net/split":
+                family = [p for p in family if "+" not in p.mode]
+            family.sort(key=lambda p: p.ms)
+            ax.plot([p.ms for p in family], [p.mean_aee for p in family], marker + "-", label=label, ms=5)
+            for p in family:
+                ax.annotate(p.mode.split("+")[-1], (p.ms, p.mean_aee), fontsize=6, xytext=(3, 3),
+                            textcoords="offset points")
+        zero = next((p for p in rows if p.mode == "zero"), None)
+        if zero:
+            ax.axhline(zero.mean_aee, color="grey", ls="--", lw=0.8, label="zero flow")
+        ref = next((p for p in rows if p.mode == reference), None)
+        if ref:
+            ax.axvline(ref.ms / 5, color="tab:red", ls=":", lw=0.8, label=f"1/5 of {reference}'s time")
+        ax.set_xscale("log")
+        ax.set_xlabel("ms per window (log)")
+        ax.set_ylabel("AEE (px)")
+        ax.set_title(f"{data}, dt = {dt}", fontsize=9)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def points_json(points: list[Point]) -> str:
+    return json.dumps([p.as_dict() for p in points], indent=1) + "\n"
+
+
+def write_json(points: list[Point], path: Path) -> None:
+    """The points as JSON, written to a temporary and renamed (never through a planted link)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_path(path)
+    tmp.write_text(points_json(points))
+    os.replace(tmp, path)
