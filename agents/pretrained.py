@@ -65,6 +65,18 @@ def default_split() -> str | None:
         return None
 
 
+def default_finish(choice: dict[str, Any] | None = None) -> list[dict]:
+    """The default model's finish (``default.json``'s ``finish``, or ``choice``'s): a list of
+    ``agents.wrappers.refine.Finish`` fields, the solve run on each window after the network
+    (docs/finish.md); [] for none or a weights folder without ``default.json``."""
+    if choice is None:
+        try:
+            choice = default_choice()
+        except FileNotFoundError:
+            return []
+    return list(choice.get("finish") or [])
+
+
 def default_steps(window: str, window_size: int | None, frame_us: int = 33_333,
                   choice: dict[str, Any] | None = None) -> int:
     """Network steps per window of the default model's mode (:func:`default_split`, or

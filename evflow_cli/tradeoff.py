@@ -5,13 +5,17 @@ the same windows in one run (``scripts/tradeoff.py``; a small version is the ben
 
 Modes (one point each; ``K`` and ``N`` are solver steps):
 
+- ``default``: the shipped default in its mode (``agents/weights/default.json``: the network's
+  proposal and the finish chosen by window length, docs/finish.md).
 - ``zero``: zero flow (its AEE is the scale: a mode above it invents motion).
 - ``net``: the network, one pass per window.
 - ``split``: the network stepped once per ground-truth interval (``--split dt``, the default's mode).
 - ``split+fine:K`` / ``split+cmax:K``: ``split`` finished by K steps of the refinement solver
   'fine' (one 16-cell level on sensor pixels) or 'cmax' (the coarse-to-fine solve started from
   the network's flow; agents/wrappers/refine.py). ``net+...`` starts from one pass instead.
-  A suffix ``@P`` holds the solve to the proposal with prior weight P.
+  ``mid:K``: the solve's two finer levels only. ``/E`` after K: the solve sees an even subsample
+  of at most E of the window's events (cheaper steps). A suffix ``@P`` holds the solve to the
+  proposal with prior weight P (``split+cmax:20/8000@1``).
 - a suffix ``+still`` on any network mode (``split+fine:3+still``): zero flow wherever the mode's
   flow does not lower the window's loss below zero flow's (agents/wrappers/still.py).
 - ``cmax:N``: per-window contrast maximisation from zero flow with N steps shared 40/30/30 over
@@ -36,7 +40,7 @@ import numpy as np
 from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
 from agents.evaluation import evaluate
 from agents.policy import RecurrentPolicy
-from agents.wrappers.refine import RefinedPolicy
+from agents.wrappers.refine import FinishedPolicy, RefinedPolicy
 from agents.wrappers.still import StillGuard
 from agents.wrappers.subwindows import SubWindowPolicy
 from envs.atomic import temporary_path
@@ -60,6 +64,13 @@ def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu"):
     kind, _, rest = mode.partition(":")
     if mode == "zero":
         return None
+    if mode == "default":  # the shipped default's mode (agents/weights/default.json: split and finish)
+        from agents.pretrained import default_finish, default_split
+
+        policy = RecurrentPolicy.from_pretrained(model, device=device)
+        if default_split() == "dt":
+            policy = SubWindowPolicy(policy, splits=dt)
+        return FinishedPolicy(policy, default_finish()) if default_finish() else policy
     if mode.endswith("+still"):
         inner = build_mode(mode[: -len("+still")], model, dt, device)
         if inner is None or isinstance(inner, ContrastMaximisationPolicy):
@@ -79,9 +90,12 @@ def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu"):
         return policy
     solver, _, steps = finish.partition(":")
     steps, _, prior = steps.partition("@")
-    if solver not in RefinedPolicy.SOLVERS or not steps.isdigit():
-        raise ValueError(f"mode {mode!r}: the finish is fine:K or cmax:K (K steps), optionally @P (prior weight)")
-    return RefinedPolicy(policy, steps=int(steps), solver=solver, prior_weight=float(prior or 0.0))
+    steps, _, events = steps.partition("/")
+    if solver not in RefinedPolicy.SOLVERS or not steps.isdigit() or not (events.isdigit() or not events):
+        raise ValueError(f"mode {mode!r}: the finish is fine:K, mid:K or cmax:K (K steps), optionally /E (events "
+                         "the solve sees) and @P (prior weight)")
+    return RefinedPolicy(policy, steps=int(steps), solver=solver, prior_weight=float(prior or 0.0),
+                         max_events=int(events) if events else None)
 
 
 @dataclass

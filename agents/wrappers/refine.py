@@ -8,17 +8,40 @@ events (``scripts/evaluate.py --refine K``; the solver: ``agents.cmax.CMaxSettin
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from losses import EventBatch, window_loss, zero_flow_loss
 
-from ..cmax import CMaxSettings
+from ..cmax import FRAME_US, CMaxSettings
 from ..policy import as_flow_policy
 
-__all__ = ["RefinedPolicy"]
+__all__ = ["SOLVERS", "Finish", "FinishedPolicy", "RefinedPolicy", "finish_settings"]
+
+#: the refinement solvers (RefinedPolicy's docstring)
+SOLVERS = ("fine", "cmax", "mid")
+
+
+def finish_settings(solver: str, steps: int, *, prior_weight: float = 0.0, max_events: int | None = None) -> CMaxSettings:
+    """The solve ``solver`` (:data:`SOLVERS`) of ``steps`` steps in all, started from a base flow
+    (RefinedPolicy's docstring says what each is); ``max_events``: the events it sees at most."""
+    if solver not in SOLVERS:
+        raise ValueError(f"refinement solver must be one of {SOLVERS}, got {solver!r}")
+    if solver == "fine":
+        settings = CMaxSettings(grids=(16,), sensor_scales=(1,), steps=(steps,), lr_per_frame=0.1, lr_decay=3.0,
+                                prior_weight=prior_weight)
+    elif solver == "mid":
+        first = round(0.5 * steps)
+        settings = CMaxSettings(grids=(8, 16), sensor_scales=(2, 1), steps=(first, steps - first),
+                                prior_weight=prior_weight)
+    else:
+        first, second = round(0.4 * steps), round(0.3 * steps)
+        settings = CMaxSettings(steps=(first, second, steps - first - second), prior_weight=prior_weight)
+    return settings if max_events is None else dataclasses.replace(settings, max_events=int(max_events))
 
 
 class RefinedPolicy:
@@ -44,12 +67,17 @@ class RefinedPolicy:
     where the network is near the truth the solve still finds a slightly lower loss by inventing
     motion, a small drop. Whether a drop says where the refinement helps is measured, per split,
     by ``tools/refine_gate.py`` (docs/history/2026-12-02-round-11.md).
+
+    max_events: the solve runs on an even subsample of at most this many of the window's events
+    (default: the solver's own bound, ``CMaxSettings.max_events``): each step costs less, the flow
+    is scored on all of them.
     """
 
-    SOLVERS = ("fine", "cmax", "mid")
+    SOLVERS = SOLVERS
 
     def __init__(self, policy, *, steps: int = 30, solver: str = "fine", prior_weight: float = 0.0,
-                 settings: CMaxSettings | None = None, accept: float | None = None) -> None:
+                 settings: CMaxSettings | None = None, accept: float | None = None,
+                 max_events: int | None = None) -> None:
         self.policy = as_flow_policy(policy)
         if int(steps) < 0:
             raise ValueError(f"refinement steps must be >= 0, got {steps}")
@@ -58,18 +86,10 @@ class RefinedPolicy:
         self.accept = accept
         self.accepted = 0  # windows whose refined flow was kept / refined, when gated
         self.refined = 0
-        if solver not in self.SOLVERS:
-            raise ValueError(f"refinement solver must be one of {self.SOLVERS}, got {solver!r}")
-        if settings is None and solver == "fine":
-            settings = CMaxSettings(grids=(16,), sensor_scales=(1,), steps=(int(steps),), lr_per_frame=0.1,
-                                    lr_decay=3.0, prior_weight=prior_weight)
-        elif settings is None and solver == "mid":
-            first = round(0.5 * int(steps))
-            settings = CMaxSettings(grids=(8, 16), sensor_scales=(2, 1), steps=(first, int(steps) - first),
-                                    prior_weight=prior_weight)
-        elif settings is None:
-            first, second = round(0.4 * int(steps)), round(0.3 * int(steps))
-            settings = CMaxSettings(steps=(first, second, int(steps) - first - second), prior_weight=prior_weight)
+        if settings is None:
+            settings = finish_settings(solver, int(steps), prior_weight=prior_weight, max_events=max_events)
+        elif max_events is not None:  # a cheaper step: the solve sees an even subsample of the window's events
+            settings = dataclasses.replace(settings, max_events=int(max_events))
         self.settings = settings
         self.steps = sum(self.settings.steps)
         self.input_key = policy.input_key
@@ -100,3 +120,65 @@ class RefinedPolicy:
             self.accepted += 1
             return refined
         return flow
+
+
+@dataclass(frozen=True)
+class Finish:
+    """One finish of :class:`FinishedPolicy`: ``steps`` steps of ``solver`` on at most
+    ``max_events`` of the window's events (None: the solver's bound), for windows of at most
+    ``up_to_frames`` 30 Hz frames (None: any length)."""
+
+    solver: str
+    steps: int
+    max_events: int | None = None
+    up_to_frames: float | None = None
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> "Finish":
+        """From ``default.json``'s ``finish`` entries (ValueError naming an unknown key)."""
+        unknown = set(data) - {"solver", "steps", "max_events", "up_to_frames"}
+        if unknown:
+            raise ValueError(f"finish {dict(data)}: unknown keys {sorted(unknown)}")
+        return cls(str(data["solver"]), int(data["steps"]), data.get("max_events"), data.get("up_to_frames"))
+
+    def label(self) -> str:
+        """``fine:3``, ``cmax:20/16000``: the form scripts/tradeoff.py's modes use."""
+        return f"{self.solver}:{self.steps}" + (f"/{self.max_events}" if self.max_events else "")
+
+
+class FinishedPolicy:
+    """A policy's flow (the proposal) finished by a short solve on the window's own events, the
+    solve chosen by the window's length: the first of ``finishes`` whose ``up_to_frames`` the
+    window does not exceed (none: the proposal unchanged). The shipped default's mode
+    (``agents/weights/default.json``: ``finish``; chosen on devval, docs/finish.md): a few local
+    steps on one-frame windows, where the network is near the truth and a long solve invents
+    motion; the coarse-to-fine solve on longer windows, where the proposal is far off."""
+
+    def __init__(self, policy, finishes) -> None:
+        self.policy = as_flow_policy(policy)
+        self.finishes = [f if isinstance(f, Finish) else Finish.from_dict(f) for f in finishes]
+        self.settings = [finish_settings(f.solver, f.steps, max_events=f.max_events) for f in self.finishes]
+        self.input_key = policy.input_key
+        self.voxel_bins = policy.voxel_bins
+        self.device = getattr(policy, "device", "cpu")
+
+    def reset(self, mask=None) -> None:
+        self.policy.reset(mask)
+
+    def finish_for(self, window: Mapping) -> int | None:
+        """The index of the finish a window of this length gets (None: none)."""
+        frames = (int(window["t_end"]) - int(window["t_start"])) / FRAME_US
+        for i, finish in enumerate(self.finishes):
+            if finish.up_to_frames is None or frames <= finish.up_to_frames:
+                return i
+        return None
+
+    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+        """The proposal, finished on the window's events (``agents.policy.FlowPolicy``)."""
+        if window is None:
+            raise ValueError("FinishedPolicy solves the window's events: call act(obs, window)")
+        flow = self.policy.act(obs, window)
+        index = self.finish_for(window)
+        if index is None or self.finishes[index].steps == 0:
+            return flow
+        return self.settings[index].solve(window, tuple(flow.shape[-2:]), base=flow, device=self.device)

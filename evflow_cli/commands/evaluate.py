@@ -191,7 +191,7 @@ def dsec_sinks(args, protocol, policies: dict) -> dict:
 def build_policies(args) -> dict:
     """Row name -> policy (None: zero flow), in table order."""
     from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
-    from agents.wrappers.refine import RefinedPolicy
+    from agents.wrappers.refine import FinishedPolicy, RefinedPolicy
     from agents.wrappers.still import StillGuard
 
     policies: dict = {}
@@ -205,10 +205,18 @@ def build_policies(args) -> dict:
     pretrained = [] if args.pretrained is None else (args.pretrained or [pretrained_module.DEFAULT_PRETRAINED])
     for name in pretrained:
         policy = RecurrentPolicy.from_pretrained(name, device=args.device)
+        finish = pretrained_module.default_finish() if default_mode(args) else []
         if default_mode_split(args):  # the default in the mode devval picked (per table: splits = dt)
-            policies[f"{name} (pretrained) + split dt (the default's mode)"] = SubWindowPolicy(policy, splits=1)
+            policy, label = SubWindowPolicy(policy, splits=1), f"{name} (pretrained) + split dt"
         else:
-            policies[f"{name} (pretrained)"] = policy
+            label = f"{name} (pretrained)"
+        if finish:  # the proposal finished by a short solve; the network alone beside it
+            finished = FinishedPolicy(policy, finish)
+            policies[f"{label} + finish {' / '.join(f.label() for f in finished.finishes)} (the default's mode)"] = finished
+            alone = RecurrentPolicy.from_pretrained(name, device=args.device)  # its own recurrent state
+            policies[f"{label}, network alone"] = SubWindowPolicy(alone, splits=1) if default_mode_split(args) else alone
+        else:
+            policies[label + (" (the default's mode)" if default_mode_split(args) else "")] = policy
     if args.model and not args.checkpoint:
         policies[args.model] = RecurrentPolicy(make_model(args.model, **width_kwargs(args.width)).eval(),
                                                device=args.device)
@@ -244,12 +252,18 @@ def build_policies(args) -> dict:
     return policies
 
 
-def default_mode_split(args) -> bool:
-    """True when the default model runs in its own mode, one network step per ground-truth
-    interval (``agents/weights/default.json``: ``"split": "dt"``): ``--pretrained`` without a name,
-    frame windows, and no mode chosen on the command line (--split, --mirror, --refine)."""
+def default_mode(args) -> bool:
+    """True when the default model runs in its own mode (``agents/weights/default.json``'s
+    ``split`` and ``finish``): ``--pretrained`` without a name and no mode chosen on the command
+    line (--split, --mirror, --refine, --still)."""
     return (args.pretrained == [] and args.split is None and args.mirror is None and not args.refine
-            and (args.window == "frames" or bool(args.mvsec)) and args.protocol != "dsec"
+            and not args.still)
+
+
+def default_mode_split(args) -> bool:
+    """True when the default model runs in its own mode and that mode steps once per ground-truth
+    interval (``default.json``: ``"split": "dt"``): frame windows, not the DSEC protocol."""
+    return (default_mode(args) and (args.window == "frames" or bool(args.mvsec)) and args.protocol != "dsec"
             and pretrained_module.default_split() == "dt")
 
 

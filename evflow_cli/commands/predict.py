@@ -47,7 +47,8 @@ from agents.options import (
     positive_float,
     positive_int,
 )
-from agents.pretrained import default_steps
+from agents.pretrained import default_finish, default_steps
+from agents.wrappers.refine import FinishedPolicy
 from envs.outputs import Output
 from evflow_cli.predict import load_policy, predict, summary_dict, summary_table
 
@@ -87,6 +88,8 @@ class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progr
     """H W (centred) or TOP LEFT H W"""
     sequence: str = "0"
     """which recording of a folder / split (index or name)"""
+    no_finish: bool = False
+    """the default model's proposal alone: skip the short solve on each window's events that its mode finishes the flow with (faster; docs/finish.md)"""
     split: int | None = option(None, type=positive_int, metavar="N")
     """step the network through N equal sub-windows of each window and compose their flows (long windows of fast motion; N network steps per window); default: the default model's mode (agents/weights/default.json: one step per ground-truth interval, or per --no-gt-window of a time window), 1 for any other model"""
     per_event: bool = False
@@ -120,6 +123,11 @@ def main(argv=None) -> int:  # opens as the other commands do: parse, then set t
                       option="--json") if args.json else None
     with json_out or contextlib.nullcontext():
         policy, provenance = load_policy(args.model, device=args.device, width=args.width, plugin=args.plugin)
+        finish = default_finish() if args.model is None and args.split is None and not args.no_finish else []
+        if finish:  # the default's mode: the network's flow finished by a short solve on each window
+            policy = FinishedPolicy(policy, finish)
+            provenance["default"]["finish"] = [f.label() + (f" up to {f.up_to_frames:g} frames" if f.up_to_frames else "")
+                                               for f in policy.finishes]
         split = args.split
         if split is None:
             split = default_steps(args.window, args.window_size, args.no_gt_window) if args.model is None else 1
