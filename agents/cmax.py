@@ -31,7 +31,7 @@ __all__ = ["CMaxSettings", "ContrastMaximisationPolicy", "EVIDENCE_PRIOR", "FRAM
 #: The step size is given per 30 Hz frame of window length: a longer window moves further.
 FRAME_US = 33_333
 
-#: ``CMaxSettings.evidence_prior`` as measured (docs/results.md, "Still scenes and the solve"):
+#: ``CMaxSettings.evidence_prior`` as measured (docs/history/2026-12-05-round-15.md, "Still scenes and the solve"):
 #: a window of 30,000 events is held to zero flow with weight 1.
 EVIDENCE_PRIOR = 30_000.0
 
@@ -77,7 +77,7 @@ class CMaxSettings:
     evidence_prior: a prior toward the starting flow (zero flow, or the base) whose weight is
     ``evidence_prior / events in the window`` (added to prior_weight): a window with few events
     keeps still unless they demand motion; one with many is solved as without it. 0: none
-    (``EVIDENCE_PRIOR`` is the measured setting, docs/results.md).
+    (``EVIDENCE_PRIOR`` is the measured setting, docs/history/2026-12-05-round-15.md).
     """
 
     grids: tuple[int, ...] = (4, 8, 16)

@@ -116,7 +116,7 @@ CONFIGURATIONS: dict[str, Configuration] = {c.name: c for c in [
 class Budget:
     """What every configuration gets: the same data, crops, window lengths, steps and evaluation.
 
-    The defaults are the documented budget (docs/results.md, Ablations); the stage options are
+    The defaults are the documented budget (docs/ablations/README.md); the stage options are
     those of the recipe in ``scripts/main.py`` (CACHED_RECIPE, HMC_STAGE), with the teacher
     stage's step size decaying to 0 over its steps so that a fixed step count ends converged.
     """
@@ -133,7 +133,7 @@ class Budget:
     """Training split (its teacher targets are solved once per loss)."""
     val_data: str = "../shared/devval"
     """Validation data of the curves (train.py --val-data; '' for none): the independent set, on
-    which the shipped models are chosen (docs/results.md, Ablations: on ``synthetic-dr-val`` the
+    which the shipped models are chosen (docs/ablations/README.md: on ``synthetic-dr-val`` the
     default itself is only 11 % below zero flow, too close for a curve to say anything)."""
     val_every: int = 500
     val_windows: int = 15

@@ -46,7 +46,7 @@ from agents.wrappers.subwindows import SubWindowPolicy
 from envs.atomic import temporary_path
 from envs.dataset import resolve_data
 
-__all__ = ["DEFAULT_MODES", "Point", "build_mode", "measure", "table", "plot"]
+__all__ = ["DEFAULT_MODES", "Point", "build_mode", "load_points", "measure", "table", "plot"]
 
 DEFAULT_MODES = ("zero", "net", "split", "split+fine:3", "split+fine:10", "split+fine:30", "split+cmax:3",
                  "split+cmax:10", "split+cmax:30", "cmax:10", "cmax:30", "cmax:100")
@@ -176,7 +176,24 @@ def table(points: list[Point], reference: str = "cmax:100") -> str:
     return "\n".join(lines).lstrip("\n")
 
 
-FAMILIES = (("net/split", ("net", "split")), ("+ fine", ("+fine",)), ("+ cmax", ("+cmax",)), ("cmax alone", ("cmax:",)))
+FAMILIES = ("network alone", "+ fine", "+ mid", "+ cmax", "cmax alone", "the default's mode", "other")
+
+
+def family(mode: str) -> str | None:
+    """The line of the plot a mode belongs to (None: zero flow, drawn as a level)."""
+    if mode == "zero":
+        return None
+    if mode == "default":
+        return "the default's mode"
+    if mode.startswith("cmax:"):
+        return "cmax alone"
+    if mode in ("net", "split"):
+        return "network alone"
+    if "+still" not in mode:
+        for solver in ("fine", "mid", "cmax"):
+            if f"+{solver}:" in mode:
+                return f"+ {solver}"
+    return "other"
 
 
 def plot(points: list[Point], path: Path, reference: str = "cmax:100") -> Path | None:
@@ -186,37 +203,59 @@ def plot(points: list[Point], path: Path, reference: str = "cmax:100") -> Path |
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+        import matplotlib.ticker
     except ImportError:
         return None
     panels = list(dict.fromkeys((p.data, p.dt) for p in points))
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.8 * len(panels), 4.0), squeeze=False)
     for ax, (data, dt) in zip(axes[0], panels):
-        rows = [p for p in points if (p.data, p.dt) == (data, dt)]
-        for (label, keys), marker in zip(FAMILIES, "osD^"):
-            family = [p for p in rows if any(k in p.mode for k in keys) and p.mode != "zero"]
-            if label == "net/split":
-                family = [p for p in family if "+" not in p.mode]
-            family.sort(key=lambda p: p.ms)
-            ax.plot([p.ms for p in family], [p.mean_aee for p in family], marker + "-", label=label, ms=5)
-            for p in family:
-                ax.annotate(p.mode.split("+")[-1], (p.ms, p.mean_aee), fontsize=6, xytext=(3, 3),
-                            textcoords="offset points")
+        rows = [p for p in points if (p.data, p.dt) == (data, dt) and math.isfinite(p.mean_aee)]
+        for name, marker in zip(FAMILIES, "osvD^*x"):
+            members = sorted((p for p in rows if family(p.mode) == name), key=lambda p: p.ms)
+            if not members:
+                continue
+            ax.plot([p.ms for p in members], [p.mean_aee for p in members], marker + ("-" if name != "other" else ""),
+                    label=name, ms=9 if marker == "*" else 5)
+            for p in members:
+                ax.annotate(p.mode.split("+", 1)[-1] if "+" in p.mode else p.mode, (p.ms, p.mean_aee), fontsize=6,
+                            xytext=(3, 3), textcoords="offset points")
+        shown = [p.mean_aee for p in rows if p.mode != "zero"]
         zero = next((p for p in rows if p.mode == "zero"), None)
-        if zero:
+        top = 1.15 * max(shown) if shown else None
+        if zero and top and zero.mean_aee <= top:
             ax.axhline(zero.mean_aee, color="grey", ls="--", lw=0.8, label="zero flow")
+        if top:
+            ax.set_ylim(0, top)
         ref = next((p for p in rows if p.mode == reference), None)
         if ref:
             ax.axvline(ref.ms / 5, color="tab:red", ls=":", lw=0.8, label=f"1/5 of {reference}'s time")
+            ax.axhline(ref.mean_aee, color="tab:red", ls="-", lw=0.5, alpha=0.5, label=f"{reference}'s AEE")
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # the decades only: no crowded labels
         ax.set_xlabel("ms per window (log)")
         ax.set_ylabel("AEE (px)")
-        ax.set_title(f"{data}, dt = {dt}", fontsize=9)
-    axes[0][0].legend(fontsize=7)
+        title = f"{data}, dt = {dt}" + (f" (zero flow: {zero.mean_aee:.2f})" if zero else "")
+        ax.set_title(title, fontsize=9)
+    axes[0][0].legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
+    tmp = temporary_path(path)
+    fig.savefig(tmp, dpi=90, format="png")
+    os.replace(tmp, path)
     plt.close(fig)
     return path
+
+
+def load_points(path: str | os.PathLike) -> list[Point]:
+    """The points a run wrote (``tradeoff.json``), to plot or tabulate again."""
+    rows = json.loads(Path(path).read_text())
+    points = []
+    for r in rows:
+        p = Point(r["data"], r["dt"], r["mode"], list(r["aee_per_sequence"]), list(r.get("hmc_per_sequence", [])),
+                  list(r.get("hmc_zero_per_sequence", [])), windows=r.get("windows", 0))
+        p.ms_sum, p.ms_count = (float(r["ms"]), 1) if r.get("ms") is not None and math.isfinite(r["ms"]) else (0.0, 0)
+        points.append(p)
+    return points
 
 
 def points_json(points: list[Point]) -> str:

@@ -99,3 +99,19 @@ def test_command_writes_its_table_and_refuses_a_typo_before_measuring(tmp_path, 
     assert "| net |" in (out / "tradeoff.md").read_text() and not (out / "tradeoff.partial.json").exists()
     rows = json.loads((out / "tradeoff.json").read_text())
     assert [r["mode"] for r in rows] == ["zero", "net", "cmax:4"]
+
+
+def test_replot_reads_the_points_a_run_wrote(tmp_path, rng):
+    path = write_translating_recording(tmp_path / "dots.h5", rng, duration_us=150_000)
+    out = tmp_path / "run"
+    assert tradeoff_main(["--data", str(path), "--modes", "zero", "net", "cmax:4", "--dt", "1", "--max-windows", "2",
+                          "--reference", "cmax:4", "--out", str(out), "--no-progress"]) == 0
+    again = tradeoff.load_points(out / "tradeoff.json")
+    assert tradeoff.table(again, reference="cmax:4") == (out / "tradeoff.md").read_text().rstrip("\n")
+    assert tradeoff_main(["--replot", str(out / "tradeoff.json"), "--reference", "cmax:4", "--out", str(tmp_path / "re")]) == 0
+    assert (tmp_path / "re" / "tradeoff.md").read_text() == (out / "tradeoff.md").read_text()
+    families = {m: tradeoff.family(m) for m in ("zero", "net", "split+fine:3", "net+mid:10/800", "split+cmax:3",
+                                                "cmax:30", "default", "net+fine:3+still")}
+    assert families == {"zero": None, "net": "network alone", "split+fine:3": "+ fine", "net+mid:10/800": "+ mid",
+                        "split+cmax:3": "+ cmax", "cmax:30": "cmax alone", "default": "the default's mode",
+                        "net+fine:3+still": "other"}

@@ -7,7 +7,7 @@ fine-tuning stage on the loss itself; is evaluated on synthetic-test and synthet
 dt = 1 and 4; and its parameters, arithmetic and time per window are measured. Everything is in
 evflow_cli/ablations.py; this is the command line.
 
-  python scripts/ablations.py                       # the documented budget (docs/results.md)
+  python scripts/ablations.py                       # the documented budget (docs/ablations/README.md)
   nohup python scripts/ablations.py > runs/ablations.log 2>&1 &      # in the background
   python scripts/ablations.py --tables-only         # regenerate the tables from the rows so far
 
@@ -56,7 +56,7 @@ class AblationsOptions(DeviceOptions):
     """run folder (targets, checkpoints, evaluations)"""
     record: str = "docs/ablations"
     """folder of the rows, budget, tables and curves (in the repository: commit it)"""
-    report: str = "docs/results.md"
+    report: str = "docs/ablations/README.md"
     """file whose ablation markers get the tables ('' for none)"""
     seeds: list[int] = option(default_factory=lambda: [0, 1, 2], type=non_negative_int)
     """the full model's seeds; the first is every configuration's, the second the adaptive one's"""

@@ -185,7 +185,7 @@ def main(argv=None) -> int:
     print("  stage 1:  python scripts/train.py --preset teacher-cached --steps 20000 --out runs/recipe")
     print("            python scripts/train.py --resume --out runs/recipe --steps 40000    # continue later")
     print("  stage 2 (optional: at CPU width and short budgets it lowered L_HMC while the flow on independent data got"
-          " worse, docs/results.md, Ablations; the shipped default is distilled only, docs/training.md, Campaigns):")
+          " worse, docs/ablations/README.md; the shipped default is distilled only, docs/training.md, Campaigns):")
     print("            python scripts/train.py --preset hmc-stage --init runs/recipe/checkpoint.pt "
           "--steps 20000 --out runs/recipe-hmc")
     print("  (then optionally --window-size 1 2 3 4 --lr 1e-4 from stage 2's checkpoint for short windows;"

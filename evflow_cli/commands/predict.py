@@ -91,7 +91,7 @@ class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progr
     no_finish: bool = False
     """the default model's proposal alone: skip the short solve on each window's events that its mode finishes the flow with (faster; docs/finish.md)"""
     split: int | None = option(None, type=positive_int, metavar="N")
-    """step the network through N equal sub-windows of each window and compose their flows (long windows of fast motion; N network steps per window); default: the default model's mode (agents/weights/default.json: one step per ground-truth interval, or per --no-gt-window of a time window), 1 for any other model"""
+    """step the network through N equal sub-windows of each window and compose their flows (long windows of fast motion; N network steps per window); default: the default model's mode (agents/weights/default.json's split: one pass, or one step per ground-truth interval), 1 for any other model"""
     per_event: bool = False
     """also store the flow at every event"""
     json: str | None = None

@@ -6,6 +6,7 @@ matplotlib: pip install '.[plots]').
   python scripts/tradeoff.py                                             # devval and synthetic-stress, dt = 1 and 4
   python scripts/tradeoff.py --data ../shared/devval --max-windows 6 --dt 4 --threads 1
   python scripts/tradeoff.py --modes split split+cmax:10 cmax:10 cmax:100 --data synthetic-stress
+  python scripts/tradeoff.py --replot runs/a/tradeoff.json runs/b/tradeoff.json --out runs/both   # table and plot again
 """
 
 from __future__ import annotations
@@ -42,6 +43,8 @@ class TradeoffOptions(DeviceOptions, Progress):
     """output folder"""
     overwrite: bool = False
     """replace the outputs of an earlier run"""
+    replot: list[str] = option(default_factory=list, metavar="JSON")
+    """measure nothing: table and plot the tradeoff.json files of earlier runs together into --out"""
 
 
 def _data(item: str) -> tuple[str | list[str], str]:
@@ -67,11 +70,20 @@ def main(argv=None) -> int:
     args = options_from_args(TradeoffOptions, build_parser().parse_args(argv))
     if args.threads:
         torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    if args.replot:
+        points = [p for path in args.replot for p in tradeoff.load_points(path)]
+        with Output(out / "tradeoff.md", overwrite=args.overwrite, option="--out") as md_out:
+            md = tradeoff.table(points, reference=args.reference)
+            md_out.write_text(md + "\n")
+        print(md)
+        picture = tradeoff.plot(points, out / "tradeoff.png", reference=args.reference)
+        print(f"\nwrote {out / 'tradeoff.md'}" + (f", {picture}" if picture else " (no picture: pip install matplotlib)"))
+        return 0
     for mode in args.modes:  # a typo fails here, not after an hour
         tradeoff.build_mode(mode, args.model, 1, args.device)
     if args.reference not in args.modes:
         raise ValueError(f"--reference {args.reference}: not one of --modes ({' '.join(args.modes)})")
-    out = Path(args.out)
     sets = [_data(item) for item in args.data]
     points = []
     with Output(out / "tradeoff.json", overwrite=args.overwrite, option="--out") as json_out, \
