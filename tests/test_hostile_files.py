@@ -318,3 +318,18 @@ def test_users_faults_end_in_one_line_and_leave_no_folder(tmp_path, rng, argv, m
                           timeout=300, cwd=tmp_path)
     assert done.returncode == 2 and message in done.stderr and "Traceback" not in done.stderr, done.stderr[-2000:]
     assert not out.exists()  # no empty output folder either
+
+
+@pytest.mark.parametrize("size", [(100_000, 100_000), (0, 346), (260, 16_385)])
+def test_a_declared_sensor_size_is_checked_when_the_file_opens(tmp_path, rng, size):
+    import h5py
+
+    from envs.readers import open_recording
+    from envs.readers.base import FormatError
+    from tests.recordings import write_translating_recording
+
+    path = write_translating_recording(tmp_path / "rec.h5", rng, duration_us=60_000)
+    with h5py.File(path, "r+") as f:  # a hostile edit of the declared geometry only (a few bytes)
+        f.attrs["sensor_height"], f.attrs["sensor_width"] = size
+    with pytest.raises(FormatError, match=rf"rec\.h5: declares a {size[0]} x {size[1]} sensor"):
+        open_recording(path)

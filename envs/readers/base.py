@@ -11,7 +11,7 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from envs.events import Events
+from envs.events import MAX_SENSOR_SIDE, Events
 
 __all__ = ["EventReader", "ArrayReader", "FlowGT", "FormatError"]
 
@@ -34,8 +34,28 @@ class EventReader(ABC):
     """
 
     name: str = "recording"
-    sensor_size: tuple[int, int]
     num_events: int
+
+    @property
+    def sensor_size(self) -> tuple[int, int]:
+        return getattr(self, "_sensor_size", None)
+
+    @sensor_size.setter
+    def sensor_size(self, value) -> None:
+        """Every reader's size passes here: a size a file declares is checked when it is opened
+        (positive, at most ``MAX_SENSOR_SIDE`` a side), before any image of that size is made."""
+        if value is None:  # not known yet (a header without geometry, size picked from the events later)
+            self._sensor_size = None
+            return
+        where = getattr(self, "path", None) or getattr(self, "name", "recording")
+        try:
+            height, width = (int(v) for v in value)
+        except (TypeError, ValueError):
+            raise FormatError(f"{where}: sensor size {value!r} is not two whole numbers (height, width)") from None
+        if not (0 < height <= MAX_SENSOR_SIDE and 0 < width <= MAX_SENSOR_SIDE):
+            raise FormatError(f"{where}: declares a {height} x {width} sensor (height x width); a sensor side must be "
+                              f"1 to {MAX_SENSOR_SIDE} pixels (a damaged or hostile file, or the wrong format)")
+        self._sensor_size = (height, width)
 
     # --- events ------------------------------------------------------------------------
     @abstractmethod
