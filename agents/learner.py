@@ -177,6 +177,12 @@ class TrainConfig(ModelWidth, Windows, SensorSizeOptions):
     """teacher: solve on at most this many events per window, evenly subsampled (default: all)"""
     teacher_cache: str | None = None
     """teacher: precomputed targets (scripts/teacher_targets.py) instead of solving every update"""
+    finish_steps: int = option(0, type=non_negative_int)
+    """take the loss after K unrolled gradient steps of the window's L_HMC on the finest flow (losses/finish.py): the network trained as the proposal a short solve finishes (docs/finish.md); 0: none"""
+    finish_lr: float = option(0.3, type=positive_float)
+    """the unrolled finish's step: the mean move of a correction cell in pixels, times the window's length in 30 Hz frames"""
+    finish_grid: int = option(16, type=positive_int)
+    """the unrolled finish's correction grid: cells along the longer side"""
     head_init: float | None = option(None, metavar="A", type=non_negative_float)
     """re-draw the flow heads' weights from U(-A, A), biases 0 (start near zero flow)"""
     seed: int = option(0, type=non_negative_int)
@@ -188,6 +194,8 @@ class TrainConfig(ModelWidth, Windows, SensorSizeOptions):
 
     def __post_init__(self) -> None:
         check_choices(self)
+        if self.finish_steps and self.loss_mode == "accumulated" and self.loss in ("hmc", "at"):
+            raise ValueError("--finish-steps finishes each window's flow: it needs --loss-mode window (or a teacher)")
         if self.event_keep is not None:  # refused where the options are read, not when the envs are built
             try:
                 keep = check_event_keep(self.event_keep)

@@ -24,8 +24,11 @@ from losses import (
     contrast_maximisation_flow,
     event_pixel_mask,
     to_full_resolution,
+    unrolled_finish,
     window_loss,
 )
+
+from .cmax import FRAME_US
 
 if TYPE_CHECKING:
     from .learner import TrainConfig
@@ -82,16 +85,32 @@ def _scales(cfg: TrainConfig, flows: list) -> list:
     return flows if cfg.loss_scales == "all" else flows[-1:]
 
 
+def _finished(cfg: TrainConfig, window: RolloutWindow, flow_scaling: float) -> list[torch.Tensor]:
+    """The window's flows with the finest replaced by its unrolled finish (``cfg.finish_steps``
+    gradient steps of the window's L_HMC, graph kept: losses/finish.py), so that the loss is taken
+    after the finish; unchanged without one. The step is ``finish_lr`` times each window's length
+    in 30 Hz frames."""
+    if not cfg.finish_steps:
+        return window.flows
+    full = window.flows[-1]  # the finest scale: full sensor resolution (losses.to_full_resolution)
+    windows = windows_from_info(window.info, full.shape[0])
+    frames = torch.tensor([max(1.0, (int(w["t_end"]) - int(w["t_start"])) / FRAME_US) for w in windows],
+                          dtype=full.dtype, device=full.device)
+    finished = unrolled_finish(full, window.batch, steps=cfg.finish_steps, lr=cfg.finish_lr * frames,
+                               grid=cfg.finish_grid, weights=cfg.weights, flow_scaling=flow_scaling)
+    return [*window.flows[:-1], finished]
+
+
 class WindowLoss:
     """The mean over the L windows of each window's L_HMC / L_AT, with the border rule: the env's
     -reward (``losses.window_loss``), for the B windows of a step at once."""
 
     def __init__(self, cfg: TrainConfig, flow_scaling: float, **_) -> None:
-        self.cfg, self.options = cfg, loss_options(cfg, flow_scaling)
+        self.cfg, self.options, self.flow_scaling = cfg, loss_options(cfg, flow_scaling), flow_scaling
 
     def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:
-        losses = [window_loss(_scales(self.cfg, w.flows), w.batch, self.cfg.weights, zero_flow=w.zero.per_sample,
-                              **self.options).loss for w in rollout]
+        losses = [window_loss(_scales(self.cfg, _finished(self.cfg, w, self.flow_scaling)), w.batch, self.cfg.weights,
+                              zero_flow=w.zero.per_sample, **self.options).loss for w in rollout]
         return torch.stack(losses).mean(), {}
 
 
@@ -187,7 +206,7 @@ class TeacherLoss:
         for k, window in enumerate(rollout):
             t, w = target[k * n : (k + 1) * n], weight[k * n : (k + 1) * n]
             zero_errors.append(_endpoint_error(torch.zeros_like(t), t, w))
-            errors += [_endpoint_error(f, t, w) for f in to_full_resolution(window.flows)]
+            errors += [_endpoint_error(f, t, w) for f in to_full_resolution(_finished(cfg, window, self.flow_scaling))]
         return torch.stack(errors).mean(), {"zero_flow_teacher": torch.stack(zero_errors).mean().detach()}
 
 

@@ -13,8 +13,10 @@ Modes (one point each; ``K`` and ``N`` are solver steps):
 - ``split+fine:K`` / ``split+cmax:K``: ``split`` finished by K steps of the refinement solver
   'fine' (one 16-cell level on sensor pixels) or 'cmax' (the coarse-to-fine solve started from
   the network's flow; agents/wrappers/refine.py). ``net+...`` starts from one pass instead.
-  ``mid:K``: the solve's two finer levels only. ``/E`` after K: the solve sees an even subsample
-  of at most E of the window's events (cheaper steps). A suffix ``@P`` holds the solve to the
+  ``mid:K``: the solve's two finer levels only; ``gd:K``: the K unrolled gradient steps training
+  takes with ``--finish-steps K`` (losses/finish.py), here without a graph. ``/E`` after K: the solve sees an even subsample
+  of at most E of the window's events (cheaper steps); ``xS`` then: the solve's step size times S.
+  A suffix ``@P`` holds the solve to the
   proposal with prior weight P (``split+cmax:20/8000@1``).
 - a suffix ``+still`` on any network mode (``split+fine:3+still``): zero flow wherever the mode's
   flow does not lower the window's loss below zero flow's (agents/wrappers/still.py).
@@ -40,7 +42,7 @@ import numpy as np
 from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
 from agents.evaluation import evaluate
 from agents.policy import RecurrentPolicy
-from agents.wrappers.refine import FinishedPolicy, RefinedPolicy
+from agents.wrappers.refine import GRADIENT, Finish, FinishedPolicy, RefinedPolicy
 from agents.wrappers.still import StillGuard
 from agents.wrappers.subwindows import SubWindowPolicy
 from envs.atomic import temporary_path
@@ -67,7 +69,7 @@ def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu"):
     if mode == "default":  # the shipped default's mode (agents/weights/default.json: split and finish)
         from agents.pretrained import default_finish, default_split
 
-        policy = RecurrentPolicy.from_pretrained(model, device=device)
+        policy = _network(model, device)
         if default_split() == "dt":
             policy = SubWindowPolicy(policy, splits=dt)
         return FinishedPolicy(policy, default_finish()) if default_finish() else policy
@@ -83,19 +85,40 @@ def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu"):
     start, plus, finish = mode.partition("+")
     if start not in ("net", "split"):
         raise ValueError(f"unknown mode {mode!r}; forms: zero, net, split, net+fine:K, split+cmax:K[@P], cmax:N")
-    policy = RecurrentPolicy.from_pretrained(model, device=device)
+    policy = _network(model, device)
     if start == "split":
         policy = SubWindowPolicy(policy, splits=dt)
     if not plus:
         return policy
     solver, _, steps = finish.partition(":")
     steps, _, prior = steps.partition("@")
+    steps, _, scale = steps.partition("x")
     steps, _, events = steps.partition("/")
-    if solver not in RefinedPolicy.SOLVERS or not steps.isdigit() or not (events.isdigit() or not events):
+    try:
+        lr_scale = float(scale) if scale else 1.0
+    except ValueError:
+        lr_scale = -1.0
+    if solver == GRADIENT and steps.isdigit() and (events.isdigit() or not events) and lr_scale > 0 and not prior:
+        return FinishedPolicy(policy, [Finish(GRADIENT, int(steps), int(events) if events else None, None, lr_scale)])
+    if (solver not in RefinedPolicy.SOLVERS or not steps.isdigit() or not (events.isdigit() or not events)
+            or not lr_scale > 0):
         raise ValueError(f"mode {mode!r}: the finish is fine:K, mid:K or cmax:K (K steps), optionally /E (events "
-                         "the solve sees) and @P (prior weight)")
+                         "the solve sees), xS (step size times S) and @P (prior weight)")
     return RefinedPolicy(policy, steps=int(steps), solver=solver, prior_weight=float(prior or 0.0),
-                         max_events=int(events) if events else None)
+                         max_events=int(events) if events else None, lr_scale=lr_scale)
+
+
+def _network(model: str | None, device: str):
+    """The network of ``model``: a shipped name (None: the default) or a checkpoint file written by
+    training (a registered model only: agents.checkpoint)."""
+    if model is not None and os.path.isfile(model):
+        from agents.checkpoint import load_model
+
+        net, payload = load_model(model, map_location=device)
+        cfg = payload.get("config") or {}
+        return RecurrentPolicy(net, device=device, input_key=cfg.get("input", "count_image"),
+                               voxel_bins=cfg.get("voxel_bins", 5))
+    return RecurrentPolicy.from_pretrained(model, device=device)
 
 
 @dataclass

@@ -9,6 +9,7 @@ from .average_timestamp import average_timestamp_loss
 from .contrast import CMAX_WEIGHTS, contrast_maximisation_flow
 from .event_count import event_count_loss
 from .events import EventBatch
+from .finish import unrolled_finish
 from .hmc import (
     AT_NORMALISATIONS,
     BORDER_RAMP,
@@ -54,6 +55,7 @@ __all__ = [
     "LossWeights",
     "window_loss",
     "zero_flow_loss",
+    "unrolled_finish",
     "LOSS_NAMES",
     "border_rule_weight",
     "hmc_loss",

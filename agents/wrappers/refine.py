@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from losses import EventBatch, window_loss, zero_flow_loss
+from losses import EventBatch, unrolled_finish, window_loss, zero_flow_loss
 
 from ..cmax import FRAME_US, CMaxSettings
 from ..policy import as_flow_policy
@@ -24,11 +24,36 @@ __all__ = ["SOLVERS", "Finish", "FinishedPolicy", "RefinedPolicy", "finish_setti
 
 #: the refinement solvers (RefinedPolicy's docstring)
 SOLVERS = ("fine", "cmax", "mid")
+#: the finish training unrolls (losses/finish.py; ``--finish-steps``): a Finish's solver, not RefinedPolicy's
+GRADIENT = "gd"
+#: its step at lr_scale 1: TrainConfig.finish_lr's default (pixels per step per 30 Hz frame)
+GRADIENT_LR = 0.3
 
 
-def finish_settings(solver: str, steps: int, *, prior_weight: float = 0.0, max_events: int | None = None) -> CMaxSettings:
+def gradient_finish(flow: np.ndarray, window: Mapping, finish: "Finish", device="cpu") -> np.ndarray:
+    """``flow`` finished by ``finish.steps`` unrolled gradient steps as training takes them
+    (``losses.unrolled_finish``, a 16-cell grid, step ``GRADIENT_LR * lr_scale`` x the window's
+    frames), no graph; at most ``finish.max_events`` events (even subsample)."""
+    n = len(window["t"])
+    if n == 0:
+        return flow
+    if finish.max_events and n > finish.max_events:
+        pick = np.linspace(0, n - 1, finish.max_events).astype(np.int64)
+        window = {**{k: np.asarray(window[k])[pick] for k in ("x", "y", "t", "p")},
+                  "t_start": window["t_start"], "t_end": window["t_end"]}
+    frames = max(1.0, (int(window["t_end"]) - int(window["t_start"])) / FRAME_US)
+    proposal = torch.as_tensor(np.asarray(flow, np.float32), device=device)[None]
+    batch = EventBatch.from_windows([window], device=device)
+    finished = unrolled_finish(proposal, batch, steps=finish.steps, lr=GRADIENT_LR * finish.lr_scale * frames,
+                               create_graph=False)
+    return finished[0].cpu().numpy()
+
+
+def finish_settings(solver: str, steps: int, *, prior_weight: float = 0.0, max_events: int | None = None,
+                    lr_scale: float = 1.0) -> CMaxSettings:
     """The solve ``solver`` (:data:`SOLVERS`) of ``steps`` steps in all, started from a base flow
-    (RefinedPolicy's docstring says what each is); ``max_events``: the events it sees at most."""
+    (RefinedPolicy's docstring says what each is); ``max_events``: the events it sees at most;
+    ``lr_scale``: its step size times this (a short solve may need longer steps to go as far)."""
     if solver not in SOLVERS:
         raise ValueError(f"refinement solver must be one of {SOLVERS}, got {solver!r}")
     if solver == "fine":
@@ -41,6 +66,8 @@ def finish_settings(solver: str, steps: int, *, prior_weight: float = 0.0, max_e
     else:
         first, second = round(0.4 * steps), round(0.3 * steps)
         settings = CMaxSettings(steps=(first, second, steps - first - second), prior_weight=prior_weight)
+    if lr_scale != 1.0:
+        settings = dataclasses.replace(settings, lr_per_frame=settings.lr_per_frame * float(lr_scale))
     return settings if max_events is None else dataclasses.replace(settings, max_events=int(max_events))
 
 
@@ -77,7 +104,7 @@ class RefinedPolicy:
 
     def __init__(self, policy, *, steps: int = 30, solver: str = "fine", prior_weight: float = 0.0,
                  settings: CMaxSettings | None = None, accept: float | None = None,
-                 max_events: int | None = None) -> None:
+                 max_events: int | None = None, lr_scale: float = 1.0) -> None:
         self.policy = as_flow_policy(policy)
         if int(steps) < 0:
             raise ValueError(f"refinement steps must be >= 0, got {steps}")
@@ -87,7 +114,8 @@ class RefinedPolicy:
         self.accepted = 0  # windows whose refined flow was kept / refined, when gated
         self.refined = 0
         if settings is None:
-            settings = finish_settings(solver, int(steps), prior_weight=prior_weight, max_events=max_events)
+            settings = finish_settings(solver, int(steps), prior_weight=prior_weight, max_events=max_events,
+                                       lr_scale=lr_scale)
         elif max_events is not None:  # a cheaper step: the solve sees an even subsample of the window's events
             settings = dataclasses.replace(settings, max_events=int(max_events))
         self.settings = settings
@@ -124,7 +152,8 @@ class RefinedPolicy:
 
 @dataclass(frozen=True)
 class Finish:
-    """One finish of :class:`FinishedPolicy`: ``steps`` steps of ``solver`` on at most
+    """One finish of :class:`FinishedPolicy`: ``steps`` steps of ``solver`` (one of :data:`SOLVERS`,
+    or :data:`GRADIENT`: the unrolled finish training takes, losses/finish.py) on at most
     ``max_events`` of the window's events (None: the solver's bound), for windows of at most
     ``up_to_frames`` 30 Hz frames (None: any length)."""
 
@@ -132,18 +161,21 @@ class Finish:
     steps: int
     max_events: int | None = None
     up_to_frames: float | None = None
+    lr_scale: float = 1.0
 
     @classmethod
     def from_dict(cls, data: Mapping) -> "Finish":
         """From ``default.json``'s ``finish`` entries (ValueError naming an unknown key)."""
-        unknown = set(data) - {"solver", "steps", "max_events", "up_to_frames"}
+        unknown = set(data) - {"solver", "steps", "max_events", "up_to_frames", "lr_scale"}
         if unknown:
             raise ValueError(f"finish {dict(data)}: unknown keys {sorted(unknown)}")
-        return cls(str(data["solver"]), int(data["steps"]), data.get("max_events"), data.get("up_to_frames"))
+        return cls(str(data["solver"]), int(data["steps"]), data.get("max_events"), data.get("up_to_frames"),
+                   float(data.get("lr_scale", 1.0)))
 
     def label(self) -> str:
         """``fine:3``, ``cmax:20/16000``: the form scripts/tradeoff.py's modes use."""
-        return f"{self.solver}:{self.steps}" + (f"/{self.max_events}" if self.max_events else "")
+        return (f"{self.solver}:{self.steps}" + (f"/{self.max_events}" if self.max_events else "")
+                + (f"x{self.lr_scale:g}" if self.lr_scale != 1.0 else ""))
 
 
 class FinishedPolicy:
@@ -157,7 +189,9 @@ class FinishedPolicy:
     def __init__(self, policy, finishes) -> None:
         self.policy = as_flow_policy(policy)
         self.finishes = [f if isinstance(f, Finish) else Finish.from_dict(f) for f in finishes]
-        self.settings = [finish_settings(f.solver, f.steps, max_events=f.max_events) for f in self.finishes]
+        self.settings = [None if f.solver == GRADIENT else
+                         finish_settings(f.solver, f.steps, max_events=f.max_events, lr_scale=f.lr_scale)
+                         for f in self.finishes]
         self.input_key = policy.input_key
         self.voxel_bins = policy.voxel_bins
         self.device = getattr(policy, "device", "cpu")
@@ -181,4 +215,6 @@ class FinishedPolicy:
         index = self.finish_for(window)
         if index is None or self.finishes[index].steps == 0:
             return flow
+        if self.settings[index] is None:  # the training's unrolled finish, without its graph
+            return gradient_finish(flow, window, self.finishes[index], self.device)
         return self.settings[index].solve(window, tuple(flow.shape[-2:]), base=flow, device=self.device)

@@ -32,7 +32,7 @@ class TradeoffOptions(DeviceOptions, Progress):
     modes: list[str] = option(default_factory=lambda: list(tradeoff.DEFAULT_MODES))
     """the modes (evflow_cli/tradeoff.py): zero, net, split, split+fine:K, split+cmax:K[@P], cmax:N"""
     model: str | None = None
-    """the shipped network (default: the project's default)"""
+    """the network: a shipped name or a checkpoint file of scripts/train.py (default: the project's default)"""
     dt: list[int] = option(default_factory=lambda: [1, 4], type=positive_int)
     """window lengths in ground-truth intervals"""
     max_windows: int | None = option(5, type=positive_int)
