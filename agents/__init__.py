@@ -5,11 +5,13 @@ the stateful policy wrapper. See ``agents/protocol.py`` for the protocol and
 from .baselines import ConvGRUEVFlowNet, EVFlowNet, UNetConvGRU, UNetFeedforward, UNetXLIFEncoder, XLIFEVFlowNet
 from .evmgrflownet import EVMGRFlowNet
 from .flownet import WIDTHS
+from .inference import predict_flow
 from .policy import RecurrentPolicy
 from .protocol import ModelLoadError, ProtocolError, check_protocol
 from .registry import MODELS, make_model, register_model
 
 __all__ = [
+    "predict_flow",
     "MODELS",
     "WIDTHS",
     "ConvGRUEVFlowNet",

@@ -2,7 +2,9 @@
 
 ``data`` is one of: a synthetic split name (``"synthetic-train"``, ``"synthetic-test"``,
 ``"synthetic-mini"``, ...), a path to a recording in any supported format, a directory
-(every recording file inside it, sorted by name), or a list mixing these. Each recording is
+(every recording file inside it, sorted by name), events held in memory (a structured array with
+fields x, y, t, p, a mapping of those arrays, or ``Events``: envs/memory.py, with
+``options["sensor_size"]``), or a list mixing these. Each recording is
 opened only when an episode first needs it, and kept open afterwards.
 """
 
@@ -13,7 +15,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
-from envs.readers.base import EventReader
+from envs.memory import events_from_memory, is_event_data
+from envs.readers.base import ArrayReader, EventReader
 
 __all__ = ["SequenceSource", "resolve_data", "RECORDING_SUFFIXES"]
 
@@ -69,11 +72,16 @@ def resolve_data(
     Raises FileNotFoundError naming a missing path and ValueError for an unknown split or an
     empty directory."""
     options = dict(options or {})
-    items = [data] if isinstance(data, (str, os.PathLike)) else list(data)
+    items = [data] if isinstance(data, (str, os.PathLike)) or is_event_data(data) else list(data)
     if not items:
         raise ValueError("data: empty list of recordings")
     sources: list[SequenceSource] = []
-    for item in items:
+    for index, item in enumerate(items):
+        if is_event_data(item):  # events held in memory (envs/memory.py): sensor_size from the options
+            name = "events" if len(items) == 1 else f"events-{index}"
+            events = events_from_memory(item, options.get("sensor_size"), source=f"data {name}")
+            sources.append(SequenceSource(name, (lambda e=events, n=name: ArrayReader(e, name=n)), events.sensor_size))
+            continue
         if _is_synthetic_name(item):
             sources.extend(_synthetic_sources(str(item)))
             continue

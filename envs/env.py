@@ -135,6 +135,10 @@ class EventFlowEnv(gym.Env):
         data_options: keyword arguments for the reader, e.g. ``{"crop": "center256"}`` (MVSEC), or
             ``{"sensor_size": (height, width)}`` (or ``"auto"``) for Prophesee RAW / DAT and text
             files whose header gives no geometry (``envs.readers.detect``).
+        sensor_size: shorthand for ``data_options["sensor_size"]``; needed for events held in
+            memory (``data=`` a structured array with fields x, y, t, p in µs, tonic's layout, a
+            mapping of those four arrays, or ``Events``: envs/memory.py; tonic's (width, height,
+            polarities) is accepted too).
         window: ``"frames"`` (on the ground-truth grid where the recording has one, else on
             its APS frame times, else on fixed 30 Hz intervals; ``info["windowing"]`` says
             which), ``"time"`` or ``"count"``.
@@ -199,7 +203,10 @@ class EventFlowEnv(gym.Env):
         sequences: Sequence[int | str] | None = None,
         env_index: int = 0,
         render_mode: str | None = None,
+        sensor_size: Sequence[int] | str | None = None,
     ) -> None:
+        if sensor_size is not None:  # events from memory, or a file without geometry
+            data_options = {**(data_options or {}), "sensor_size": sensor_size}
         if window not in WINDOW_MODES:
             raise ValueError(f"window must be one of {WINDOW_MODES}, got {window!r}")
         self.window = window
