@@ -102,11 +102,13 @@ def _no_follow_fd(path: Path, flags: int) -> int:
 
 
 def open_no_follow(path: str | os.PathLike, mode: str = "a") -> TextIO:
-    """A text file opened for writing (``"w"``: truncated, ``"a"``: appended, ``"x"``: new) that
-    is never a symbolic link: a planted link raises FileExistsError naming the path."""
+    """A file opened for writing (``"w"``: truncated, ``"a"``: appended, ``"x"``: new; a ``"b"``
+    suffix for bytes) that is never a symbolic link: a planted link raises FileExistsError naming
+    the path."""
+    kind, binary = mode.rstrip("b"), mode.endswith("b")
     flags = {"w": os.O_WRONLY | os.O_CREAT | os.O_TRUNC, "a": os.O_WRONLY | os.O_CREAT | os.O_APPEND,
-             "x": os.O_WRONLY | os.O_CREAT | os.O_EXCL}[mode]
-    return os.fdopen(_no_follow_fd(Path(path), flags), mode if mode != "x" else "w")
+             "x": os.O_WRONLY | os.O_CREAT | os.O_EXCL}[kind]
+    return os.fdopen(_no_follow_fd(Path(path), flags), (kind if kind != "x" else "w") + ("b" if binary else ""))
 
 
 def write_atomic(path: str | os.PathLike, data: str | bytes) -> Path:

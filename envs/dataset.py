@@ -20,7 +20,7 @@ from envs.readers.base import ArrayReader, EventReader
 
 __all__ = ["SequenceSource", "resolve_data", "RECORDING_SUFFIXES"]
 
-RECORDING_SUFFIXES = (".h5", ".hdf5", ".txt", ".aedat4", ".raw", ".dat")
+RECORDING_SUFFIXES = (".h5", ".hdf5", ".txt", ".aedat4", ".raw", ".dat", ".npy")
 
 
 @dataclass

@@ -82,3 +82,41 @@ def test_predict_flow_on_memory_events_is_the_files_flow(tmp_path, dots):
     assert bounds[0, 0] == dots.t[0] and np.all(np.diff(bounds, axis=1) == 33_333)
     alone, _ = predict_flow(_structured(dots), sensor_size=SIZE, max_windows=3, finish=False)
     assert not np.array_equal(alone, flows)  # the default's finish moved the proposal
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".npz"])
+def test_convert_to_numpy_and_back_keeps_every_event(tmp_path, dots, suffix):
+    from envs.readers import open_recording
+    from envs.readers.base import FormatError
+    from evflow_cli.commands.convert import main as convert
+
+    path = write_h5(tmp_path / "dots.h5", dots, t_start_us=int(dots.t[0]), t_end_us=int(dots.t[-1]) + 1)
+    out = tmp_path / f"dots{suffix}"
+    assert convert([str(path), str(out), "--chunk-events", "1000"]) == 0  # several chunks
+    if suffix == ".npy":  # a bare array stores no geometry: named on reading
+        with pytest.raises(FormatError, match="stores no sensor size"):
+            open_recording(out)
+    again = open_recording(out, sensor_size=SIZE) if suffix == ".npy" else open_recording(out)
+    assert again.sensor_size == SIZE
+    got = again.events_range(0, again.num_events)
+    for field in ("x", "y", "t"):
+        assert np.array_equal(getattr(got, field), getattr(dots, field))
+    assert np.array_equal(got.p > 0, dots.p > 0)
+    assert [p.name for p in tmp_path.iterdir()] and not list(tmp_path.glob("*.tmp-*"))
+
+
+def test_a_pickled_numpy_file_runs_nothing(tmp_path):
+    from envs.readers import open_recording
+    from envs.readers.base import FormatError
+
+    marker = tmp_path / "pwned"
+
+    class Evil:
+        def __reduce__(self):
+            import os
+            return os.system, (f"touch {marker}",)
+
+    np.save(tmp_path / "evil.npy", np.array([Evil()], dtype=object), allow_pickle=True)
+    with pytest.raises(FormatError, match="not a readable numpy file"):
+        open_recording(tmp_path / "evil.npy", sensor_size=SIZE)
+    assert not marker.exists()

@@ -1,4 +1,6 @@
-"""Convert any reader to the project h5 format (``scripts/convert.py`` is the command line).
+"""Convert any reader to the project h5 format (``scripts/convert.py`` is the command line), or
+its events alone to ``.npy`` / ``.npz`` (a structured array with fields x, y, t, p: tonic's
+layout; envs/readers/numpy_events.py) when the output's name ends so.
 
 Events are copied ``chunk_events`` at a time (memory stays one chunk deep); ground truth is
 stored for the windows ``[T_k, T_{k+flow_dt})`` of the reader's ``flow_timestamps()`` grid where
@@ -82,6 +84,18 @@ def convert_recording(
         from tqdm import tqdm
 
         bar = tqdm(total=reader.num_events, unit="ev", unit_scale=True, desc=f"convert {reader.name}")
+    if out_path.suffix.lower() in (".npy", ".npz"):  # events only, tonic's layout (envs/readers/numpy_events.py)
+        from envs.readers.numpy_events import write_numpy_events
+
+        claim = target if isinstance(target, Output) else Output(out_path, inputs=inputs, overwrite=overwrite)
+        try:
+            return write_numpy_events(reader, claim, chunk_events, bar)
+        except BaseException:
+            claim.discard()
+            raise
+        finally:
+            if bar is not None:
+                bar.close()
     try:
         with H5Writer(target, reader.sensor_size, name=reader.name, provenance=provenance, t_start_us=reader.t_start,
                       t_end_us=reader.t_end, overwrite=overwrite, inputs=inputs, exclusive=True) as writer:

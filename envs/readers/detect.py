@@ -1,11 +1,12 @@
 """Open any supported recording: ``open_recording(path, format=None, **options)``.
 
 Formats (``FORMATS``): "evflow-h5" (the project's own, :class:`envs.readers.h5.H5Reader`), "mvsec",
-"dsec", "hagenaars", "ecd-text", "aedat4", "prophesee-raw", "prophesee-dat". Without ``format`` it is
-detected from the file:
+"dsec", "hagenaars", "ecd-text", "aedat4", "prophesee-raw", "prophesee-dat", "numpy" (tonic's
+structured x, y, t, p: envs/readers/numpy_events.py). Without ``format`` it is detected from the file:
 
 - a folder: ``events.h5`` (DSEC, also under ``events/left/``), ``events.txt`` (ECD) or a single
   ``*_data.hdf5`` (MVSEC) inside it;
+- ``.npy``, or an ``.npz`` holding ``events`` or arrays ``x, y, t, p``: numpy;
 - ``.aedat4`` or a file starting with ``#!AER-DAT4``: aedat4;
 - ``.raw``, or a ``%`` header naming an EVT format (``% evt``, ``% format EVT``): prophesee-raw;
   ``.dat``, or a ``%`` header saying ``Data file containing``: prophesee-dat;
@@ -34,15 +35,16 @@ from envs.readers.dsec import DSECReader
 from envs.readers.h5 import FORMAT_NAME, H5Reader
 from envs.readers.hagenaars import HagenaarsReader
 from envs.readers.mvsec import MVSECReader
+from envs.readers.numpy_events import NumpyEventsReader, is_numpy_events
 from envs.readers.prophesee import PropheseeDatReader, PropheseeRawReader
 from envs.readers.text import TextReader
 
 __all__ = ["open_recording", "detect_format", "FORMATS", "GEOMETRY_OPTIONAL"]
 
-FORMATS = ("evflow-h5", "mvsec", "dsec", "hagenaars", "ecd-text", "aedat4", "prophesee-raw", "prophesee-dat")
+FORMATS = ("evflow-h5", "mvsec", "dsec", "hagenaars", "ecd-text", "aedat4", "prophesee-raw", "prophesee-dat", "numpy")
 _HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 #: formats whose files may not say their sensor size: their readers take ``sensor_size`` (or "auto")
-GEOMETRY_OPTIONAL = ("ecd-text", "prophesee-raw", "prophesee-dat")
+GEOMETRY_OPTIONAL = ("ecd-text", "prophesee-raw", "prophesee-dat", "numpy")
 
 
 def _resolve_dir(path: Path) -> tuple[Path, str]:
@@ -114,8 +116,11 @@ def detect_format(path: str | os.PathLike) -> tuple[Path, str]:
         return path, prophesee
     if head.startswith(_HDF5_MAGIC) or path.suffix.lower() in (".h5", ".hdf5"):
         return path, _detect_h5(path)
+    if path.suffix.lower() == ".npy" or (path.suffix.lower() == ".npz" and is_numpy_events(path)):
+        return path, "numpy"
     if path.suffix.lower() == ".npz":
-        raise FormatError(f"{path}: an .npz holds MVSEC ground truth; open the matching *_data.hdf5 instead")
+        raise FormatError(f"{path}: an .npz without events (MVSEC's holds ground truth: open the matching "
+                          "*_data.hdf5 instead; events: arrays x, y, t, p or a structured 'events')")
     try:
         lines = head.decode("ascii").splitlines()
     except UnicodeDecodeError:
@@ -141,6 +146,7 @@ _READERS: dict[str, type[EventReader]] = {
     "aedat4": AedatReader,
     "prophesee-raw": PropheseeRawReader,
     "prophesee-dat": PropheseeDatReader,
+    "numpy": NumpyEventsReader,
 }
 
 

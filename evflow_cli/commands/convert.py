@@ -1,6 +1,8 @@
-"""Convert a recording in any supported format to the project h5 format.
+"""Convert a recording in any supported format to the project h5 format, or its events to numpy.
 
-    python scripts/convert.py INPUT OUTPUT.h5 [--format mvsec|dsec|hagenaars|ecd-text|aedat4|evflow-h5]
+    python scripts/convert.py INPUT OUTPUT.h5 [--format mvsec|dsec|hagenaars|ecd-text|aedat4|evflow-h5|numpy]
+    python scripts/convert.py INPUT OUTPUT.npy   # events alone: a structured array x, y, t (us), p (tonic's layout)
+    python scripts/convert.py INPUT OUTPUT.npz   # the same as 'events', with 'sensor_size' (H, W)
         [--crop center256 | --crop TOP LEFT H W]  (MVSEC)   [--flow-dir DIR --flow-timestamps FILE] (DSEC)
         [--sensor-size H W | auto] (text; RAW / DAT without geometry)
         [--flow-dt 1] [--no-flow] [--no-frames] [--chunk-events N] [--overwrite]
