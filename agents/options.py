@@ -29,6 +29,8 @@ import dataclasses
 import inspect
 import json
 import math
+import os
+import sys
 import textwrap
 import types
 import typing
@@ -303,10 +305,82 @@ def command_parser(cls: type, description: str | None = None, *, epilog: str | N
     return parser
 
 
+def load_config(path: str | os.PathLike) -> dict[str, Any]:
+    """A run config file as a dict: JSON (a run's own ``config.json``) or TOML (``.toml``).
+    Keys may use - or _ (``window-size`` = ``window_size``); keys starting with _ are notes (a
+    run's provenance), not options. ValueError naming the file otherwise."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"--config {path}: cannot read it ({err})") from None
+    try:
+        if path.suffix.lower() == ".toml":
+            try:
+                import tomllib
+            except ModuleNotFoundError:  # Python 3.10
+                import tomli as tomllib  # type: ignore[no-redef]
+            values = tomllib.loads(text)
+        else:
+            values = json.loads(text)
+    except ModuleNotFoundError:
+        raise ValueError(f"--config {path}: TOML needs Python >= 3.11 (or pip install tomli); "
+                         "or write the config as JSON") from None
+    except ValueError as err:  # JSONDecodeError and TOMLDecodeError are ValueErrors
+        raise ValueError(f"--config {path}: not valid {'TOML' if path.suffix.lower() == '.toml' else 'JSON'} ({err})") from None
+    if not isinstance(values, dict):
+        raise ValueError(f"--config {path}: expected a table of option = value, got {type(values).__name__}")
+    return {str(k).replace("-", "_"): v for k, v in values.items() if not str(k).startswith("_")}
+
+
+def expand_config(parser: argparse.ArgumentParser, argv: list[str] | None) -> list[str]:
+    """``argv`` with ``--config FILE`` replaced by the options the file sets, placed first so
+    that options given on the command line win. A key that is no option of the command is an
+    error naming it (a misspelt key would silently do nothing)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    paths = [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--config"] + \
+        [a.split("=", 1)[1] for a in argv if a.startswith("--config=")]
+    if not paths:
+        return argv
+    rest, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--config":
+            skip = True
+        elif not a.startswith("--config="):
+            rest.append(a)
+    actions = {a.dest: a for a in parser._actions if a.option_strings and a.dest != "help"}
+    front: list[str] = []
+    for path in paths:
+        values = load_config(path)
+        unknown = sorted(k for k in values if k not in actions or k == "config")
+        if unknown:
+            raise ValueError(f"--config {path}: {unknown} not options of this command (see --help)")
+        for key, value in values.items():
+            action, flag = actions[key], max(actions[key].option_strings, key=len)
+            if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
+                if bool(value) != bool(action.default):
+                    front.append(flag)
+            elif value is None or value == action.default or value == {} or (
+                    isinstance(value, list) and isinstance(action.default, tuple) and tuple(value) == action.default):
+                continue
+            elif isinstance(value, (list, tuple)):  # [] for an option taking none or more: the flag alone
+                front += [flag, *map(str, value)] if value else [flag] if action.nargs in ("*", "?") else []
+            elif isinstance(value, dict):  # KEY=VALUE items (an appending option, e.g. --model-kwarg)
+                for k, v in value.items():
+                    front += [flag, f"{k}={json.dumps(v)}"]
+            else:
+                front += [flag, str(value)]
+    return front + rest
+
+
 def parse_options(cls: type, argv: list[str] | None = None, parser: argparse.ArgumentParser | None = None, **kwargs):
     """The options of ``argv`` as an instance of ``cls`` (parsed by ``parser``, default
     ``command_parser(cls, **kwargs)``); a bad option exits as argparse does (status 2)."""
     parser = parser or command_parser(cls, **kwargs)
+    if any(f.name == "config" for f in dataclasses.fields(cls)):
+        argv = expand_config(parser, argv)
     return options_from_args(cls, parser.parse_args(argv))
 
 

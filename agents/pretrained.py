@@ -22,9 +22,10 @@ from typing import Any
 import h5py
 import torch
 
-from envs.atomic import remove_stale_temporaries, temporary_path
+from envs.atomic import write_atomic
 
 from .checkpoint import CheckpointError, check_model_name, load_checkpoint, load_model, save_checkpoint
+from .provenance import code_version
 
 __all__ = ["WEIGHTS_DIR", "DEFAULT_PRETRAINED", "default_choice", "list_pretrained", "pretrained_info", "load_pretrained",
            "export_pretrained", "check_model_file_name"]
@@ -164,13 +165,11 @@ def export_pretrained(
     record = {"name": name, "model": payload["model_name"], "model_config": payload["model_config"],
               "input": config.get("input", "count_image"), "voxel_bins": config.get("voxel_bins", 5),
               "steps": payload.get("step"), **provenance}
+    record.setdefault("code", code_version())  # the package version and git commit that exported it
     if config.get("teacher_cache") and "teacher_targets" not in record:
         record["teacher_targets"] = _targets_provenance(Path(config["teacher_cache"]))
     meta = directory / f"{name}.json"
-    remove_stale_temporaries(meta)
-    tmp = temporary_path(meta)
-    tmp.write_text(json.dumps(record, indent=2, default=str) + "\n")
-    os.replace(tmp, meta)
+    write_atomic(meta, json.dumps(record, indent=2, default=str) + "\n")
     return weights, meta
 
 

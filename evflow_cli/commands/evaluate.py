@@ -84,6 +84,8 @@ class EvaluateOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Prog
     the string under a field is its help; the windows, recordings and device are the groups every
     command shares, agents.options)."""
 
+    config: str | None = option(None, metavar="FILE")
+    """options from a TOML or JSON file of option = value (those given beside it win)"""
     checkpoint: list[str] = option(nargs="*", default_factory=list)
     """checkpoint(s) written by scripts/train.py"""
     pretrained: list[str] | None = option(None, nargs="*", metavar="NAME")

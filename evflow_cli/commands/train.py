@@ -60,6 +60,7 @@ from agents.learner import PRESETS, Learner, TrainConfig, data_options
 from agents.options import (
     Progress,
     add_options,
+    expand_config,
     non_negative_float,
     non_negative_int,
     option,
@@ -67,6 +68,7 @@ from agents.options import (
     positive_int,
 )
 from agents.policy import RecurrentPolicy
+from agents.provenance import code_version
 from envs.atomic import open_no_follow, remove_stale_temporaries, write_atomic
 from envs.outputs import hold_folder, release_folder
 from evflow_cli.tensorboard_log import TensorBoardLog, require_tensorboard
@@ -76,6 +78,8 @@ from evflow_cli.tensorboard_log import TensorBoardLog, require_tensorboard
 class RunOptions(Progress):
     """How long and where a run goes, not what it learns (free to change on --resume)."""
 
+    config: str | None = option(None, metavar="FILE")
+    """start from a run config file: a run's own OUT/config.json, or TOML/JSON of option = value (options given beside it win)"""
     preset: str | None = option(None, choices=sorted(PRESETS))
     """a named recipe's values (agents.learner.PRESETS) under the options given beside it"""
     out: str = "runs/train"
@@ -375,6 +379,7 @@ def check_world_size(payload: dict, world: int, allow_changes: str, source: Path
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The command line, with the defaults of ``--preset`` (if given) under the options given."""
     parser = build_parser()
+    argv = expand_config(parser, argv)
     known, _ = parser.parse_known_args(argv)
     if known.preset is not None:
         parser.set_defaults(**PRESETS[known.preset])
@@ -414,7 +419,8 @@ def open_run(args, argv: list[str] | None, rank: int) -> tuple[TrainConfig, Lear
         if payload is None:  # checked again under the lock: a run that finished meanwhile is not replaced
             check_new_run_folder(out, args.overwrite)
         remove_stale_temporaries(out / "checkpoint.pt")  # left by a run killed while saving
-        write_atomic(out / "config.json", json.dumps(cfg.to_dict(), indent=2, default=str))
+        run = {"code": code_version(), "command": "scripts/train.py"}  # a note: --config skips keys starting with _
+        write_atomic(out / "config.json", json.dumps({**cfg.to_dict(), "_run": run}, indent=2, default=str))
         if payload is not None:
             truncate_metrics(out / "metrics.jsonl", learner.step)
     return cfg, learner, payload
