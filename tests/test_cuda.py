@@ -145,3 +145,23 @@ def test_two_nccl_processes_resume_each_its_own_episodes(recordings, tmp_path):
                    for out in (full, part)]
         assert [r["windows"] for r in records[1]] == [r["windows"] for r in records[0]]
         np.testing.assert_allclose([r["loss"] for r in records[1]], [r["loss"] for r in records[0]], rtol=1e-4)
+
+
+def test_the_unrolled_finish_and_its_second_order_gradient_match_cpu(rng):
+    """Training for the finish (losses.unrolled_finish, --finish-steps): the finished flow and the
+    gradient through the unrolled steps on CUDA against the CPU."""
+    from losses import EventBatch, unrolled_finish, window_loss
+    from tests.recordings import translating_dots
+
+    events, (t0, t1) = translating_dots(rng, sensor_size=(48, 64), duration_us=66_666, num_dots=80,
+                                        events_per_s=100_000)
+    window = {**events.as_dict(), "t_start": t0, "t_end": t1}
+    results = {}
+    for device in ("cpu", "cuda"):
+        batch = EventBatch.from_windows([window], device=device)
+        proposal = torch.full((1, 2, 48, 64), 0.7, device=device, requires_grad=True)
+        finished = unrolled_finish(proposal, batch, steps=3, lr=0.6)
+        (gradient,) = torch.autograd.grad(window_loss(finished, batch).loss, proposal)
+        results[device] = (finished.detach().cpu(), gradient.cpu())
+    assert relative_error(results["cuda"][0], results["cpu"][0]) < 1e-4
+    assert relative_error(results["cuda"][1], results["cpu"][1]) < 1e-3
