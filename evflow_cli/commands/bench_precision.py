@@ -108,7 +108,7 @@ def network_rows(report, *, pairs: int, device: torch.device, batch: int, size: 
 
 def update_rows(report, *, pairs: int, device: torch.device, batch: int, size: int, unroll: int) -> None:
     from agents.learner import Learner, TrainConfig
-    from tests.recordings import write_translating_recording
+    from envs.recordings import write_translating_recording
 
     with tempfile.TemporaryDirectory() as tmp:
         sensor = size + size // 3

@@ -87,7 +87,7 @@ def tiny_config(folder: Path):
     """(TrainConfig, None): the campaign's recipe at the smallest sizes: two 48x48 translating-dot
     recordings, 32x32 random crops, B = 2, L = 2, teacher targets solved here with a 2-step solver."""
     from agents.teacher import TeacherSettings, compute_teacher_targets
-    from tests.recordings import write_translating_recording
+    from envs.recordings import write_translating_recording
 
     data = [str(write_translating_recording(folder / f"r{i}.h5", np.random.default_rng(i), sensor_size=(48, 48),
                                             duration_us=300_000, events_per_s=50_000)) for i in range(2)]
