@@ -333,3 +333,52 @@ def test_a_declared_sensor_size_is_checked_when_the_file_opens(tmp_path, rng, si
         f.attrs["sensor_height"], f.attrs["sensor_width"] = size
     with pytest.raises(FormatError, match=rf"rec\.h5: declares a {size[0]} x {size[1]} sensor"):
         open_recording(path)
+
+
+# --- a full disk (item 5): one line, exit 3, the old outputs unchanged, no partial new one --------
+
+
+def _full_disk(*args, **kwargs):
+    import errno
+
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+def test_a_full_disk_ends_convert_in_one_line_and_keeps_the_old_output(tmp_path, rng, monkeypatch, capsys):
+    from envs.readers.h5 import H5Writer
+    from evflow_cli.commands import convert
+    from evflow_cli.commands.cli import run
+    from tests.recordings import write_translating_recording
+
+    rec = write_translating_recording(tmp_path / "rec.h5", rng, duration_us=100_000)
+    out = tmp_path / "out" / "copy.h5"
+    assert run(convert.main, [str(rec), str(out)]) == 0
+    before = out.read_bytes()
+    capsys.readouterr()
+    monkeypatch.setattr(H5Writer, "append_events", _full_disk)
+    assert run(convert.main, [str(rec), str(out), "--overwrite"]) == 3
+    err = capsys.readouterr().err
+    message = [line for line in err.splitlines() if line.startswith("error")]
+    assert "Traceback" not in err and len(message) == 1 and message[0].startswith("error: the disk is full") and "run the command again" in message[0]
+    assert out.read_bytes() == before and sorted(p.name for p in out.parent.iterdir()) == ["copy.h5"]
+    monkeypatch.undo()
+    assert run(convert.main, [str(rec), str(out), "--overwrite"]) == 0  # space freed: the rerun works
+
+
+def test_a_full_disk_ends_training_in_one_line_and_keeps_the_checkpoint(tmp_path, monkeypatch, capsys):
+    import agents.checkpoint
+    from evflow_cli.commands import train
+    from evflow_cli.commands.cli import run
+
+    out = tmp_path / "run"
+    argv = ["--model", "ev-flownet", "--width", "4", "--data", "synthetic-mini", "--crop", "32", "32", "--num-envs", "1",
+            "--unroll", "2", "--no-progress", "--val-data", "", "--out", str(out)]
+    assert run(train.main, [*argv, "--steps", "1"]) in (0, None)
+    before = (out / "checkpoint.pt").read_bytes()
+    real = agents.checkpoint.torch.save
+    monkeypatch.setattr(agents.checkpoint.torch, "save", _full_disk)
+    assert run(train.main, [*argv, "--steps", "2", "--resume"]) == 3
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("error: the disk is full")
+    assert (out / "checkpoint.pt").read_bytes() == before and not list(out.glob("*.tmp-*"))
+    monkeypatch.setattr(agents.checkpoint.torch, "save", real)
+    assert run(train.main, [*argv, "--steps", "2", "--resume"]) in (0, None)

@@ -14,6 +14,7 @@ functions at the bottom of this module.
 
 from __future__ import annotations
 
+import errno
 import importlib
 import linecache
 import os
@@ -39,11 +40,38 @@ def is_user_error(err: BaseException) -> bool:
     return filename.startswith(_OURS) and linecache.getline(filename, tb.tb_lineno).lstrip().startswith("raise")
 
 
+def disk_full(err: BaseException) -> bool:
+    """True for a write that failed because the disk (or the user's quota) is full, however it
+    surfaced: an OSError with errno ENOSPC / EDQUOT, or h5py's and torch's own errors that only
+    say so in their message (they do not keep the errno)."""
+    for e in (err, err.__cause__, err.__context__):
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if isinstance(e, (OSError, RuntimeError)) and ("No space left on device" in str(e) or "errno = 28" in str(e)):
+            return True
+    return False
+
+
 def run(main: Callable[[list[str] | None], int], argv: list[str] | None = None) -> int:
     """``main(argv)``'s exit status; a user error (:func:`is_user_error`) prints ``error: <message>``
-    to stderr and returns 2, unless the environment sets ``EVFLOW_DEBUG=1``."""
+    to stderr and returns 2, unless the environment sets ``EVFLOW_DEBUG=1``. A full disk
+    (:func:`disk_full`) says so in one line and returns 3: the outputs are written to temporaries
+    and renamed only when complete (envs.outputs), so the earlier files are still there and no
+    partial new one is; free some space and run the command again."""
+    debug = os.environ.get("EVFLOW_DEBUG", "") not in ("", "0")
     try:
         return main(argv)
+    except (OSError, RuntimeError) as err:
+        if debug or not disk_full(err):
+            if isinstance(err, USER_ERRORS) and not debug and is_user_error(err):
+                print(f"error: {err}", file=sys.stderr)
+                return 2
+            raise
+        name = getattr(err, "filename", None)
+        print(f"error: the disk is full{f' writing {name}' if name else ''} ({type(err).__name__}: "
+              f"{str(err).splitlines()[0][:200]}); the earlier outputs are unchanged and no partial new one was kept: "
+              "free some space and run the command again", file=sys.stderr)
+        return 3
     except USER_ERRORS as err:
         if os.environ.get("EVFLOW_DEBUG", "") not in ("", "0") or not is_user_error(err):
             raise
