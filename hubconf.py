@@ -4,6 +4,7 @@
     model = torch.hub.load("<owner>/<repo>", "ev_mgrflownet", pretrained=True)        # from GitHub
     model = torch.hub.load("path/to/checkout", "ev_mgrflownet", source="local", pretrained=True)
     flows, state = model(x, None)   # x: (B, C, H, W) float32; flows: finest last, (B, 2, H, W) pixels
+    flows, bounds = torch.hub.load("path/to/checkout", "flow", events, (480, 640), source="local")  # from events
 
 ``ev_mgrflownet(pretrained=True, name=None)`` loads the committed weights of a shipped model
 (``agents/weights/NAME.pt``; ``name=None``: the project's default, ``agents.pretrained.DEFAULT_PRETRAINED``);
@@ -44,6 +45,24 @@ def ev_mgrflownet(pretrained: bool = True, name: str | None = None, width: str |
     model, info = load_pretrained(name, map_location=map_location)
     model.provenance = info
     return model
+
+
+def flow(events, sensor_size=None, window_us: int = 33_333, finish: bool = True, device: str = "cpu",
+         max_windows: int | None = None):
+    """Flow straight from events, the input built for you (no voxel grid to know about):
+
+        flows, bounds = torch.hub.load("path/to/checkout", "flow", events, (480, 640), source="local")
+
+    events: a structured numpy array with fields x, y, t (µs), p (tonic's layout), a dict of those
+    four arrays, or a recording's path; sensor_size: (height, width) (tonic's (width, height,
+    polarities) too). Returns ((K, 2, H, W) float32 pixels of displacement per ``window_us``
+    window, (K, 2) int64 µs window bounds), from the default model in its mode: the network's
+    proposal finished by a short solve on each window's events (``finish=False``: the proposal
+    alone). ``agents.predict_flow`` is the same function."""
+    from agents.inference import predict_flow
+
+    return predict_flow(events, sensor_size, window_us=window_us, finish=finish, device=device,
+                        max_windows=max_windows)
 
 
 def _baseline(model: str):

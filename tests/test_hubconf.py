@@ -55,3 +55,16 @@ def test_hub_builds_the_untrained_baselines_and_model():
         torch.hub.load(CHECKOUT, "xlif_ev_flownet", source="local", pretrained=True)
     untrained = torch.hub.load(CHECKOUT, "ev_mgrflownet", source="local", pretrained=False, width=4)
     assert untrained.config["base_width"] == 4
+
+
+def test_hub_flow_takes_events_and_builds_its_own_input():
+    from agents import predict_flow
+    from tests.recordings import translating_dots
+
+    events, _ = translating_dots(np.random.default_rng(6), sensor_size=(32, 48), duration_us=100_000)
+    array = np.zeros(len(events), dtype=[("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "?")])
+    array["x"], array["y"], array["t"], array["p"] = events.x, events.y, events.t, events.p > 0
+    flows, bounds = torch.hub.load(CHECKOUT, "flow", array, (48, 32, 2), source="local", max_windows=2)
+    assert flows.shape == (2, 2, 32, 48) and bounds.shape == (2, 2)
+    reference, _ = predict_flow(array, (32, 48), max_windows=2)
+    np.testing.assert_array_equal(flows, reference)
