@@ -29,6 +29,7 @@ from envs.events import Events
 from envs.outputs import Output
 from envs.readers.base import EventReader
 from envs.readers.h5 import H5Writer
+from envs.readers.numpy_events import write_numpy_events
 
 __all__ = ["convert_recording"]
 
@@ -85,8 +86,6 @@ def convert_recording(
 
         bar = tqdm(total=reader.num_events, unit="ev", unit_scale=True, desc=f"convert {reader.name}")
     if out_path.suffix.lower() in (".npy", ".npz"):  # events only, tonic's layout (envs/readers/numpy_events.py)
-        from envs.readers.numpy_events import write_numpy_events
-
         claim = target if isinstance(target, Output) else Output(out_path, inputs=inputs, overwrite=overwrite)
         try:
             return write_numpy_events(reader, claim, chunk_events, bar)
