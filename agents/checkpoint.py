@@ -26,6 +26,7 @@ killed writers are removed by the next save to that name (:mod:`envs.atomic`).
 
 from __future__ import annotations
 
+import io
 import os
 import pickle
 import random
@@ -36,7 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from envs.atomic import remove_stale_temporaries, temporary_path
+from envs.atomic import write_atomic
 
 from .registry import MODELS, make_model
 
@@ -141,18 +142,9 @@ def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
     safe schema."""
     path = Path(path)
     safe = to_safe({"format": FORMAT, **payload, "version": VERSION})
-    path.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(path)
-    tmp = temporary_path(path)
-    try:
-        with open(tmp, "wb") as f:
-            torch.save(safe, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    buffer = io.BytesIO()
+    torch.save(safe, buffer)
+    return write_atomic(path, buffer.getvalue())
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict[str, Any]:

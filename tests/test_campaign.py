@@ -2,7 +2,6 @@
 with the uninterrupted run's losses; the slim state drops Adam's moments only when over budget,
 and then the step size warms up again; validation, export and the curve accumulate."""
 
-import contextlib
 import copy
 import json
 import os
@@ -21,6 +20,7 @@ from agents.checkpoint import load_checkpoint
 from agents.learner import Learner, TrainConfig
 from evflow_cli.campaign import Campaign, _size, slim_state, unslim_state
 from evflow_cli.commands import campaign as campaign_script
+from tests.processes import holding
 from tests.recordings import write_translating_recording
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -345,17 +345,6 @@ def test_refusals(recording, tmp_path, capsys):
     assert "not running here" in capsys.readouterr().out
 
 
-@contextlib.contextmanager
-def holding(folder: Path):
-    """Another process that holds ``folder``'s writer lock until the block ends (then killed)."""
-    code = "import sys, time; from envs.outputs import hold_folder; hold_folder(sys.argv[1]); print('held', flush=True); time.sleep(120)"
-    proc = subprocess.Popen([sys.executable, "-c", code, str(folder)], stdout=subprocess.PIPE, text=True, cwd=ROOT)
-    try:
-        assert proc.stdout.readline().strip() == "held"
-        yield proc
-    finally:
-        proc.kill()
-        proc.wait()
 
 
 def test_device_leg_on_cpu_writes_state_and_weights_to_its_output(recording, tmp_path):

@@ -4,7 +4,6 @@ user would (plain data that the safe loader accepts) and checks that no code ran
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import signal
@@ -18,6 +17,7 @@ import torch
 
 from agents.checkpoint import CheckpointError, load_model, save_checkpoint
 from agents.registry import make_model
+from tests.processes import holding
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -223,18 +223,6 @@ def test_atomic_writes_replace_a_link_and_never_follow_it(tmp_path):
     assert victim.read_text() == "keep"
 
 
-@contextlib.contextmanager
-def _holding(folder: Path):
-    """Another process holding ``folder``'s writer lock until the block ends (then killed)."""
-    code = ("import sys, time; from envs.outputs import hold_folder; hold_folder(sys.argv[1]); "
-            "print('held', flush=True); time.sleep(120)")
-    proc = subprocess.Popen([sys.executable, "-c", code, str(folder)], stdout=subprocess.PIPE, text=True, cwd=ROOT)
-    try:
-        assert proc.stdout.readline().strip() == "held"
-        yield proc
-    finally:
-        proc.kill()
-        proc.wait()
 
 
 def test_two_trainers_never_share_a_run_folder(tmp_path):
@@ -242,7 +230,7 @@ def test_two_trainers_never_share_a_run_folder(tmp_path):
     from evflow_cli.commands import train as train_script
 
     out = tmp_path / "run"
-    with _holding(out) as other:
+    with holding(out) as other:
         assert folder_holder(out) == other.pid
         with pytest.raises(FileExistsError, match=rf"another process \(pid {other.pid}\) is writing this folder"):
             train_script.main(_train_argv(tmp_path, out))
