@@ -62,7 +62,9 @@ class CampaignSpec:
     """windows per validation sequence (None: all)"""
     val_split: str | None = None
     """the mode the score is taken in: None, one network step per window; "dt", one step per
-    ground-truth interval (evaluate.py --split dt, the shipped default's mode)"""
+    ground-truth interval (evaluate.py --split dt, the shipped default's mode until 2026-12-05);
+    "finish", one step per window finished by the default's short solve (evaluate.py --finish,
+    the shipped default's mode)"""
     reference: str = "cmax"
     """the score's reference row: 'cmax' (per-window contrast maximisation) or 'zero' (zero flow)"""
     interval_minutes: float = 20.0
@@ -81,8 +83,8 @@ class CampaignSpec:
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"{path}: unknown field(s) {', '.join(unknown)}; fields: {', '.join(sorted(known))}")
-        if data.get("val_split") not in (None, "dt"):  # refused here, not after a stretch of training
-            raise ValueError(f"{path}: val_split must be \"dt\" or null, got {data['val_split']!r}")
+        if data.get("val_split") not in (None, "dt", "finish"):  # refused here, not after a stretch of training
+            raise ValueError(f"{path}: val_split must be \"dt\", \"finish\" or null, got {data['val_split']!r}")
         try:
             spec = cls(**data)
         except (TypeError, ValueError) as err:
@@ -113,6 +115,8 @@ class CampaignSpec:
     @property
     def mode(self) -> str | None:
         """How the score runs the network (a curve row's ``mode``; None: one pass per window)."""
+        if self.val_split == "finish":
+            return "finish"
         return f"split {self.val_split}" if self.val_split else None
 
 

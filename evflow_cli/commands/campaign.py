@@ -115,15 +115,18 @@ def validate(campaign: Campaign, spec: CampaignSpec, weights: list[str], tag: st
              env: dict | None = None) -> dict:
     """Score the weights (``--checkpoint PATH`` or ``--pretrained NAME``) on the validation data."""
     ref = reference(campaign, spec, device, log, env)
-    split = ["--split", spec.val_split] if spec.val_split else []
+    if spec.val_split == "finish":
+        split, marker = ["--finish"], " + finish "
+    else:
+        split, marker = (["--split", spec.val_split], f" + split {spec.val_split}") if spec.val_split else ([], "")
     results = _evaluate([*weights, "--name", "model", *split, *_eval_data_args(spec)], campaign.work / "val" / tag,
                         device, env)
     block = results  # the first row: the weights one pass per window (named "model", or "NAME (pretrained)")
     if spec.val_split:
-        block = next((row for name, row in results["baselines"].items() if name.endswith(f" + split {spec.val_split}")),
-                     None)
+        block = next((row for name, row in results["baselines"].items()
+                      if name.endswith(marker) or (marker == " + finish " and marker in name)), None)
         if block is None:
-            raise RuntimeError(f"campaign {spec.name}: the validation run has no '+ split {spec.val_split}' row "
+            raise RuntimeError(f"campaign {spec.name}: the validation run has no '{marker.strip()}' row "
                                f"(rows: {', '.join(results['baselines'])})")
     aee = _aee(block, spec.val_dt)
     score = sum(aee[k] / ref["aee"][k] for k in aee) / len(aee)
@@ -429,7 +432,7 @@ def export(campaign: Campaign, spec: CampaignSpec, row: dict, step: int, here: s
         "validation": {"data": spec.val_data, "dt": spec.val_dt, "windows_per_sequence": spec.val_windows or "all",
                        "score": row["score"], "aee": row["aee"], "reference_aee": row["reference_aee"],
                        "definition": f"mean over dt of AEE / the {spec.reference} row's AEE"
-                                     + (f", the network run with --split {spec.val_split}" if spec.val_split else ""),
+                                     + (f", the network run with {spec.mode}" if spec.val_split else ""),
                        "mode": spec.mode or "one pass", "step": step},
     }
     if users:
@@ -539,8 +542,8 @@ class NewOptions(CampaignOptions):
     """the validation's window lengths in ground-truth frames (evaluate.py --window-size): the score is the mean over them"""
     val_windows: int | None = option(None, type=positive_int)
     """windows per validation sequence (default: all)"""
-    val_split: str | None = option(None, choices=("dt",))
-    """score the network as the shipped default runs it: 'dt', one step per ground-truth interval (evaluate.py --split dt); default: one pass per window"""
+    val_split: str | None = option(None, choices=("dt", "finish"))
+    """score the network in a mode: 'finish', one pass per window finished by the default's short solve (evaluate.py --finish, the shipped default's mode); 'dt', one step per ground-truth interval (evaluate.py --split dt); default: one pass per window"""
     reference: Literal["cmax", "zero"] = "cmax"
     """the score's reference row"""
     interval_minutes: float = option(20.0, type=positive_float)

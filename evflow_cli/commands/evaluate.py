@@ -108,6 +108,8 @@ class EvaluateOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Prog
     """--refine holds the flow to the network's with this weight (mean square of the correction in flow-scaling units; 0: none)"""
     refine_accept: float | None = option(None, metavar="A", type=fraction)
     """--refine keeps the refined flow of a window only where it lowers the env's loss (L_HMC with the border rule) by at least the fraction A of the network's (else the network's flow); default: always"""
+    finish: bool = False
+    """also evaluate each model in the shipped default's mode: its flow finished by the short solve of agents/weights/default.json's "finish" (agents/wrappers/refine.py FinishedPolicy; docs/finish.md)"""
     still: bool = False
     """also evaluate every network row guarded by zero flow: a window's flow is kept only where it lowers the env's loss below zero flow's (agents/wrappers/still.py)"""
     split: str | None = option(None, metavar="N|dt")
@@ -234,6 +236,10 @@ def build_policies(args) -> dict:
                 policies[name + suffix] = SubWindowPolicy(MirrorPolicy(policy.policy, mirrors), splits=policy.splits)
             else:
                 policies[name + suffix] = MirrorPolicy(policy, mirrors)
+    if args.finish:
+        for name, policy in list(policies.items()):
+            finished = FinishedPolicy(policy, pretrained_module.default_finish())
+            policies[f"{name} + finish {' / '.join(f.label() for f in finished.finishes)}"] = finished
     if args.refine:
         for name, policy in list(policies.items()):
             label = f"{name} + refine {args.refine}" + (f" ({args.refine_solver})" if args.refine_solver != "fine" else "")
@@ -257,9 +263,9 @@ def build_policies(args) -> dict:
 def default_mode(args) -> bool:
     """True when the default model runs in its own mode (``agents/weights/default.json``'s
     ``split`` and ``finish``): ``--pretrained`` without a name and no mode chosen on the command
-    line (--split, --mirror, --refine, --still)."""
+    line (--split, --mirror, --refine, --still, --finish)."""
     return (args.pretrained == [] and args.split is None and args.mirror is None and not args.refine
-            and not args.still)
+            and not args.still and not args.finish)
 
 
 def default_mode_split(args) -> bool:
