@@ -15,7 +15,8 @@ from envs.events import Events
 from envs.readers._common import check_flow_gt, resolve_crop
 from envs.representations import IMAGE_INPUTS, count_image, image_input
 from envs.visualize import count_image_to_rgb, flow_to_rgb
-from envs.windows import WINDOW_MODES, Window, check_window_fits, window_bounds, window_grid
+from envs.windows import (MAX_WINDOW_EVENTS, WINDOW_MODES, Window, check_window_events, check_window_fits,
+                          window_bounds, window_grid)
 from losses import LOSS_NAMES, LossWeights, check_border_ramp, window_loss
 
 __all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "Window", "NoWindowsError"]
@@ -150,6 +151,10 @@ class EventFlowEnv(gym.Env):
             whole recording stays in play while training on small crops); needs ``crop``.
         observations: which of ``OBSERVATION_KEYS`` to include.
         voxel_bins, max_events: sizes of the optional parts.
+        max_window_events: the most events one window may hold (default
+            ``envs.windows.MAX_WINDOW_EVENTS``, 5 000 000: about 1 GB to read, observe and score
+            it); a longer window is refused with a ValueError before its events are read, so a
+            file's content cannot make one window take unbounded memory. None: no bound.
         flips: False, True (all of "h", "v", "p") or a subset of ``("h", "v", "p")``:
             horizontal / vertical mirror and polarity swap, each drawn with probability
             0.5 once per episode; the ground truth is flipped to match.
@@ -188,6 +193,7 @@ class EventFlowEnv(gym.Env):
         observations: Sequence[str] = ("count_image",),
         voxel_bins: int = 5,
         max_events: int = 30_000,
+        max_window_events: int | None = MAX_WINDOW_EVENTS,
         flips: bool | Sequence[str] = False,
         event_keep: float | Sequence[float] | None = None,
         loss: str = "hmc",
@@ -241,6 +247,12 @@ class EventFlowEnv(gym.Env):
         self.compute_reward = compute_reward
         self.voxel_bins = int(voxel_bins)
         self.max_events = int(max_events)
+        if max_window_events is not None and not (_is_whole(max_window_events) and int(max_window_events) > 0):
+            raise ValueError(f"max_window_events must be a positive integer or None, got {max_window_events!r}")
+        self.max_window_events = None if max_window_events is None else int(max_window_events)
+        if window == "count":
+            for size in sizes:
+                check_window_events(size, self.max_window_events, f"a count window of {size} events")
 
         self.sources = resolve_data(data, format=data_format or format, options=data_options)
         if sequences is not None:
@@ -463,6 +475,8 @@ class EventFlowEnv(gym.Env):
     def _load_window(self, k: int) -> Window:
         t_start, t_end, i_start, i_end = (int(v) for v in self._bounds[k])
         reader = self._reader(self._seq_index)
+        check_window_events(i_end - i_start, self.max_window_events,
+                            f"window {k} ([{t_start}, {t_end}) us) of recording {self.sequence_names[self._seq_index]!r}")
         events = reader.events_range(i_start, i_end)
         top, left, ch, cw = self._crop_for(reader)
         x, y, t, p = events.x, events.y, events.t, events.p

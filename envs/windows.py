@@ -29,7 +29,7 @@ from envs.events import Events
 from envs.readers.base import EventReader
 from losses import EventBatch
 
-__all__ = ["Window", "check_window_fits", "iter_windows", "window_bounds", "window_grid", "WINDOW_MODES", "FALLBACK_INTERVAL_US"]
+__all__ = ["Window", "check_window_fits", "check_window_events", "MAX_WINDOW_EVENTS", "iter_windows", "window_bounds", "window_grid", "WINDOW_MODES", "FALLBACK_INTERVAL_US"]
 
 WINDOW_MODES = ("time", "count", "frames")
 #: The ``frames`` grid's interval on a recording with neither ground truth nor frames (30 Hz).
@@ -132,6 +132,23 @@ def window_grid(reader: EventReader, fallback_interval_us: int = FALLBACK_INTERV
     t0, t1 = reader.t_start, reader.t_end
     n = max(1, -(-(t1 - t0) // int(fallback_interval_us)))
     return t0 + int(fallback_interval_us) * np.arange(n + 1, dtype=np.int64), "time"
+
+
+MAX_WINDOW_EVENTS = 5_000_000
+"""The most events one window may hold by default (``EventFlowEnv(max_window_events=...)``).
+Reading a window, its observation and its reward (L_HMC) take up to about 200 bytes per event
+at their peak, the reward most (``python scripts/benchmark.py --only window-memory``), so the
+default keeps one window under about 1 GB whatever a file holds; a window beyond it is refused
+before its events are read."""
+
+
+def check_window_events(n: int, limit: int | None, where: str) -> None:
+    """ValueError when a window of ``n`` events exceeds ``limit`` (None: no bound)."""
+    if limit is not None and n > limit:
+        raise ValueError(
+            f"{where} holds {n} events, more than the {limit} one window may hold (about {limit * 200 / 2**30:.1f} GB "
+            f"to read and score it): cut shorter windows (--window-size, or --window count), or build the env "
+            f"with max_window_events=N (None: no bound) where the memory is there")
 
 
 def check_window_fits(reader: EventReader, mode: str, size: int) -> None:

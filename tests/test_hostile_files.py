@@ -323,6 +323,38 @@ def test_a_declared_sensor_size_is_checked_when_the_file_opens(tmp_path, rng, si
         open_recording(path)
 
 
+def test_a_window_holding_more_events_than_its_bound_is_refused_before_it_is_read(monkeypatch):
+    """Item 6: 10^7 events at one time stamp took 2.35 GB in one window; a window's events are
+    bounded (envs.windows.MAX_WINDOW_EVENTS by default) and checked from the index, before the
+    read, so a file's content cannot choose the memory."""
+    import numpy as np
+
+    from envs.env import EventFlowEnv
+    from envs.readers.base import ArrayReader
+    from envs.windows import MAX_WINDOW_EVENTS
+
+    n = 60_000
+    ev = np.zeros(n + 1, dtype=[("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("p", "i1")])
+    ev["x"], ev["y"] = np.arange(n + 1) % 64, np.arange(n + 1) % 48
+    ev["t"][:n], ev["t"][n] = 1000, 2000  # n events at one time stamp, one more at the end
+    assert EventFlowEnv(ev, sensor_size=(48, 64), window="time", window_size=1000).max_window_events == MAX_WINDOW_EVENTS
+    env = EventFlowEnv(ev, sensor_size=(48, 64), window="time", window_size=1000, max_window_events=50_000)
+    reads = []
+    original = ArrayReader.events_range
+    monkeypatch.setattr(ArrayReader, "events_range", lambda self, *a: reads.append(a) or original(self, *a))
+    with pytest.raises(ValueError, match=r"window 0 \(\[1000, 2000\) us\) of recording 'events' holds 60000 events, "
+                                         r"more than the 50000"):
+        env.reset()
+    assert reads == []  # refused from the index, nothing read
+    env = EventFlowEnv(ev, sensor_size=(48, 64), window="time", window_size=1000, max_window_events=None)
+    _, info = env.reset()  # no bound: the user's choice
+    assert len(info["window"].events) == n and reads == [(0, n)]
+    with pytest.raises(ValueError, match="a count window of 80000 events holds 80000 events, more than the 50000"):
+        EventFlowEnv(ev, sensor_size=(48, 64), window="count", window_size=80_000, max_window_events=50_000)
+    with pytest.raises(ValueError, match="max_window_events must be a positive integer or None"):
+        EventFlowEnv(ev, sensor_size=(48, 64), max_window_events=0)
+
+
 # --- a full disk (item 5): one line, exit 3, the old outputs unchanged, no partial new one --------
 
 

@@ -39,7 +39,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 SECTIONS = ("foundation", "simulator", "losses", "agents", "env", "training", "precision", "update", "readers",
-            "prophesee", "predict", "tradeoff")
+            "prophesee", "predict", "tradeoff", "window-memory")
 
 
 def report(section: str, row: str, value: float, unit: str) -> None:
@@ -232,7 +232,42 @@ def main(argv=None) -> int:
                                 tiny=tiny)
         elif section == "tradeoff":
             bench_tradeoff(quick, tiny, args.device)
+        elif section == "window-memory":
+            bench_window_memory(quick, tiny)
     return 0
+
+
+_WINDOW_MEMORY = """
+import resource, sys
+import numpy as np
+from envs.env import EventFlowEnv
+n, reward = int(sys.argv[1]), sys.argv[2] == "1"
+rng = np.random.default_rng(0)
+ev = np.zeros(n + 1, dtype=[("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("p", "i1")])
+ev["x"], ev["y"], ev["p"] = rng.integers(0, 346, n + 1), rng.integers(0, 260, n + 1), rng.integers(0, 2, n + 1)
+ev["t"][:n], ev["t"][n] = 1000, 2000  # n events at one time stamp, one at the end
+env = EventFlowEnv(ev, sensor_size=(260, 346), window="time", window_size=1000, compute_reward=reward,
+                   max_window_events=None)
+flow = np.ones((2, 260, 346), np.float32)
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+env.reset()
+env.step(flow)
+print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) * 1024 / n)
+"""
+
+
+def bench_window_memory(quick: bool, tiny: bool) -> None:
+    """Peak memory per event of one window read, observed (count image) and scored (L_HMC), all
+    its events at one time stamp (the documented bound of envs.windows.MAX_WINDOW_EVENTS); each
+    in a fresh process, so that the peak is this window's."""
+    import subprocess
+
+    for n in (2 * 10**5,) if tiny else (10**6,) if quick else (10**6, 4 * 10**6):
+        for reward in (False, True):
+            out = subprocess.run([sys.executable, "-c", _WINDOW_MEMORY, str(n), str(int(reward))], cwd=ROOT,
+                                 capture_output=True, text=True, check=True)
+            what = "read + observation + reward" if reward else "read + observation"
+            report("window-memory", f"{what}, {n} events in one window", float(out.stdout.split()[-1]), "B/event")
 
 
 def bench_tradeoff(quick: bool, tiny: bool, device: str) -> None:
