@@ -27,10 +27,25 @@ from envs.atomic import write_atomic
 from .checkpoint import CheckpointError, check_model_name, load_checkpoint, load_model, save_checkpoint
 from .provenance import code_version
 
-__all__ = ["WEIGHTS_DIR", "DEFAULT_PRETRAINED", "default_choice", "list_pretrained", "pretrained_info", "load_pretrained",
-           "export_pretrained", "check_model_file_name"]
+__all__ = ["WEIGHTS_DIR", "IN_CHECKOUT", "check_writable_checkout", "DEFAULT_PRETRAINED", "default_choice",
+           "list_pretrained", "pretrained_info", "load_pretrained", "export_pretrained", "check_model_file_name"]
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+
+#: True when the package runs from a checkout of the repository (the source tree or an editable
+#: install). An installed wheel carries the default model only (pyproject.toml's package-data);
+#: the other shipped models, the campaigns and the exports live in a checkout.
+IN_CHECKOUT = (Path(__file__).resolve().parents[1] / "pyproject.toml").is_file()
+
+CHECKOUT_HINT = ("git clone the repository and pip install -e . inside it (or run from its folder)")
+
+
+def check_writable_checkout(what: str) -> None:
+    """ValueError when ``what`` would write into an installed package (site-packages): exports
+    and campaign state are written into a checkout only."""
+    if not IN_CHECKOUT:
+        raise ValueError(f"{what} writes into the repository's agents/ folder, and this is an installed package "
+                         f"({Path(__file__).resolve().parent}), which nothing writes into: {CHECKOUT_HINT}")
 
 #: a shipped model's name: one path component of lower-case letters, digits, '.', '_' and '-'
 NAME_PATTERN = re.compile(r"[a-z0-9][a-z0-9._-]{0,99}")
@@ -104,6 +119,10 @@ def _paths(name: str, directory: str | os.PathLike | None) -> tuple[Path, Path]:
     directory = Path(WEIGHTS_DIR if directory is None else directory)
     known = list_pretrained(directory)
     if name not in known:
+        if not IN_CHECKOUT and directory == WEIGHTS_DIR:
+            raise KeyError(f"no pretrained model {name!r} in this installation: the package carries the default "
+                           f"only ({', '.join(known) or 'none'}); the repository's other shipped models load by name "
+                           f"from a checkout ({CHECKOUT_HINT}), or give the file of a model to --checkpoint")
         raise KeyError(f"no pretrained model {name!r}; shipped: {known or 'none'} (in {directory})")
     return directory / f"{name}.pt", directory / f"{name}.json"
 
@@ -140,6 +159,8 @@ def export_pretrained(
     name already in ``directory`` is replaced only with ``overwrite`` (FileExistsError otherwise).
     The checkpoint must hold a registered model (a shipped file never names code to import)."""
     check_model_file_name(name)
+    if directory is None:
+        check_writable_checkout(f"exporting {name!r}")
     directory = Path(WEIGHTS_DIR if directory is None else directory)
     existing = [p.name for p in (directory / f"{name}.pt", directory / f"{name}.json") if os.path.lexists(p)]
     if existing and not overwrite:

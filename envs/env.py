@@ -15,8 +15,15 @@ from envs.events import Events
 from envs.readers._common import check_flow_gt, resolve_crop
 from envs.representations import IMAGE_INPUTS, count_image, image_input
 from envs.visualize import count_image_to_rgb, flow_to_rgb
-from envs.windows import (MAX_WINDOW_EVENTS, WINDOW_MODES, Window, check_window_events, check_window_fits,
-                          window_bounds, window_grid)
+from envs.windows import (
+    MAX_WINDOW_EVENTS,
+    WINDOW_MODES,
+    Window,
+    check_window_events,
+    check_window_fits,
+    window_bounds,
+    window_grid,
+)
 from losses import LOSS_NAMES, LossWeights, check_border_ramp, window_loss
 
 __all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "Window", "NoWindowsError"]

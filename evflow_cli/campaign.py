@@ -222,6 +222,10 @@ class Campaign:
         if not name or "/" in name or name.startswith("."):
             raise ValueError(f"campaign name {name!r}: a plain folder name is expected")
         self.name = name
+        if root is None:  # the committed folder is the checkout's, never an installed package's
+            from agents.pretrained import check_writable_checkout
+
+            check_writable_checkout(f"campaign {name}")
         self.dir = Path(root or CAMPAIGNS_DIR) / name
         self.work = Path(runs or Path("runs") / "campaigns") / name
         self.checkpoint = self.work / "train" / "checkpoint.pt"

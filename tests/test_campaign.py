@@ -247,21 +247,24 @@ def test_a_score_in_the_shipped_mode_rescores_the_export_before_it_competes(reco
     assert threads == ["1"] * 4  # the reference (once), step 2, the rescored export, step 4: on the campaign's 1 thread
 
 
-def test_a_shipped_model_is_scored_in_the_mode_too(recording, tmp_path):
+@pytest.mark.parametrize("mode", ["dt", "finish"])
+def test_a_shipped_model_is_scored_in_the_mode_too(recording, tmp_path, mode):
     """The initial weights of a campaign are often a shipped model (``--pretrained NAME``, whose rows
-    evaluate.py names after it): with val_split its stepped row is found and scored as well."""
+    evaluate.py names after it): with val_split its stepped row ("dt") or its row finished by the
+    default's short solve ("finish") is found and scored as well."""
     from evflow_cli.campaign import CampaignSpec
 
     runs = tmp_path / "runs"
     spec = CampaignSpec(name="c", export="c-model", train=[], val_data=[str(recording)], val_dt=[2],
-                        reference="zero", val_split="dt")
+                        reference="zero", val_split=mode)
     campaign = Campaign("c", tmp_path / "campaigns", runs)
     campaign.dir.mkdir(parents=True)
     row = campaign_script.validate(campaign, spec, ["--pretrained", "ev-mgrflownet-cpu-synthetic"], "init", "cpu",
                                    print, {**os.environ, "OMP_NUM_THREADS": "1"})
     results = json.loads((runs / "c" / "val" / "init" / "results.json").read_text())
-    stepped = results["baselines"]["ev-mgrflownet-cpu-synthetic (pretrained) + split dt"]["overall"]["dt2"]["aee"]
-    assert row["mode"] == "split dt" and row["aee"]["dt2"] == stepped
+    label = {"dt": " + split dt", "finish": " + finish fine:3 / cmax:20/16000"}[mode]
+    stepped = results["baselines"][f"ev-mgrflownet-cpu-synthetic (pretrained){label}"]["overall"]["dt2"]["aee"]
+    assert row["mode"] == {"dt": "split dt", "finish": "finish"}[mode] and row["aee"]["dt2"] == stepped
     assert row["aee_one_pass"]["dt2"] == results["overall"]["dt2"]["aee"] != stepped
 
 
@@ -331,7 +334,7 @@ def test_refusals(recording, tmp_path, capsys):
     spec_path = tmp_path / "c" / "campaign.json"
     good = spec_path.read_text()
     spec_path.write_text(json.dumps({**json.loads(good), "val_split": "4"}))
-    with pytest.raises(ValueError, match=r"campaign.json: val_split must be \"dt\" or null, got '4'"):
+    with pytest.raises(ValueError, match=r"campaign.json: val_split must be \"dt\", \"finish\" or null, got '4'"):
         campaign_script.main(["resume", "c", "--campaigns-dir", str(tmp_path), "--runs", str(tmp_path / "r")])
     assert not (tmp_path / "r" / "c" / "train").exists()  # refused before any training
     spec_path.write_text(good)
