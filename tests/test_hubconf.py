@@ -35,7 +35,7 @@ def recording(tmp_path_factory):
     return write_translating_recording(path, np.random.default_rng(5), sensor_size=(32, 48))
 
 
-@pytest.mark.parametrize("name", [None, "ev-mgrflownet-cpu-dr"])
+@pytest.mark.parametrize("name", [None, "ev-mgrflownet-cpu-synthetic"])
 def test_hub_load_gives_the_flow_of_load_pretrained(recording, name):
     kwargs = {} if name is None else {"name": name}
     model = torch.hub.load(CHECKOUT, "ev_mgrflownet", source="local", pretrained=True, **kwargs)

@@ -8,8 +8,9 @@
 
 A campaign commit holds its folder (campaign.json, state.pt, curve.jsonl, curve.png,
 reference.json) and agents/weights/EXPORT.pt/.json when they changed. It refuses a state over the
-campaign's budget, and more state commits within one stretch of training than fit 30 MB of
-repository growth (at most three; --force to override).
+campaign's budget, more than three state commits within one stretch of training, and a commit
+that would take the round's growth of the repository past 15 MB (tools/repo_growth.py; --force
+to override either).
 --from OUT: OUT is what scripts/device_train.sh wrote (OUT/campaigns/NAME, OUT/weights); it is
 copied in only when its state is further along than the local one.
 """
@@ -27,10 +28,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from evflow_cli.campaign import Campaign  # noqa: E402
+from tools.repo_growth import ROUND_BUDGET, added_objects, round_start  # noqa: E402
 
 MAX_STATE_COMMITS = 3
-#: the most a stretch of training may add to the repository (bytes, as git packs them)
-GROWTH_BUDGET = 30 * 2**20
 
 
 def _packed(path: Path) -> int:
@@ -71,11 +71,14 @@ def commit_campaign(name: str, force: bool) -> None:
             if s.startswith(f"campaign {name}: stretch {stretch},")]
     weights = ROOT / "agents" / "weights" / f"{spec.export}.pt"
     per_commit = _packed(campaign.state_path) + (_packed(weights) if weights.exists() else 0)
-    allowed = max(1, min(MAX_STATE_COMMITS, int(GROWTH_BUDGET // per_commit)))
-    if len(done) >= allowed and not force:
+    if len(done) >= MAX_STATE_COMMITS and not force:
         raise SystemExit(f"campaign {name}: already {len(done)} state commits in stretch {stretch} (at most "
-                         f"{allowed}: each adds about {per_commit / 2**20:.1f} MB packed, {GROWTH_BUDGET / 2**20:.0f} MB "
-                         "per stretch; --force to commit anyway)")
+                         f"{MAX_STATE_COMMITS}; --force to commit anyway)")
+    grown = sum(size for size, _, _ in added_objects(round_start()))
+    if grown + per_commit > ROUND_BUDGET and not force:
+        raise SystemExit(f"campaign {name}: this round has added {grown / 2**20:.1f} MB to the repository and this "
+                         f"commit adds about {per_commit / 2**20:.1f} MB more, past the {ROUND_BUDGET / 2**20:.0f} MB a "
+                         "round may add (python tools/repo_growth.py); keep the curve and recipe only, or --force")
     paths = [str(p.relative_to(ROOT)) for p in campaign.dir.iterdir() if p.is_file()]
     paths += [f"agents/weights/{spec.export}{s}" for s in (".pt", ".json") if (ROOT / "agents" / "weights" /
                                                                              f"{spec.export}{s}").exists()]
@@ -96,15 +99,14 @@ def main(argv=None) -> int:
     p.add_argument("--force", action="store_true", help="commit past the per-stretch limit")
     args = p.parse_args(argv)
     if args.ablations:
-        git("add", "docs/ablations", "docs/results.md")
+        git("add", "docs/ablations")
         rows = ROOT / "docs" / "ablations" / "rows.jsonl"
         count = len(rows.read_text().splitlines()) if rows.exists() else 0
         states = sorted(p.stem for p in (ROOT / "docs" / "ablations" / "unfinished").glob("*.pt"))
         message = f"Ablations: {count} finished runs (rows, tables, curves)"
         if states:
             message += f"; stages kept in progress: {', '.join(states)}"
-        subprocess.run(["git", "commit", "-q", "-m", message, "--",
-                        "docs/ablations", "docs/results.md"], cwd=ROOT, check=False)
+        subprocess.run(["git", "commit", "-q", "-m", message, "--", "docs/ablations"], cwd=ROOT, check=False)
         return 0
     if not args.name:
         p.error("name a campaign, or --ablations")

@@ -3,7 +3,7 @@
 Nothing here writes to git; ``scripts/campaign.py`` keeps a run's whole state resumable in the
 repository.
 
-    python scripts/ship.py --name ev-mgrflownet-cpu-dr --out runs/ship-dr --hours 2 \\
+    python scripts/ship.py --name ev-mgrflownet-cpu-mine --out runs/ship-mine --hours 2 \\
         --init ev-mgrflownet-cpu-synthetic -- <scripts/train.py options of the recipe>
 
 Each chunk is ``scripts/train.py`` for --chunk-minutes (a fresh run the first time, ``--resume``
