@@ -41,6 +41,7 @@ import torch.distributed as dist
 from gymnasium.vector import AutoresetMode
 
 from envs.env import EventFlowEnv
+from envs.representations import OBSERVATIONS
 from losses import (
     EventBatch,
     check_border_ramp,
@@ -121,7 +122,7 @@ class Learner:
         space = self.envs.single_action_space
         self.height, self.width = space.shape[1:]
         self.flow_scaling = float(cfg.flow_scaling or max(self.height, self.width))
-        in_channels = {"count_image": 2, "count_time_image": 4}.get(cfg.input, cfg.voxel_bins)
+        in_channels = OBSERVATIONS[cfg.input].channels(cfg.voxel_bins)
         self.model_config = {**width_kwargs(cfg.width), "flow_scaling": self.flow_scaling, "in_channels": in_channels,
                              **cfg.model_kwargs}
         model = make_model(cfg.model, **self.model_config)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from envs.env import check_event_keep
+from envs.representations import OBSERVATIONS
 from losses import CMAX_WEIGHTS, LossWeights
 
 from .options import (
@@ -29,6 +30,9 @@ from .options import (
 )
 
 __all__ = ["TrainConfig", "PRESETS", "preset_config", "preset_options"]
+
+#: The choices of ``--input`` (TrainConfig.input): the image observations of envs.representations.OBSERVATIONS.
+ImageInput = Literal[tuple(OBSERVATIONS)]
 
 
 def _key_values(items) -> dict:
@@ -59,7 +63,7 @@ class TrainConfig(ModelWidth, Windows, SensorSizeOptions):
     model_kwargs: dict = option(flag="--model-kwarg", action="append", metavar="KEY=VALUE", convert=_key_values,
                                 default_factory=dict)
     """extra model argument, e.g. use_st_convgru=false (repeatable)"""
-    input: Literal["count_image", "voxel_grid", "count_time_image"] = "count_image"
+    input: ImageInput = "count_image"
     """the paper's count image (eq. 2), a voxel grid (--voxel-bins), or EV-FlowNet's counts and timestamps"""
     voxel_bins: int = option(5, type=positive_int)
     """time bins of the voxel-grid input"""
