@@ -29,9 +29,9 @@ from losses import (
 )
 
 from .cmax import FRAME_US
+from .train_config import TrainConfig
 
 if TYPE_CHECKING:
-    from .learner import TrainConfig
     from .teacher import TeacherTargets
 
 __all__ = ["RolloutWindow", "WindowLoss", "AccumulatedLoss", "TeacherLoss", "SupervisedLoss", "make_objective",

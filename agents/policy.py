@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from envs.representations import IMAGE_INPUTS
+from envs.representations import OBSERVATIONS
 
 State = dict[str, Tensor]
 
@@ -143,8 +143,9 @@ class RecurrentPolicy(nn.Module):
     Args:
         model: a module honouring the protocol (``forward(x, state) -> (flows, state)``).
         device: where to run it; None keeps the device of the model's parameters (CPU if none).
-        input_key: the observation part fed to the model: "count_image" (paper, 2 channels),
-            "voxel_grid" (voxel_bins channels) or "count_time_image" (EV-FlowNet's 4 channels).
+        input_key: the observation part fed to the model, one of envs.representations.OBSERVATIONS:
+            "count_image" (paper, 2 channels), "voxel_grid" (voxel_bins channels) or
+            "count_time_image" (EV-FlowNet's 4 channels).
         autocast: torch.bfloat16 or torch.float16 to run the network's forward in mixed precision
             (flows and state leave it as float32); None: float32 throughout.
     """
@@ -160,8 +161,8 @@ class RecurrentPolicy(nn.Module):
     ):
         super().__init__()
         self.autocast = autocast  # the forward's reduced precision (None: float32)
-        if input_key not in IMAGE_INPUTS:  # read from checkpoints and provenance files: checked, not trusted
-            raise ValueError(f"input_key must be one of {IMAGE_INPUTS}, got {input_key!r}")
+        if input_key not in OBSERVATIONS:  # read from checkpoints and provenance files: checked, not trusted
+            raise ValueError(f"input_key must be one of {tuple(OBSERVATIONS)}, got {input_key!r}")
         if not 1 <= int(voxel_bins) <= 64:
             raise ValueError(f"voxel_bins must be in [1, 64], got {voxel_bins!r}")
         self.input_key = input_key  # which observation part the model reads

@@ -13,7 +13,7 @@ from gymnasium import spaces
 from envs.dataset import resolve_data
 from envs.events import Events
 from envs.readers._common import check_flow_gt, resolve_crop
-from envs.representations import IMAGE_INPUTS, count_image, image_input
+from envs.representations import OBSERVATIONS, count_image
 from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import (
     MAX_WINDOW_EVENTS,
@@ -33,9 +33,8 @@ class NoWindowsError(ValueError):
     """The chosen recording has no window of the requested kind (e.g. shorter than one window)."""
 
 
-OBSERVATION_KEYS = ("count_image", "voxel_grid", "events", "count_time_image")
-# Finite upper bound of the count/voxel boxes: far above any real per-pixel count.
-_MAX_COUNT = float(2**24)
+#: The observation parts: the image observations of envs.representations.OBSERVATIONS, and the events.
+OBSERVATION_KEYS = (*OBSERVATIONS, "events")
 
 
 class EventFlowEnv(gym.Env):
@@ -46,7 +45,9 @@ class EventFlowEnv(gym.Env):
     reward scores the action on the window's own events with the unsupervised hybrid
     motion-compensation loss, so no ground truth is needed to train.
 
-    **Observation** (``Dict`` of float32 ``Box``es, parts chosen with ``observations``):
+    **Observation** (``Dict`` of float32 ``Box``es, parts chosen with ``observations``): the
+    images of ``envs.representations.OBSERVATIONS`` (their channels, bounds and builders there),
+    and the events.
 
     - ``"count_image"``: (2, H, W) events per pixel, [ON, OFF] (paper eq. 2), in [0, 2^24].
     - ``"voxel_grid"``: (voxel_bins, H, W) signed, bilinear in time, in [-2^24, 2^24].
@@ -306,14 +307,10 @@ class EventFlowEnv(gym.Env):
         self.flow_limit = float(flow_limit if flow_limit is not None else self.flow_scaling)
 
         h, w = self.height, self.width
-        parts: dict[str, spaces.Space] = {}
-        if "count_image" in self.observation_keys:
-            parts["count_image"] = spaces.Box(0.0, _MAX_COUNT, (2, h, w), np.float32)
-        if "voxel_grid" in self.observation_keys:
-            parts["voxel_grid"] = spaces.Box(-_MAX_COUNT, _MAX_COUNT, (self.voxel_bins, h, w), np.float32)
-        if "count_time_image" in self.observation_keys:
-            high = np.concatenate([np.full((2, h, w), _MAX_COUNT, np.float32), np.ones((2, h, w), np.float32)])
-            parts["count_time_image"] = spaces.Box(np.zeros_like(high), high, dtype=np.float32)
+        parts: dict[str, spaces.Space] = {
+            name: spaces.Box(*observation.bounds((h, w), self.voxel_bins), dtype=np.float32)
+            for name, observation in OBSERVATIONS.items() if name in self.observation_keys
+        }
         if "events" in self.observation_keys:
             low = np.tile(np.array([0, 0, 0, -1], np.float32), (self.max_events, 1))
             high = np.tile(np.array([w - 1, h - 1, 1, 1], np.float32), (self.max_events, 1))
@@ -529,8 +526,8 @@ class EventFlowEnv(gym.Env):
         ev = window.events
         size = (self.height, self.width)
         obs: dict[str, np.ndarray] = {
-            kind: image_input(kind, ev, window.t_start, window.t_end, size, self.voxel_bins)
-            for kind in IMAGE_INPUTS if kind in self.observation_keys
+            name: observation.build(ev, window.t_start, window.t_end, size, self.voxel_bins)
+            for name, observation in OBSERVATIONS.items() if name in self.observation_keys
         }
         if "events" in self.observation_keys:
             n = len(ev)

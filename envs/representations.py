@@ -8,6 +8,9 @@
 - :func:`count_time_image`: (4, H, W) float32, Zhu et al.'s EV-FlowNet input: the count image
   and, per polarity, the time of the pixel's latest event.
 
+:data:`OBSERVATIONS` lists the images that are network inputs (the env's image observations):
+each one's channels, bounds and builder.
+
 Each has a numpy version (for the env) and a torch version (``*_torch``, batched, for
 training on a device) that agree exactly: both accumulate in float64 or integers before the
 float32 cast, so the results are bit-identical.
@@ -16,6 +19,9 @@ Coordinates that are floats (rectified events) are rounded to the nearest pixel.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
@@ -29,7 +35,9 @@ __all__ = [
     "voxel_grid_torch",
     "event_mask_torch",
     "EventView",
-    "IMAGE_INPUTS",
+    "MAX_COUNT",
+    "Observation",
+    "OBSERVATIONS",
     "image_input",
 ]
 
@@ -118,20 +126,57 @@ def voxel_grid(
     return grid.reshape(num_bins, height, width).astype(np.float32)
 
 
-#: The network inputs that are images of one window's events (what :func:`image_input` builds).
-IMAGE_INPUTS = ("count_image", "voxel_grid", "count_time_image")
+#: Finite upper bound of the count and voxel boxes of the observations: far above any real per-pixel count.
+MAX_COUNT = float(2**24)
+
+
+@dataclass(frozen=True)
+class Observation:
+    """An image observation of one window's events: one place that the env's observation space and
+    its arrays (envs.env), a policy's ``input_key``, the learner's input channels and the
+    ``--input`` choices (agents.train_config) all read. A new image input is one entry of
+    :data:`OBSERVATIONS`. (The env's ``"events"`` part, a (max_events, 4) list of points rather
+    than an image, is no entry: the env builds it and its space itself.)
+
+    channels: ``voxel_bins`` -> C, the channels of the (C, H, W) float32 image;
+    low, high: its bounds, one for every channel or a tuple of one per channel;
+    build: ``(events, t_start, t_end, size, voxel_bins)`` -> the image of the window
+    ``[t_start, t_end)`` holding ``events`` (x, y, t, p attributes) on a ``size`` (H, W) frame."""
+
+    name: str
+    channels: Callable[[int], int]
+    low: float | tuple[float, ...]
+    high: float | tuple[float, ...]
+    build: Callable[..., np.ndarray]
+
+    def shape(self, size: tuple[int, int], voxel_bins: int) -> tuple[int, int, int]:
+        """(C, H, W) of the image on a ``size`` (H, W) frame."""
+        return (self.channels(voxel_bins), *size)
+
+    def bounds(self, size: tuple[int, int], voxel_bins: int) -> tuple[np.ndarray, np.ndarray]:
+        """The (C, H, W) float32 arrays of the lowest and highest values the image takes."""
+        shape = self.shape(size, voxel_bins)
+        return tuple(np.broadcast_to(np.asarray(bound, np.float32).reshape(-1, 1, 1), shape).copy()
+                     for bound in (self.low, self.high))
+
+
+#: The image observations by name (the env's parts, ``--input``'s choices), in the env's order.
+OBSERVATIONS: dict[str, Observation] = {obs.name: obs for obs in (
+    Observation("count_image", channels=lambda bins: 2, low=0.0, high=MAX_COUNT,
+                build=lambda events, t_start, t_end, size, bins: count_image(events, size)),
+    Observation("voxel_grid", channels=lambda bins: bins, low=-MAX_COUNT, high=MAX_COUNT,
+                build=lambda events, t_start, t_end, size, bins: voxel_grid(events, bins, t_start, t_end, size)),
+    Observation("count_time_image", channels=lambda bins: 4, low=0.0, high=(MAX_COUNT, MAX_COUNT, 1.0, 1.0),
+                build=lambda events, t_start, t_end, size, bins: count_time_image(events, t_start, t_end, size)),
+)}
 
 
 def image_input(kind: str, events, t_start: int, t_end: int, size: tuple[int, int], voxel_bins: int = 5) -> np.ndarray:
-    """The network input ``kind`` (one of :data:`IMAGE_INPUTS`) of the window ``[t_start, t_end)``
+    """The network input ``kind`` (one of :data:`OBSERVATIONS`) of the window ``[t_start, t_end)``
     holding ``events`` (x, y, t, p attributes, e.g. an :class:`EventView`), on an ``size`` (H, W) frame."""
-    if kind == "count_image":
-        return count_image(events, size)
-    if kind == "voxel_grid":
-        return voxel_grid(events, voxel_bins, t_start, t_end, size)
-    if kind == "count_time_image":
-        return count_time_image(events, t_start, t_end, size)
-    raise ValueError(f"no image input named {kind!r}; one of {IMAGE_INPUTS}")
+    if kind not in OBSERVATIONS:
+        raise ValueError(f"no image input named {kind!r}; one of {tuple(OBSERVATIONS)}")
+    return OBSERVATIONS[kind].build(events, t_start, t_end, size, voxel_bins)
 
 
 # --- torch, batched -------------------------------------------------------------------------

@@ -2,7 +2,8 @@
 reaches into the simulator (envs.synthetic, envs.simulator), and none hides a cycle behind an
 import inside a function or a module ``__getattr__``. Also envs/cache.py (the cache root the
 simulated sequences and the Prophesee indexes share), the format's names at one address, and the
-library's layers (evflow_cli -> agents -> envs -> losses) importing downwards only."""
+library's layers (evflow_cli -> agents -> envs -> losses) importing downwards only, and the
+training configuration below the learner and its objectives."""
 
 from __future__ import annotations
 
@@ -110,6 +111,26 @@ def test_the_library_never_imports_the_application(package):
     bad = [f"{path.relative_to(ROOT)}:{line}: {name}" for path in sorted((ROOT / package).rglob("*.py"))
            for name, line, _ in _imports(path) if name.split(".")[0] in above]
     assert not bad, f"{package}/ imports a layer above it: {', '.join(bad)}"
+
+
+def _agents_imports(path: Path) -> set[str]:
+    """The modules of agents/ that an agents/ file imports, relatively or by name, anywhere in it."""
+    names = {name for name, _, _ in _imports(path)}
+    names |= {f"agents.{node.module}" for node in ast.walk(ast.parse(path.read_text()))
+              if isinstance(node, ast.ImportFrom) and node.level == 1 and node.module}
+    return {name for name in names if name.startswith("agents.")}
+
+
+def test_the_training_config_sits_below_the_learner_and_its_objectives():
+    """agents/train_config.py (TrainConfig, the presets) imports neither the learner nor the
+    objectives, and the objectives do not import the learner: no circle among the three."""
+    assert not {"agents.learner", "agents.objectives"} & _agents_imports(ROOT / "agents" / "train_config.py")
+    assert "agents.learner" not in _agents_imports(ROOT / "agents" / "objectives.py")
+    assert "agents.train_config" in _agents_imports(ROOT / "agents" / "objectives.py")
+    import agents.learner
+    import agents.train_config
+
+    assert agents.learner.TrainConfig is agents.train_config.TrainConfig  # the earlier address still serves
 
 
 def test_cache_root_follows_evflow_cache(monkeypatch, tmp_path):

@@ -9,6 +9,7 @@ import importlib
 import re
 import subprocess
 import sys
+from importlib.metadata import EntryPoint
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,7 @@ import pytest
 from agents.learner import PRESETS, TrainConfig, preset_config, preset_options
 from agents.options import OPTION_FIELD, WindowSize, choices_of, field_docs, parse_options
 from evflow_cli.commands import train as train_command
+from evflow_cli.commands.cli import COMMANDS
 from evflow_cli.commands.evaluate import EvaluateOptions
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,9 +48,9 @@ def test_every_choice_field_is_a_literal_and_every_field_has_its_help():
 
 
 def command_modules() -> list[str]:
-    """Every command of evflow_cli/commands: the console commands cli.py lists and every module a
+    """Every command of evflow_cli/commands: the console commands (cli.COMMANDS) and every module a
     scripts/ file runs."""
-    names = set(re.findall(r'_program\("(\w+)"\)', (ROOT / "evflow_cli" / "commands" / "cli.py").read_text()))
+    names = set(COMMANDS.values())
     for script in (ROOT / "scripts").glob("*.py"):
         names |= set(re.findall(r"from evflow_cli\.commands\.(\w+) import [\w, ]*\bmain\b", script.read_text()))
     return sorted(names)
@@ -148,6 +150,20 @@ def test_the_command_line_keeps_its_spellings():
     assert cfg.window_size == 2 and cfg.crop == (8, 8) and cfg.width == 16 and cfg.teacher_grids == (2,)
     with pytest.raises(SystemExit):
         train_command.parse_args(["--loss", "hmx"])
+
+
+def test_the_console_commands_are_the_registry():
+    """pyproject.toml's [project.scripts] names exactly the commands of cli.COMMANDS, each as
+    ``evflow_cli.commands.cli:<module>``, and each module is a command with its ``main``."""
+    assert console_commands() == {name: f"evflow_cli.commands.cli:{module}" for name, module in COMMANDS.items()}
+    from evflow_cli.commands import cli
+
+    for name, value in console_commands().items():  # resolved as an installer's script resolves it
+        module = COMMANDS[name]
+        assert callable(importlib.import_module(f"evflow_cli.commands.{module}").main), module
+        assert EntryPoint(name, value, "console_scripts").load().__name__ == module and module in dir(cli)
+    with pytest.raises(AttributeError):
+        cli.bench_update  # a module of evflow_cli/commands that is no console command  # noqa: B018
 
 
 @pytest.mark.parametrize("command", sorted(console_commands()))

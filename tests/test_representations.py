@@ -1,8 +1,10 @@
 import numpy as np
+import pytest
 import torch
 
 from envs.events import Events
 from envs.representations import (
+    OBSERVATIONS,
     count_image,
     count_image_torch,
     count_time_image,
@@ -110,3 +112,39 @@ def test_env_serves_the_count_time_image():
             obs, _, _, _, info = env.step(np.zeros((2, env.height, env.width), np.float32))
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("name", list(OBSERVATIONS))
+def test_every_registered_observation_is_what_the_env_serves_and_the_learner_reads(name):
+    """Each entry of envs.representations.OBSERVATIONS, as declared (channels, bounds, builder),
+    is the env's observation space and its arrays on real windows, the learner's input channels
+    and one of --input's choices. voxel_bins 3: a count that no fixed channel count equals."""
+    from agents.learner import Learner, TrainConfig
+    from envs.env import EventFlowEnv
+    from evflow_cli.commands import train as train_command
+
+    observation, bins = OBSERVATIONS[name], 3
+    env = EventFlowEnv("synthetic-mini", observations=(name,), voxel_bins=bins, compute_reward=False)
+    try:
+        space, size = env.observation_space[name], (env.height, env.width)
+        low, high = observation.bounds(size, bins)
+        assert space.shape == observation.shape(size, bins) == (observation.channels(bins), *size)
+        assert space.dtype == np.float32 and np.array_equal(space.low, low) and np.array_equal(space.high, high)
+        obs, info = env.reset(seed=0)
+        for _ in range(2):
+            window = info["window"]
+            image = obs[name]
+            assert image.shape == space.shape and image.dtype == np.float32 and np.abs(image).sum() > 0
+            assert (low <= image).all() and (image <= high).all() and space.contains(image)
+            np.testing.assert_array_equal(image, observation.build(window.events, window.t_start, window.t_end, size, bins))
+            obs, _, _, _, info = env.step(np.zeros((2, *size), np.float32))
+    finally:
+        env.close()
+    learner = Learner(TrainConfig(model="ev-flownet", input=name, voxel_bins=bins, width=2, data="synthetic-mini",
+                                  num_envs=1, unroll=1))
+    try:
+        assert learner.model_config["in_channels"] == observation.channels(bins) == learner.obs[name].shape[1]
+    finally:
+        learner.close()
+    choices = next(a.choices for a in train_command.build_parser()._actions if a.dest == "input")
+    assert list(choices) == list(OBSERVATIONS)

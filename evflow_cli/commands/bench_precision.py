@@ -107,7 +107,8 @@ def network_rows(report, *, pairs: int, device: torch.device, batch: int, size: 
 
 
 def update_rows(report, *, pairs: int, device: torch.device, batch: int, size: int, unroll: int) -> None:
-    from agents.learner import Learner, TrainConfig
+    from agents.learner import Learner
+    from agents.train_config import TrainConfig
     from envs.recordings import write_translating_recording
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -412,7 +412,7 @@ def in_process_rows(report, cfg, init, *, pairs: int, rows=ROWS, results_pairs: 
 # -- settings fixed at a process's start: two worker processes, driven in pairs ----------------
 def _worker(config: str) -> int:
     """Worker loop: one update per line read from stdin, its seconds and loss written back."""
-    from agents.learner import TrainConfig
+    from agents.train_config import TrainConfig
 
     spec = json.loads(config)
     torch.set_num_threads(spec["intra"])

@@ -123,7 +123,8 @@ def bench_training(quick: bool, tiny: bool = False, device: str = "cpu") -> None
     import os
     import subprocess
 
-    from agents.learner import Learner, TrainConfig
+    from agents.learner import Learner
+    from agents.train_config import TrainConfig
     from envs.recordings import write_translating_recording
 
     steps = 1 if tiny else 2 if quick else 4

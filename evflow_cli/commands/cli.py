@@ -8,8 +8,9 @@ A user error is one this project raises on purpose about its input: a ``raise`` 
 ``PermissionError``). Anything else (a bug, an error raised inside numpy or torch) keeps its
 traceback, and ``EVFLOW_DEBUG=1`` shows the traceback of a user error too.
 
-``python scripts/X.py`` runs ``run(main)``; the console commands (``evflow-*``) are the
-functions at the bottom of this module.
+``python scripts/X.py`` runs ``run(main)``; the console commands (``evflow-*``) are listed once,
+in ``COMMANDS``, and their functions are made from it: a new command is its module (with
+``main(argv)``), one line of ``COMMANDS`` and the same line in pyproject.toml's [project.scripts].
 """
 
 from __future__ import annotations
@@ -20,9 +21,9 @@ import linecache
 import os
 import sys
 from pathlib import Path
-from typing import Callable, NoReturn
+from typing import Callable
 
-__all__ = ["USER_ERRORS", "is_user_error", "run"]
+__all__ = ["COMMANDS", "USER_ERRORS", "is_user_error", "run"]
 
 USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError)
 _OURS = tuple(str(Path(__file__).resolve().parents[2] / package) + os.sep for package in ("envs", "agents", "losses", "evflow_cli"))
@@ -79,36 +80,48 @@ def run(main: Callable[[list[str] | None], int], argv: list[str] | None = None) 
         return 2
 
 
-def _program(command: str) -> Callable[[list[str] | None], int]:
-    def entry(argv: list[str] | None = None) -> int:
-        return run(importlib.import_module(f"evflow_cli.commands.{command}").main, argv)
+#: The console commands: command name -> its module in evflow_cli/commands. pyproject.toml's
+#: [project.scripts] names each as ``evflow_cli.commands.cli:<module>`` (tests/test_options.py
+#: holds the two equal); the function is made here, on first use, by :func:`__getattr__`.
+COMMANDS: dict[str, str] = {
+    "evflow-train": "train",
+    "evflow-evaluate": "evaluate",
+    "evflow-predict": "predict",
+    "evflow-convert": "convert",
+    "evflow-generate": "generate",
+    "evflow-benchmark": "benchmark",
+    "evflow-teacher-targets": "teacher_targets",
+    "evflow-ship": "ship",
+    "evflow-campaign": "campaign",
+    "evflow-export": "export_model",
+    "evflow-ablations": "ablations",
+    "evflow-main": "main_job",
+    "evflow-param-counts": "param_counts",
+    "evflow-tradeoff": "tradeoff",
+}
 
-    entry.__name__ = command
+
+def _program(command: str) -> Callable[[list[str] | None], int]:
+    """The console function of evflow_cli/commands/``command``.py: ``run(main, argv)``; a module
+    that defines ``exit_process(status)`` (train: a torchrun rank's end) ends the process through it."""
+
+    def entry(argv: list[str] | None = None) -> int:
+        module = importlib.import_module(f"evflow_cli.commands.{command}")
+        status = run(module.main, argv)
+        end = getattr(module, "exit_process", None)
+        return status if end is None else end(status)
+
+    entry.__name__ = entry.__qualname__ = command
     entry.__doc__ = f"The console command of evflow_cli/commands/{command}.py."
     return entry
 
 
-# console commands (pyproject.toml [project.scripts])
-evaluate = _program("evaluate")
-predict = _program("predict")
-convert = _program("convert")
-generate = _program("generate")
-benchmark = _program("benchmark")
-teacher_targets = _program("teacher_targets")
-ship = _program("ship")
-campaign = _program("campaign")
-export_model = _program("export_model")
-ablations = _program("ablations")
-main_job = _program("main_job")
-param_counts = _program("param_counts")
-tradeoff = _program("tradeoff")
-
-_train = _program("train")
+def __getattr__(name: str) -> Callable[[list[str] | None], int]:
+    """``evflow_cli.commands.cli.<module>``: the console function of a command of ``COMMANDS``."""
+    if name in COMMANDS.values():
+        return _program(name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def train(argv: list[str] | None = None) -> NoReturn:
-    """The console command of evflow_cli/commands/train.py; a torchrun rank ends as
-    ``train.exit_process`` says."""
-    from evflow_cli.commands.train import exit_process
-
-    exit_process(_train(argv))
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(COMMANDS.values()))

@@ -34,7 +34,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from agents.learner import preset_options
 from agents.options import (
     DeviceOptions,
     check_choices,
@@ -46,11 +45,12 @@ from agents.options import (
     options_from_args,
 )
 from agents.pretrained import DEFAULT_PRETRAINED, list_pretrained, pretrained_info
+from agents.train_config import preset_options
 from evflow_cli.commands import evaluate as evaluate_command
 from evflow_cli.commands import train as train_command
 
 #: The project's recipe (docs/results.md: how far it gets; docs/history/: how it was found), as train.py
-#: presets (agents.learner.PRESETS). Stage 1: distil the per-window contrast-maximisation teacher
+#: presets (agents.train_config.PRESETS). Stage 1: distil the per-window contrast-maximisation teacher
 #: (from scratch). The full run solves the teacher once (TARGETS) and trains on the stored targets
 #: (CACHED_RECIPE, preset teacher-cached); the demo of stage 1 (--demo-stage teacher) solves it
 #: inside every update (RECIPE, preset teacher: no 20-minute wait).

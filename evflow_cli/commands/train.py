@@ -23,7 +23,7 @@ options --steps, --minutes, --out, --device, --ckpt-every and --val-* may always
 too unless the step size decays with --decay cosine; the network's shape never: fine-tune with
 --init). metrics.jsonl is cut back to the checkpoint's step, so every step is logged once.
 
---preset NAME sets the values of a named recipe (agents.learner.PRESETS); options given beside
+--preset NAME sets the values of a named recipe (agents.train_config.PRESETS); options given beside
 it override them: paper (docs/method.md), and the project's recipe: teacher-cached (stage 1 on
 stored teacher targets), teacher (stage 1 solving them in every update), hmc-stage (stage 2).
 
@@ -56,7 +56,7 @@ from agents.checkpoint import check_model_name, load_checkpoint, save_checkpoint
 from agents.distributed import all_reduce_sums
 from agents.dormant import FiringRecord, revive_decoder
 from agents.evaluation import evaluate, first_window_panel
-from agents.learner import PRESETS, Learner, TrainConfig, data_options
+from agents.learner import Learner, data_options
 from agents.options import (
     Progress,
     add_options,
@@ -69,6 +69,7 @@ from agents.options import (
 )
 from agents.policy import RecurrentPolicy
 from agents.provenance import code_version
+from agents.train_config import PRESETS, TrainConfig
 from envs.atomic import open_no_follow, remove_stale_temporaries, write_atomic
 from envs.outputs import hold_folder, release_folder
 from evflow_cli.tensorboard_log import TensorBoardLog, require_tensorboard
@@ -81,7 +82,7 @@ class RunOptions(Progress):
     config: str | None = option(None, metavar="FILE")
     """start from a run config file: a run's own OUT/config.json, or TOML/JSON of option = value (options given beside it win)"""
     preset: str | None = option(None, choices=sorted(PRESETS))
-    """a named recipe's values (agents.learner.PRESETS) under the options given beside it"""
+    """a named recipe's values (agents.train_config.PRESETS) under the options given beside it"""
     out: str = "runs/train"
     """output directory"""
     resume: str | None = option(None, nargs="?", const="auto", metavar="CHECKPOINT")
