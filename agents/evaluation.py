@@ -17,7 +17,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -33,7 +33,7 @@ from losses import EventBatch, flow_error, fwl, rsat, sample_flow, warped_event_
 from .policy import FlowPolicy, ZeroFlowPolicy
 from .rollout import WindowStep, observation_options, rollout
 
-__all__ = ["SequenceResult", "evaluate", "env_loss", "results_table", "results_json", "window_panel",
+__all__ = ["TABLE_LEGEND", "SequenceResult", "evaluate", "env_loss", "results_table", "results_json", "window_panel",
            "first_window_panel", "windowing_of"]
 
 METRICS = ("aee", "outlier_pct", "cosine", "hmc", "hmc_zero", "fwl", "rsat", "ms")
@@ -115,6 +115,7 @@ def evaluate(
     scorer_fn: Callable | None = None,
     flow_sink: Callable | None = None,
     shard: tuple[int, int] = (0, 1),
+    measures: Sequence[str] = ("loss", "fwl", "rsat"),
 ) -> list[SequenceResult]:
     """Roll ``policy`` through every sequence of ``data``, each at its own sensor size.
 
@@ -149,7 +150,13 @@ def evaluate(
     Per window the time the policy takes to produce its flow is measured (``ms``).
     shard: (rank, world): only sequences rank, rank + world, rank + 2 world, ... (the share of one
     process of a distributed run, which adds the results of all).
+    measures: which of the measures beside AEE, outlier % and cosine (always taken where there is
+    ground truth) to take: "loss" (L_HMC and zero flow's), "fwl", "rsat"; a training run's
+    validation takes fewer (each costs about as much as the AEE's whole window).
     """
+    unknown = set(measures) - {"loss", "fwl", "rsat"}
+    if unknown:
+        raise ValueError(f"measures: unknown {sorted(unknown)}; known: loss, fwl, rsat")
     rank, world = shard
     if not 0 <= rank < world:
         raise ValueError(f"shard must be (rank, world) with 0 <= rank < world, got {shard}")
@@ -166,7 +173,8 @@ def evaluate(
             results.append(_evaluate_sequence(
                 env, policy, index, total, window=window, windows_fn=windows_fn, dt_ratio=dt_ratio,
                 max_windows=max_windows, pictures_dir=pictures_dir, pictures_per_sequence=pictures_per_sequence,
-                animation_windows=animation_windows, progress=progress, scorer_fn=scorer_fn, flow_sink=flow_sink))
+                animation_windows=animation_windows, progress=progress, scorer_fn=scorer_fn, flow_sink=flow_sink,
+                measures=frozenset(measures)))
         finally:
             env.close()
     return results
@@ -174,7 +182,7 @@ def evaluate(
 
 def _evaluate_sequence(env: EventFlowEnv, policy: FlowPolicy, index: int, total: int, *, window, windows_fn,
                        dt_ratio, max_windows, pictures_dir, pictures_per_sequence, animation_windows, progress,
-                       scorer_fn=None, flow_sink=None) -> SequenceResult:
+                       scorer_fn=None, flow_sink=None, measures=frozenset(("loss", "fwl", "rsat"))) -> SequenceResult:
     size = (env.height, env.width)
     reader = env.sources[0].reader()
     options: dict[str, Any] = {"sequence": 0}
@@ -195,7 +203,7 @@ def _evaluate_sequence(env: EventFlowEnv, policy: FlowPolicy, index: int, total:
             result.add("ms", 1e3 * step.seconds)
         if flow_sink is not None:
             flow_sink(reader, step.window, step.flow)
-        aee = _score_window(result, env, step, score, dt_ratio)
+        aee = _score_window(result, env, step, score, dt_ratio, measures)
         if pictures_dir is not None and step.index < pictures_per_sequence and len(step.window.events):
             path = Path(pictures_dir) / f"{result.name}_w{step.index:03d}.png"
             save_png(path, window_panel(step.obs["count_image"], step.flow, step.window, step.info.get("flow_gt"),
@@ -210,15 +218,20 @@ def _evaluate_sequence(env: EventFlowEnv, policy: FlowPolicy, index: int, total:
     return result
 
 
-def _score_window(result: SequenceResult, env: EventFlowEnv, step: WindowStep, score, dt_ratio: float) -> float | None:
-    """Add one window's metrics to ``result`` (module docstring); returns its AEE (None: not scored)."""
+def _score_window(result: SequenceResult, env: EventFlowEnv, step: WindowStep, score, dt_ratio: float,
+                  measures=frozenset(("loss", "fwl", "rsat"))) -> float | None:
+    """Add one window's metrics to ``result`` (module docstring; ``measures`` as in
+    :func:`evaluate`); returns its AEE (None: not scored)."""
     flow, win, info, size = step.flow, step.window, step.info, (env.height, env.width)
     n_events = len(win.events)
     if n_events:
-        for key, value in env_loss(env, flow, win).items():
-            result.add(key, value)
-        result.add("fwl", fwl(flow, win, size))
-        result.add("rsat", rsat(flow, win, size))
+        if "loss" in measures:
+            for key, value in env_loss(env, flow, win).items():
+                result.add(key, value)
+        if "fwl" in measures:
+            result.add("fwl", fwl(flow, win, size))
+        if "rsat" in measures:
+            result.add("rsat", rsat(flow, win, size))
     if "flow_gt" not in info or not (n_events or score is not None):
         return None
     if score is None:
@@ -344,15 +357,27 @@ def _cell(value: float, digits: int) -> str | None:
 
 
 def windowing_of(named_results: dict[str, list[SequenceResult]]) -> str:
-    """The windowing of the evaluated sequences, e.g. "1 x ground-truth intervals" (several
-    kinds joined with "; " and the number of sequences of each)."""
+    """The windowing of the evaluated sequences and how many windows the table holds, e.g. "1 x
+    ground-truth intervals: 33 windows of 11 sequences" (several kinds joined with "; " and the
+    number of sequences of each)."""
     rows = next(iter(named_results.values()))
     kinds: dict[str, int] = {}
     for r in rows:
         kinds[r.windowing] = kinds.get(r.windowing, 0) + 1
+    count = f"{sum(r.windows for r in rows)} windows of {len(rows)} sequence{'s' if len(rows) != 1 else ''}"
     if len(kinds) == 1:
-        return next(iter(kinds))
-    return "; ".join(f"{k} ({n} sequences)" for k, n in kinds.items())
+        return f"{next(iter(kinds))}: {count}"
+    return "; ".join(f"{k} ({n} sequences)" for k, n in kinds.items()) + f": {count}"
+
+
+#: What the columns of :func:`results_table` mean (printed under evaluate.py's tables).
+TABLE_LEGEND = """Columns: AEE, the average endpoint error against the ground truth (pixels per window; mean over the
+sequences' means), with %Out the share of pixels off by more than 3 px and 5 %; cos, the mean cosine between the
+flow and the truth; L_HMC, the env's loss (the negative reward: the hybrid motion-compensation loss with the border
+rule; lower is better), beside zero flow's on the same windows and in how many sequences the method's is below zero
+flow's; FWL, the flow warp loss (the variance of the image of warped events over that of the unwarped ones; above
+1 is sharper than zero flow); RSAT, the ratio of squared average timestamps (below 1 is better than zero flow);
+ms/win, milliseconds per window (each sequence's first window left out). Only columns with a value are shown."""
 
 
 def _pooled(rows: list[SequenceResult], key: str) -> float:

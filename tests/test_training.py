@@ -234,7 +234,8 @@ def test_evaluate_without_ground_truth_reports_fwl_only(tmp_path):
     for metrics in (seq["dt1"], results["overall"]["dt1"]):  # only the metrics that have values, as in the table
         assert set(metrics) == {"hmc", "hmc_zero", "fwl", "rsat", "ms", "windows"} and None not in metrics.values()
     table = (tmp_path / "e" / "table.md").read_text().strip().splitlines()
-    assert table[0] == "**windows of 1 x fixed 33333 us intervals (no ground truth, no frames)**" and table[1] == ""
+    title = "**windows of 1 x fixed 33333 us intervals (no ground truth, no frames): 10 windows of 1 sequence**"
+    assert table[0] == title and table[1] == ""
     assert table[2] == "| method | L_HMC | L_HMC zero | seq. L_HMC < zero | FWL | RSAT | ms/win |"
     assert len(table) == 5 and all(" - " not in row and "AEE" not in row for row in table)  # no empty column, nothing else
 
@@ -330,19 +331,47 @@ def test_main_job_runs_end_to_end_on_mini_data(tmp_path, capsys, stage):
     import main as main_script
 
     out = tmp_path / "main"
-    # the hmc stage starts from the shipped teacher model (CPU width); the teacher stage from scratch
+    # the hmc stage starts from the shipped model (CPU width); the teacher stage from scratch
     extra = ["--width", "4", "--teacher-steps", "2"] if stage == "teacher" else []
-    main_script.main(["--demo-minutes", "0.01", "--demo-stage", stage, "--eval-data", "synthetic-mini", "--out", str(out),
+    main_script.main(["--demo-minutes", "1", "--demo-steps", "2", "--demo-val-every", "1", "--demo-stage", stage,
+                      "--eval-data", "synthetic-mini", "--demo-val-data", "synthetic-mini", "--out", str(out),
                       "--eval-windows", "2", *(["--no-cmax"] if stage == "hmc" else []),
                       "--", "--data", "synthetic-mini", "--num-envs", "2", "--unroll", "2", *extra])
     printed = capsys.readouterr().out
     assert ("teacher ratio" in printed) == (stage == "teacher")
-    assert ("stage-1 model" in printed) == (stage == "hmc")
+    assert ("from the shipped model" in printed) == (stage == "hmc")
     table = (out / "eval" / "synthetic-mini" / "table.md").read_text()
     assert "| zero flow |" in table and ("| contrast maximisation (no network) |" in table) == (stage == "teacher")
-    assert "(pretrained) + split dt |" in table
-    assert (out / "demo" / "checkpoint.pt").exists() and "| demo model |" in (out / "demo-eval" / "table.md").read_text()
+    assert "(the default's mode) |" in table and ", network alone |" in table
+    assert "Columns: AEE, the average endpoint error" in printed  # the legend under the tables
+    rows = [json.loads(line) for line in (out / "demo" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows if "val_aee_model" in r] == [0, 1, 2]  # the start, every step, the end
+    assert (out / "demo" / "checkpoint.pt").exists() and "at step 0 -> " in printed
     assert "L_HMC ratio" in printed and "scripts/train.py --preset teacher-cached" in printed
+
+
+def test_main_jobs_demo_verdict_and_picture(tmp_path, capsys):
+    """The verdict reads the validation rows: learned when the last AEE is below the first and
+    below zero flow's; the picture is a PNG (with the plots extra)."""
+    from evflow_cli.commands.main_job import SCRATCH_DEMO, demo_verdict, plot_demo
+    from evflow_cli.commands.train import build_parser, config_from_args
+
+    metrics = tmp_path / "metrics.jsonl"
+    zero = {"val_aee_zero": 2.0, "val_hmc_zero": 1.2}
+    lines = [{"step": 0, "val_aee_model": 2.5, "val_hmc_model": 1.3, **zero},
+             {"step": 1, "loss": 1.0, "zero_flow_teacher": 1.0, "zero_flow_loss": 1.0},
+             {"step": 2, "val_aee_model": 1.5, "val_hmc_model": 1.1, **zero}]
+    metrics.write_text("".join(json.dumps(r) + "\n" for r in lines))
+    assert demo_verdict(metrics) is True
+    assert "2.500 at step 0 -> 1.500 at step 2 (0.75x zero flow's 2.000): below its start, below zero flow's" in (
+        capsys.readouterr().out)
+    lines[-1]["val_aee_model"] = 2.2  # below its start, above zero flow's
+    metrics.write_text("".join(json.dumps(r) + "\n" for r in lines))
+    assert demo_verdict(metrics) is False and "NOT below zero flow's" in capsys.readouterr().out
+    pytest.importorskip("matplotlib")
+    assert plot_demo(metrics, tmp_path / "demo.png").read_bytes()[:4] == b"\x89PNG"
+    cfg = config_from_args(build_parser().parse_args(SCRATCH_DEMO))  # the demo's recipe is a valid run
+    assert cfg.model == "ev-flownet" and cfg.loss == "teacher" and Path(cfg.teacher_cache).is_file()
 
 
 def test_ev_flownet_trains_on_its_four_channel_input():

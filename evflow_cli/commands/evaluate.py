@@ -53,7 +53,7 @@ from typing import Literal
 
 import agents.pretrained as pretrained_module
 from agents.checkpoint import load_model
-from agents.evaluation import evaluate, results_json, results_table, windowing_of
+from agents.evaluation import TABLE_LEGEND, evaluate, results_json, results_table, windowing_of
 from agents.options import (
     DeviceOptions,
     ModelWidth,
@@ -344,6 +344,7 @@ def main(argv=None) -> int:
         table_out.write_text(table + "\n")
         json_out.write_text(results_json(per_setting) + "\n")
     print(table)
+    print("\n" + TABLE_LEGEND)
     print(f"\nwrote {out / 'table.md'}, {json_path}" + (f" and pictures in {out / 'pictures'}" if args.pictures else ""))
     return 0
 

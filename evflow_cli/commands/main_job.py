@@ -8,20 +8,22 @@
    contrast maximisation (no network) on the synthetic test split and the held-out stress
    split at dt = 1 and dt = 4, on the first --eval-windows windows of every sequence, and print
    the tables;
-2. a short training demo of the project's recipe (--demo-minutes, default 3). The recipe has
-   two stages: (1) a per-window contrast-maximisation teacher of L_HMC distilled into a
-   CPU-size EV-MGRFlowNet, (2) the paper's per-window L_HMC (with the ramped border rule) on
-   4-frame windows. The default demo (--demo-stage hmc) runs stage 2 from the shipped stage-1
-   model (the default model) and prints the network's L_HMC as a ratio to zero flow's on the
-   same training windows: it starts below 1 and falls further within a few
-   minutes (docs/history/2026-11-22-round-07.md). --demo-stage teacher runs stage 1 from scratch
-   instead, solving the teacher inside every update (a few minutes do not yet leave zero flow
-   there). Then a quick evaluation of the demo model on the test split;
+2. a training demo that shows learning in minutes (--demo-minutes, default 4; --demo-steps, default
+   1500, whichever ends first): by default (--demo-stage scratch) a small EV-FlowNet (width 8)
+   from random weights, distilled on the teacher targets the default's recipe stores
+   (agents/campaigns/mgr-derived/targets.h5: per-window contrast maximisation of L_HMC solved once
+   on synthetic-train, no ground truth), its step size annealed along a cosine; validated on
+   synthetic-test (the first 3 windows of each sequence, 1 frame) at its start, every
+   --demo-val-every steps and at its end, against zero flow. It prints the curve and a verdict (the
+   AEE and L_HMC at the start and the end, against zero flow's), and draws demo/learning.png
+   (with the ``plots`` extra). --demo-stage teacher: the recipe's stage 1 at its own width, solving
+   the teacher inside every update; hmc: the recipe's stage 2 (L_HMC) from the shipped model,
+   which at this budget makes it worse (the ratio to zero flow rises: docs/training.md);
 3. print the commands for the full training: the teacher's targets, solved once, then both
    stages.
 
 Everything goes to --out (default runs/main): eval/ (table.md, results.json, pictures/),
-demo/ (checkpoint, metrics.jsonl) and demo-eval/. Extra scripts/train.py options for the demo
+demo/ (checkpoint, metrics.jsonl, learning.png). Extra scripts/train.py options for the demo
 follow `--`, e.g.  python scripts/main.py --demo-minutes 1 -- --num-envs 4
 """
 
@@ -64,6 +66,15 @@ TEACHER_MODEL = DEFAULT_PRETRAINED  # stage 1 (the cached-teacher run T3), shipp
 EVAL_SPLITS = ["synthetic-test", "synthetic-stress"]
 EVAL_WINDOWS = 3  # the contrast-maximisation row costs seconds per window
 TRAIN_SPLIT = "synthetic-train"  # the demo's data (TrainConfig's default)
+#: The demo from scratch: a small feedforward network on the stored targets of the default's
+#: recipe. The recurrent EV-MGRFlowNet stays near zero flow for its first thousand-odd steps at
+#: this budget; EV-FlowNet at width 8 leaves it within a few hundred (measured 2026-12-06).
+DEMO_TARGETS = str(Path(__file__).resolve().parents[2] / "agents" / "campaigns" / "mgr-derived" / "targets.h5")
+SCRATCH_DEMO = ["--loss", "teacher", "--teacher-cache", DEMO_TARGETS, "--teacher-pixels", "all",
+                "--model", "ev-flownet", "--width", "8", "--input", "voxel_grid", "--crop", "64", "64", "--random-crop",
+                "--window-size", "1", "2", "--lr", "1e-3", "--decay", "cosine", "--warmup-steps", "20",
+                "--flow-scaling", "32", "--num-envs", "8", "--unroll", "1"]
+VAL_DATA, VAL_WINDOWS = "synthetic-test", 3
 
 
 @dataclass
@@ -71,10 +82,16 @@ class MainOptions(DeviceOptions):
     """What scripts/main.py evaluates and how long its demo trains (train.py's own options for
     the demo follow ``--``)."""
 
-    demo_minutes: float = option(3.0, type=non_negative_float)
-    """length of the training demo (0: skip)"""
-    demo_stage: Literal["hmc", "teacher"] = "hmc"
-    """hmc: stage 2 (L_HMC) from the shipped stage-1 model; teacher: stage 1 from scratch"""
+    demo_minutes: float = option(4.0, type=non_negative_float)
+    """the most the training demo runs, in minutes (0: skip it)"""
+    demo_steps: int = option(1500, type=non_negative_int)
+    """the demo's Adam steps (its step size falls along a cosine over them); it stops at --demo-minutes if sooner"""
+    demo_val_every: int = option(250, type=non_negative_int)
+    """validate the demo every N steps (besides its start and end)"""
+    demo_val_data: str = VAL_DATA
+    """the split (or recording) the demo is validated on, the first 3 windows of each sequence"""
+    demo_stage: Literal["scratch", "teacher", "hmc"] = "scratch"
+    """scratch: a small EV-FlowNet from random weights on the recipe's stored teacher targets; teacher: the recipe's stage 1 from scratch, solving the teacher in every update; hmc: stage 2 (L_HMC) from the shipped model"""
     out: str = "runs/main"
     """where eval/, demo/ and demo-eval/ go"""
     eval_data: list[str] = option(default_factory=lambda: list(EVAL_SPLITS))
@@ -132,6 +149,90 @@ def prepare_data(splits: list[str]) -> None:
             load_sequence(split, index).close()
 
 
+def demo_verdict(metrics: Path, data: str = VAL_DATA) -> bool | None:
+    """Print the demo's validation curve (AEE and L_HMC against zero flow's on the same windows)
+    and whether it learned: its AEE at the end below its AEE at the start and below zero flow's.
+    None when fewer than two validations were recorded."""
+    rows = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
+    val = [r for r in rows if "val_aee_model" in r]
+    if len(val) < 2:
+        print("[main] the demo recorded fewer than two validations: no curve")
+        return None
+    print(f"[main] the demo on {data} (the first {VAL_WINDOWS} windows of each sequence, 1 frame each):")
+    print("    step   AEE px (zero flow)   L_HMC (zero flow)")
+    for r in val:
+        print(f"  {r['step']:>6}   {r['val_aee_model']:6.3f} ({r['val_aee_zero']:.3f})     "
+              f"{r['val_hmc_model']:.4f} ({r['val_hmc_zero']:.4f})")
+    first, last = val[0], val[-1]
+    aee0, aee1, zero = first["val_aee_model"], last["val_aee_model"], last["val_aee_zero"]
+    learned = aee1 < aee0 and aee1 < zero
+    print(f"  AEE {aee0:.3f} at step {first['step']} -> {aee1:.3f} at step {last['step']} "
+          f"({aee1 / zero:.2f}x zero flow's {zero:.3f}): {'below' if aee1 < aee0 else 'NOT below'} its start, "
+          f"{'below' if aee1 < zero else 'NOT below'} zero flow's; L_HMC {first['val_hmc_model']:.4f} -> "
+          f"{last['val_hmc_model']:.4f} (zero flow {last['val_hmc_zero']:.4f})")
+    return learned
+
+
+def plot_demo(metrics: Path, path: Path, data: str = VAL_DATA) -> Path | None:
+    """The demo's curves as a PNG: the training loss against zero flow's, and the validation AEE
+    and L_HMC against zero flow's (None, with a hint, without matplotlib)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("[main] (pip install -e \".[plots]\" for the demo's picture)")
+        return None
+    import io
+
+    from envs.atomic import write_atomic
+
+    rows = [json.loads(line) for line in metrics.read_text().splitlines() if line.strip()]
+    train = [r for r in rows if "loss" in r]
+    val = [r for r in rows if "val_aee_model" in r]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    zero_key = "zero_flow_teacher" if train and "zero_flow_teacher" in train[0] else "zero_flow_loss"
+    ratio = [r["loss"] / r[zero_key] for r in train if r.get(zero_key)]
+    k = max(1, len(ratio) // 50)
+    smooth = [sum(ratio[i : i + k]) / len(ratio[i : i + k]) for i in range(0, len(ratio), k)]
+    axes[0].plot([train[min(i, len(train) - 1)]["step"] for i in range(0, len(ratio), k)], smooth, color="C0")
+    axes[0].axhline(1.0, color="grey", ls="--", label="zero flow")
+    axes[0].set(title="training loss / zero flow's", xlabel="step")
+    for ax, key, title in ((axes[1], "aee", "validation AEE (px)"), (axes[2], "hmc", "validation L_HMC")):
+        steps = [r["step"] for r in val]
+        ax.plot(steps, [r[f"val_{key}_model"] for r in val], "o-", color="C1", label="the demo network")
+        ax.plot(steps, [r[f"val_{key}_zero"] for r in val], "--", color="grey", label="zero flow")
+        ax.set(title=title, xlabel="step")
+    axes[0].legend(loc="upper right")
+    axes[1].legend(loc="upper right")
+    fig.suptitle(f"the training demo, validated on {data} (first {VAL_WINDOWS} windows per sequence)")
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=90)
+    plt.close(fig)
+    return write_atomic(path, buffer.getvalue())
+
+
+def demo_recipe(args) -> tuple[list[str], str]:
+    """The train.py options of the demo stage asked for, and a line saying what it trains."""
+    stage = args.demo_stage
+    if stage == "scratch" and not Path(DEMO_TARGETS).is_file():
+        print("[main] the stored teacher targets (agents/campaigns/mgr-derived/targets.h5) are not here (a checkout "
+              "holds them): the demo solves the teacher in every update")
+        stage = "teacher"
+    if stage == "hmc" and TEACHER_MODEL not in list_pretrained():
+        print(f"[main] {TEACHER_MODEL!r} does not ship: the demo runs stage 1 from scratch instead")
+        stage = "teacher"
+    if stage == "scratch":
+        return SCRATCH_DEMO, ("a small EV-FlowNet (width 8) from random weights, distilled on the stored teacher "
+                              "targets of the default's recipe")
+    if stage == "hmc":
+        return [*HMC_STAGE, "--init", TEACHER_MODEL], (f"the recipe's stage 2 (per-window L_HMC) from the shipped "
+                                                       f"model {TEACHER_MODEL!r}")
+    return RECIPE, "the recipe's stage 1 (teacher solved in every update) from scratch"
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     cut = argv.index("--") if "--" in argv else len(argv)
@@ -141,44 +242,40 @@ def main(argv=None) -> int:
     out = Path(args.out)
     device = ["--device", args.device]
     print("[main] 0/3 preparing the synthetic data this job uses (simulated once, then read from the cache)", flush=True)
-    prepare_data([*args.eval_data, TRAIN_SPLIT] if args.demo_minutes > 0 else list(args.eval_data))
+    prepare_data([*args.eval_data, TRAIN_SPLIT, args.demo_val_data] if args.demo_minutes > 0 else list(args.eval_data))
 
     windows = ["--max-windows", str(args.eval_windows)] if args.eval_windows else []
     rows = [] if args.no_cmax else ["--cmax"]
     for data in args.eval_data:
         name = Path(data).name
+        per_seq = f"the first {args.eval_windows} windows of each sequence" if args.eval_windows else "every window"
         if DEFAULT_PRETRAINED in list_pretrained():
             info = pretrained_info(DEFAULT_PRETRAINED)
-            trained = info.get("budget", {}).get("optimizer_steps") or info.get("steps")  # a campaign's export: its step
-            print(f"\n[main] 1/3 evaluating the shipped model {DEFAULT_PRETRAINED!r} ({info.get('date')}, "
-                  f"{trained} steps), alone and once per interval, zero flow"
-                  f"{'' if args.no_cmax else ' and contrast maximisation'} on {data}", flush=True)
-            rows_here = ["--pretrained", DEFAULT_PRETRAINED, "--split", "dt", "--zero", *rows]
+            print(f"\n[main] 1/3 evaluating the default model {DEFAULT_PRETRAINED!r} ({info.get('date')}) in its mode "
+                  f"(the network's proposal finished by a short solve) and alone, zero flow"
+                  f"{'' if args.no_cmax else ' and contrast maximisation (no network)'} on {data}, {per_seq}",
+                  flush=True)
+            rows_here = ["--pretrained", "--zero", *rows]
         else:
             print(f"\n[main] 1/3 no pretrained model ships in agents/weights/: zero flow on {data}", flush=True)
             rows_here = ["--zero", *rows]
         evaluate_command.main([*rows_here, "--data", data, *windows, "--out", str(out / "eval" / name),
-                              "--no-progress", "--overwrite", *device])  # the job owns its --out: a rerun replaces it
+                              "--overwrite", *device])  # the job owns its --out: a rerun replaces it
 
     if args.demo_minutes > 0:
-        stage = args.demo_stage
-        if stage == "hmc" and TEACHER_MODEL not in list_pretrained():
-            print(f"[main] {TEACHER_MODEL!r} does not ship: the demo runs stage 1 from scratch instead")
-            stage = "teacher"
-        if stage == "hmc":
-            print(f"\n[main] 2/3 training demo: {args.demo_minutes:g} min of the recipe's stage 2 (per-window L_HMC) "
-                  f"from the shipped stage-1 model {TEACHER_MODEL!r}", flush=True)
-            recipe = [*HMC_STAGE, "--init", TEACHER_MODEL]
-        else:
-            print(f"\n[main] 2/3 training demo: {args.demo_minutes:g} min of the recipe's stage 1 (teacher) from scratch",
-                  flush=True)
-            recipe = RECIPE
-        train_command.main([*recipe, "--minutes", str(args.demo_minutes), "--steps", "1000000",
-                           "--out", str(out / "demo"), "--val-data", "", "--no-progress", "--overwrite", *device, *extra])
+        recipe, what = demo_recipe(args)
+        print(f"\n[main] 2/3 training demo: {what}; {args.demo_steps} steps or {args.demo_minutes:g} min, "
+              f"whichever ends first, validated on {args.demo_val_data} at the start and every {args.demo_val_every} "
+              "steps", flush=True)
+        val = ["--val-data", args.demo_val_data, "--val-windows", str(VAL_WINDOWS), "--val-start",
+               "--val-every", str(args.demo_val_every)]
+        train_command.main([*recipe, "--minutes", str(args.demo_minutes), "--steps", str(args.demo_steps), *val,
+                           "--out", str(out / "demo"), "--overwrite", *device, *extra])
         demo_summary(out / "demo" / "metrics.jsonl")
-        evaluate_command.main(["--checkpoint", str(out / "demo" / "checkpoint.pt"), "--name", "demo model", "--zero",
-                              "--data", args.eval_data[0], "--window-size", "1", "4", "--max-windows", "15", "--pictures", "0",
-                              "--out", str(out / "demo-eval"), "--no-progress", "--overwrite", *device])
+        demo_verdict(out / "demo" / "metrics.jsonl", args.demo_val_data)
+        picture = plot_demo(out / "demo" / "metrics.jsonl", out / "demo" / "learning.png", args.demo_val_data)
+        if picture:
+            print(f"[main] the demo's curves: {picture}")
 
     print("\n[main] 3/3 the full training of the recipe (resumable; --device cuda on a GPU):")
     print("  targets:  python scripts/teacher_targets.py " + " ".join(TARGETS) + "    # once, ~25 min on 2 cores")

@@ -99,6 +99,8 @@ class RunOptions(Progress):
     """save the checkpoint every N steps"""
     val_every: int = option(0, type=non_negative_int)
     """validate every N steps (0: only at the end)"""
+    val_start: bool = False
+    """also validate the initial weights before the first update (the curve then starts where the training did)"""
     val_data: str = "synthetic-mini"
     """held-out data for validation ('' to skip)"""
     val_windows: int = option(20, type=positive_int)
@@ -139,14 +141,14 @@ def validate(learner: Learner, data: str, windows: int) -> dict:
     val_crop = None if learner.cfg.random_crop else learner.cfg.crop  # random crops: whole frames
     options = dict(crop=val_crop, max_windows=windows, progress=False, flow_scaling=learner.flow_scaling,
                    shard=(learner.rank, learner.world), data_options=data_options(learner.cfg))
-    named = {"model": evaluate(policy, data, **options), "zero": evaluate(None, data, **options)}
-    keys = [(name, key) for name in named for key in ("hmc", "aee")]
-    sums = [value for name, key in keys for value in (sum(r.sums[key] for r in named[name]),
-                                                      sum(r.counts[key] for r in named[name]))]
+    # zero flow's L_HMC comes with the model's (the same windows); its own run takes its AEE only
+    model, zero = evaluate(policy, data, measures=("loss",), **options), evaluate(None, data, measures=(), **options)
+    keys = [("model", "hmc", model), ("model", "aee", model), ("zero", "hmc_zero", model), ("zero", "aee", zero)]
+    sums = [value for _, key, rows in keys for value in (sum(r.sums[key] for r in rows), sum(r.counts[key] for r in rows))]
     if learner.world > 1:
         sums = all_reduce_sums(sums, learner.device)
-    return {f"val_{key}_{name}": sums[2 * i] / sums[2 * i + 1] if sums[2 * i + 1] else float("nan")
-            for i, (name, key) in enumerate(keys)}
+    return {f"val_{key.removesuffix('_zero')}_{name}": sums[2 * i] / sums[2 * i + 1] if sums[2 * i + 1] else float("nan")
+            for i, (name, key, _) in enumerate(keys)}
 
 
 def log_validation(board: TensorBoardLog, learner: Learner, data: str, val: dict) -> None:
@@ -551,6 +553,9 @@ def _main(args, argv) -> int:
     start, first_step = time.time(), learner.step
     signalled = False  # stopped by a signal on any rank (agreed by all)
     validated = None  # the step the last validation scored
+    if args.val_start and args.val_data and learner.step < cfg.steps:
+        record.validate(record.bar.write)
+        validated = learner.step
     try:
         while learner.step < cfg.steps:
             stats = learner.update()
