@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 
@@ -184,45 +185,71 @@ def animation_path(path: str | os.PathLike) -> Path:
     return path
 
 
-def save_animation(path: str | os.PathLike, frames: list[np.ndarray], fps: float = 10.0) -> Path:
+def _padded(frame: np.ndarray, h: int, w: int) -> np.ndarray:
+    """``frame`` (H, W, 3+) on a white (h, w) canvas, top-left aligned (cut where larger)."""
+    canvas = np.full((h, w, 3), 255, np.uint8)
+    fh, fw = min(h, frame.shape[0]), min(w, frame.shape[1])
+    canvas[:fh, :fw] = frame[:fh, :fw, :3]
+    return canvas
+
+
+def _palette(samples: list):
+    """One palette of 256 colours for a GIF, chosen (median cut) from ``samples`` (PIL images)."""
+    from PIL import Image
+
+    sheet = Image.new("RGB", (max(i.width for i in samples), sum(i.height for i in samples)), (255, 255, 255))
+    top = 0
+    for image in samples:
+        sheet.paste(image, (0, top))
+        top += image.height
+    return sheet.quantize(colors=256, method=Image.Quantize.MEDIANCUT)
+
+
+def save_animation(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: float = 10.0) -> Path:
     """Write (H, W, 3) uint8 frames as an animation through a temporary file.
 
-    ``.gif``: Pillow (always available with the ``test``/``plots`` extras). ``.mp4``: through
-    ``imageio`` with its ffmpeg plugin; when that is not installed the frames go to a GIF beside
-    it instead (same stem) and that path is returned. Frames of different sizes are padded
-    with white to the largest.
+    ``.gif``: Pillow (always available with the ``test``/``plots`` extras), every frame dithered
+    (Floyd-Steinberg) onto one shared palette of 256 colours, so that a colour wheel's smooth hues
+    do not break into bands nor a colour flicker from frame to frame (a palette per frame does
+    both); ``.png`` / ``.apng``: an animated PNG (lossless, larger). ``.mp4``: through ``imageio``
+    with its ffmpeg plugin; when that is not installed the frames go to a GIF beside it instead
+    (same stem) and that path is returned. A list of frames of different sizes is padded with
+    white to the largest, its palette chosen from 16 frames spread over it; frames given as an
+    iterator (a GIF then holds one frame at a time as RGB) take the first frame's size and palette.
     """
     from PIL import Image
 
-    if not frames:
+    lazy = not isinstance(frames, (list, tuple))
+    frames = iter(frames) if lazy else list(frames)
+    first = next(frames, None) if lazy else (frames[0] if frames else None)
+    if first is None:
         raise ValueError(f"{path}: no frames to write")
-    path = Path(path)
-    h = max(f.shape[0] for f in frames)
-    w = max(f.shape[1] for f in frames)
-    padded = []
-    for f in frames:
-        canvas = np.full((h, w, 3), 255, np.uint8)
-        canvas[: f.shape[0], : f.shape[1]] = f[..., :3]
-        padded.append(canvas)
-    path = animation_path(path)
+    if lazy:
+        h, w = first.shape[:2]
+        rest = (_padded(f, h, w) for f in frames)
+    else:
+        h, w = max(f.shape[0] for f in frames), max(f.shape[1] for f in frames)
+        rest = (_padded(f, h, w) for f in frames[1:])
+    path = animation_path(Path(path))
     path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix.lower() == ".mp4":
-        import imageio.v3 as iio
-
-        tmp = path.with_name(f"{path.stem}.tmp-{os.getpid()}{path.suffix}")
-        try:
-            # even sizes for yuv420p
-            even = [f[: h - h % 2, : w - w % 2] for f in padded]
-            iio.imwrite(tmp, np.stack(even), fps=fps, codec="libx264")
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
-        return path
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    tmp = path.with_name(f"{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    duration = int(round(1000 / fps))
     try:
-        images = [Image.fromarray(f) for f in padded]
-        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
-                       duration=int(round(1000 / fps)), loop=0)
+        head = _padded(first, h, w)
+        if path.suffix.lower() == ".mp4":
+            import imageio.v3 as iio
+
+            even = [f[: h - h % 2, : w - w % 2] for f in (head, *rest)]  # even sizes for yuv420p
+            iio.imwrite(tmp, np.stack(even), fps=fps, codec="libx264")
+        elif path.suffix.lower() in (".png", ".apng"):  # animated PNG: lossless, no palette
+            images = [Image.fromarray(f) for f in (head, *rest)]
+            images[0].save(tmp, format="PNG", save_all=True, append_images=images[1:], duration=duration, loop=0)
+        else:
+            samples = [head] if lazy else [_padded(f, h, w) for f in frames[:: max(1, len(frames) // 16)]]
+            palette = _palette([Image.fromarray(f) for f in samples])
+            dither = lambda f: Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.FLOYDSTEINBERG)  # noqa: E731
+            images = [dither(head), *(dither(f) for f in rest)]
+            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)

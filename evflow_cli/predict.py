@@ -129,19 +129,21 @@ def load_policy(model: str | None = None, *, device: str = "cpu", width: str | i
 
 def _open_sequence(policy: FlowPolicy, recording, sequence: int | str, *, window, window_size, crop, data_format,
                    data_options) -> tuple[EventFlowEnv, int]:
-    """The env over ``recording`` with ``policy``'s inputs, and the index of ``sequence`` in it
-    (ValueError naming the recording's sequences when there is none such)."""
-    env = EventFlowEnv(str(recording), data_format=data_format, data_options=data_options, window=window,
-                       window_size=window_size, crop=crop, compute_reward=False, **observation_options(policy))
-    names = env.sequence_names
+    """The env over ``sequence`` of ``recording`` alone, with ``policy``'s inputs, and its index in
+    that env (0): the other recordings of a folder or split may have other sensor sizes.
+    ValueError naming the recording's sequences when there is none such."""
+    from envs.dataset import resolve_data
+
+    names = [source.name for source in resolve_data(str(recording), format=data_format, options=data_options)]
     if isinstance(sequence, str) and sequence not in names:
-        env.close()
         raise ValueError(f"sequence {sequence!r} is not in {recording}; its sequences: {names}")
     index = names.index(sequence) if isinstance(sequence, str) else int(sequence)
     if not 0 <= index < len(names):
-        env.close()
         raise ValueError(f"sequence {index} outside [0, {len(names)}) for {recording}")
-    return env, index
+    env = EventFlowEnv(str(recording), data_format=data_format, data_options=data_options, window=window,
+                       window_size=window_size, crop=crop, compute_reward=False, sequences=[index],
+                       **observation_options(policy))
+    return env, 0
 
 
 def _windows(env: EventFlowEnv, reader, recording, window: str, start_s, end_s,
@@ -204,30 +206,77 @@ class _FlowFile:
             self.f.create_dataset(f"metrics/{key}", data=values.astype(np.float32))
 
 
-def _preview(count: np.ndarray, flow: np.ndarray, t_start: int, t_end: int, max_width: int,
-             arrows: bool = False) -> np.ndarray:
-    """One preview frame: the events, the colour-coded flow, the same flow on the pixels with
-    events only (where it can be read), and the colour wheel whose rim gives the scale; with
-    ``arrows``, sparse arrows over the flow at the events. Tiles nearest-subsampled to at most
-    ``max_width`` pixels wide (a subsampled pixel holds events when any pixel it stands for does).
+#: the widest a preview tile is by default (a sensor wider than this is shown subsampled)
+PREVIEW_WIDTH = 640
 
-    count: (2, H, W) ON / OFF counts; flow: (2, H, W) pixels over the window [t_start, t_end) µs."""
-    step = max(1, math.ceil(count.shape[-1] / max_width))
-    h, w = count.shape[-2:]
-    padded = np.zeros((-(-h // step) * step, -(-w // step) * step), bool)
-    padded[:h, :w] = count.sum(axis=0) > 0
-    events = padded.reshape(padded.shape[0] // step, step, padded.shape[1] // step, step).any(axis=(1, 3))
-    count, flow = count[:, ::step, ::step], flow[:, ::step, ::step]
-    magnitude = np.hypot(flow[0], flow[1])[events]  # the scale of the flow people read: at the events
-    scale = max(float(np.percentile(magnitude, 99)) if magnitude.size else 1.0, 1e-3)
+
+def _preview(item: dict, scale: float, t0: int, arrows: bool = False) -> np.ndarray:
+    """One preview frame (an item of :class:`_Preview`): the events, the colour-coded flow, the
+    same flow on the pixels with events only (where it can be read), the ground truth where the
+    recording has it, and the colour wheel, whose rim is ``scale`` pixels in every frame; with
+    ``arrows``, sparse arrows over the flow at the events. Times from the recording's start ``t0``."""
+    count, flow, events = item["count"], item["flow"].astype(np.float32), item["events"]
     colours = flow_to_rgb(flow, scale)
     at_events = np.where(events[..., None], colours, np.uint8(255))
     if arrows:
         at_events = flow_arrows(at_events, flow, events, spacing=max(8, at_events.shape[1] // 16))
-    legend = flow_legend(min(64, max(count.shape[-2:])))
-    caption = f"{t_start / 1e6:.3f}-{t_end / 1e6:.3f} s, flow in pixels over the window"
-    return panel([("events", count_image_to_rgb(count)), ("flow", colours), ("flow at events", at_events),
-                  (f"colours: rim {scale:.2f} px", legend)], caption)
+    tiles = [("events", count), ("flow", colours), ("flow at events", at_events)]
+    if item.get("gt") is not None:
+        truth = np.where(item["valid"][..., None], flow_to_rgb(item["gt"].astype(np.float32), scale), np.uint8(255))
+        tiles.append(("ground truth", truth))
+    tiles.append((f"rim {scale:.2f} px", flow_legend(min(64, max(count.shape[:2])))))
+    return panel(tiles, preview_caption(item["t_start"], item["t_end"], t0))
+
+
+def preview_caption(t_start: int, t_end: int, t0: int) -> str:
+    """A preview frame's caption: the window in seconds from the recording's start ``t0`` (µs)."""
+    return (f"{(t_start - t0) / 1e6:.3f}-{(t_end - t0) / 1e6:.3f} s from the recording's start; flow in pixels over "
+            "the window, one colour scale for the whole preview")
+
+
+class _Preview:
+    """The preview: at most ``frames`` windows spread evenly over ``windows``, kept subsampled to
+    at most ``width`` pixels wide while the run goes (a subsampled pixel holds events when any
+    pixel it stands for does) and drawn at its end on one colour scale, ``flow_max`` pixels at
+    the wheel's rim, by default the 99th percentile of the flow's magnitude at the events over
+    all of them: a colour is the same speed in every frame."""
+
+    def __init__(self, windows: int, frames: int, width: int | None, arrows: bool, t0: int,
+                 flow_max: float | None = None) -> None:
+        self.at = set(np.linspace(0, windows - 1, min(frames, windows)).astype(int).tolist())
+        self.width, self.arrows, self.t0, self.flow_max = width or PREVIEW_WIDTH, arrows, t0, flow_max
+        self.items: list[dict] = []
+
+    def add(self, step: WindowStep) -> None:
+        if step.index not in self.at:
+            return
+        count = step.obs["count_image"]
+        s = max(1, math.ceil(count.shape[-1] / self.width))
+        h, w = count.shape[-2:]
+        padded = np.zeros((-(-h // s) * s, -(-w // s) * s), bool)
+        padded[:h, :w] = count.sum(axis=0) > 0
+        events = padded.reshape(padded.shape[0] // s, s, padded.shape[1] // s, s).any(axis=(1, 3))
+        gt = step.window.flow_gt
+        self.items.append({"count": count_image_to_rgb(count[:, ::s, ::s]),
+                           "flow": step.flow[:, ::s, ::s].astype(np.float16),
+                           "events": events, "gt": None if gt is None else gt[:, ::s, ::s].astype(np.float16),
+                           "valid": None if gt is None else step.window.flow_gt_valid[::s, ::s],
+                           "t_start": int(step.window.t_start), "t_end": int(step.window.t_end)})
+
+    def scale(self) -> float:
+        """The colour wheel's rim in pixels: ``flow_max``, or the 99th percentile of the flow's
+        magnitude at the events of every kept window (1 px when there are none)."""
+        if self.flow_max:
+            return float(self.flow_max)
+        at = [np.hypot(*item["flow"].astype(np.float32))[item["events"]] for item in self.items]
+        magnitudes = np.concatenate(at) if at else np.zeros(0)
+        return max(float(np.percentile(magnitudes, 99)) if magnitudes.size else 1.0, 1e-3)
+
+    def frames(self):
+        """The frames, drawn one at a time (each item is let go once drawn)."""
+        scale = self.scale()
+        while self.items:
+            yield _preview(self.items.pop(0), scale, self.t0, self.arrows)
 
 
 def predict(
@@ -247,8 +296,9 @@ def predict(
     video: str | os.PathLike | None = None,
     video_fps: float = 10.0,
     video_frames: int = 150,
-    video_width: int = 320,
+    video_width: int | None = None,
     video_arrows: bool = False,
+    flow_max: float | None = None,
     provenance: dict | None = None,
     no_gt_window_us: int = 33_333,
     progress: bool = True,
@@ -261,10 +311,12 @@ def predict(
     window, window_size: as in the env (frames: grid steps, default 1; time: µs, default 10 000;
     count: events, default 15 000). start_s, end_s: only windows inside [start_s, end_s), in
     seconds from the recording's start (None: its start / end). crop: as in the env. video: path of the preview
-    (``.gif``, or ``.mp4`` where a codec is installed), None for none; at most ``video_frames``
-    windows spread evenly over the run, each tile at most ``video_width`` pixels wide: events,
-    flow, flow at the events and the colour wheel with its scale (``video_arrows``: sparse
-    arrows over the flow at the events).
+    (``.gif``, ``.png`` for an animated PNG, or ``.mp4`` where a codec is installed), None for
+    none; at most ``video_frames`` windows spread evenly over the run, each tile the sensor's size
+    up to ``video_width`` pixels wide (default 640): events, flow, flow at the events, the ground
+    truth where there is one, and the colour wheel, its rim ``flow_max`` pixels in every frame
+    (default: the 99th percentile of the flow's magnitude at the events over the frames shown);
+    ``video_arrows``: sparse arrows over the flow at the events.
     sequence: which recording when ``recording`` names several (a folder, a synthetic split).
     overwrite: replace an existing ``out_path`` (refused otherwise, and always when it is the
     recording itself), as ``scripts/convert.py`` does.
@@ -281,13 +333,14 @@ def predict(
             reader = env.sources[index].reader()
             bounds, mode, size = _windows(env, reader, recording, window, start_s, end_s, no_gt_window_us)
             attributes = _file_attributes(recording, reader, (env.height, env.width), mode, size, provenance, split)
-            preview = _Preview(len(bounds), video_frames, video_width, video_arrows) if video_out else None
+            preview = (_Preview(len(bounds), video_frames, video_width, video_arrows, reader.t_start, flow_max)
+                       if video_out else None)
             result = _run(SubWindowPolicy(policy, int(split)), env, {"sequence": index, "windows": bounds}, flow_out,
                           attributes, per_event=per_event, compression=compression, progress=progress, preview=preview)
         finally:  # an exception (KeyboardInterrupt included) discards the temporary: nothing under the final name
             env.close()
-        if preview is not None and preview.frames:
-            result.video = save_animation(video_out.path, preview.frames, video_fps)
+        if preview is not None and preview.items:
+            result.video = save_animation(video_out.path, preview.frames(), video_fps)
         flow_out.commit()
         return result
 
@@ -319,21 +372,6 @@ def _file_attributes(recording, reader, sensor_size: tuple[int, int], mode: str,
                 reader=type(reader).__name__, window=mode, window_size=size,
                 model=json.dumps(provenance or {}, default=str), split=int(split),
                 units="flow: pixels of displacement over the window, channel 0 = x (right), 1 = y (down)")
-
-
-class _Preview:
-    """The preview's frames: at most ``frames`` windows spread evenly over ``windows``
-    (:func:`_preview` of each)."""
-
-    def __init__(self, windows: int, frames: int, width: int, arrows: bool) -> None:
-        self.at = set(np.linspace(0, windows - 1, min(frames, windows)).astype(int).tolist())
-        self.width, self.arrows = width, arrows
-        self.frames: list[np.ndarray] = []
-
-    def add(self, step: WindowStep) -> None:
-        if step.index in self.at:
-            self.frames.append(_preview(step.obs["count_image"], step.flow, step.window.t_start, step.window.t_end,
-                                        self.width, arrows=self.arrows))
 
 
 def _run(actor: FlowPolicy, env: EventFlowEnv, options: dict, flow_out: Output, attributes: dict, *, per_event: bool,

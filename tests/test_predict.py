@@ -199,3 +199,53 @@ def test_predict_without_a_model_runs_the_default_in_its_mode(tmp_path, monkeypa
     assert split == 2 and provenance["default"]["split"] == 2 and provenance["default"]["mode"] == "split dt"
     assert run("named", "--model", pretrained.DEFAULT_PRETRAINED)[0] == 1
     assert run("given", "--split", "3")[0] == 3
+
+
+def _step(index: int, flow: np.ndarray, gt: np.ndarray | None = None):
+    """A stand-in for a rollout's step: what the preview reads of it."""
+    from types import SimpleNamespace
+
+    h, w = flow.shape[1:]
+    count = np.zeros((2, h, w), np.float32)
+    count[0, ::2, ::2] = 1.0  # events on every other pixel
+    window = SimpleNamespace(t_start=1_000_000 + 10_000 * index, t_end=1_010_000 + 10_000 * index, flow_gt=gt,
+                             flow_gt_valid=None if gt is None else np.ones((h, w), bool))
+    return SimpleNamespace(index=index, obs={"count_image": count}, flow=flow, window=window)
+
+
+def test_the_preview_has_one_colour_scale_times_from_the_start_and_the_truth_where_there_is_one():
+    from evflow_cli.predict import _Preview, preview_caption
+
+    slow, fast = np.full((2, 32, 48), 1.0, np.float32), np.full((2, 32, 48), 6.0, np.float32)
+    preview = _Preview(2, 10, None, False, t0=1_000_000)
+    preview.add(_step(0, slow))
+    preview.add(_step(1, fast, gt=fast))
+    assert preview.scale() == pytest.approx(np.hypot(6.0, 6.0))  # the 99th percentile over both windows
+    assert _Preview(2, 10, None, False, t0=0, flow_max=3.0).scale() == 3.0
+    first, second = list(preview.frames())
+    assert second.shape[1] > first.shape[1]  # the ground-truth tile, where the window has one
+    assert preview.items == []  # each frame's data let go once drawn
+    assert preview_caption(1_010_000, 1_020_000, 1_000_000).startswith("0.010-0.020 s from the recording's start")
+
+
+def test_a_gif_shares_one_dithered_palette_and_keeps_the_colours(tmp_path):
+    """A colour wheel's hues written to a GIF: every frame on the same palette, and the colours
+    of 8 x 8 blocks within a few levels of the original's (dithering keeps local means; a coarse
+    per-frame palette bands them)."""
+    from PIL import Image
+
+    from envs.visualize import flow_legend, save_animation
+
+    wheel = flow_legend(128)
+    frames = [wheel, np.ascontiguousarray(wheel[::-1])]
+    path = save_animation(tmp_path / "wheel.gif", iter(frames), fps=5)
+    with Image.open(path) as gif:
+        palettes, decoded = [], []
+        for k in range(gif.n_frames):
+            gif.seek(k)
+            palettes.append(gif.getpalette())
+            decoded.append(np.asarray(gif.convert("RGB"), np.float32))
+    assert len(decoded) == 2 and palettes[1] in (None, palettes[0])  # None: no palette of its own, the file's
+    for original, back in zip(frames, decoded):
+        blocks = lambda a: a[:128, :128].reshape(16, 8, 16, 8, 3).mean(axis=(1, 3))  # noqa: E731
+        assert np.abs(blocks(original.astype(np.float32)) - blocks(back)).mean() < 3.0

@@ -67,13 +67,17 @@ class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progr
     out: str | None = None
     """flow h5 to write (default: runs/predict/<recording>.flow.h5)"""
     video: str | None = None
-    """preview path, .gif or .mp4 (default: beside --out, .gif)"""
+    """preview path: .gif (one dithered palette), .png (animated PNG, lossless) or .mp4 (with imageio-ffmpeg); default: beside --out, .gif"""
     no_video: bool = False
     """no preview"""
     overwrite: bool = False
     """replace --out, --video and --json if they exist (never the recording itself)"""
     video_frames: int = option(150, type=positive_int)
     """windows shown, spread over the run"""
+    video_width: int | None = option(None, type=positive_int)
+    """the widest a preview tile is, in pixels (default: the sensor's width up to 640)"""
+    flow_max: float | None = option(None, type=positive_float)
+    """the preview's colour scale: pixels of flow at the colour wheel's rim, the same in every frame (default: the 99th percentile of the flow at the events over the frames shown)"""
     fps: float = option(10.0, type=positive_float)
     """frames per second of the preview"""
     arrows: bool = False
@@ -138,6 +142,7 @@ def main(argv=None) -> int:  # opens as the other commands do: parse, then set t
             end_s=args.end, crop=args.crop, sequence=sequence, data_format=args.format, per_event=args.per_event,
             data_options=args.data_options() or None,
             video=video, video_fps=args.fps, video_frames=args.video_frames, video_arrows=args.arrows, provenance=provenance,
+            video_width=args.video_width, flow_max=args.flow_max,
             no_gt_window_us=args.no_gt_window, progress=not args.no_progress, overwrite=args.overwrite, split=split,
         )
         name = provenance.get("name") or provenance.get("path") or "model"
