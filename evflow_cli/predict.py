@@ -71,7 +71,9 @@ PER_WINDOW = ("hmc", "hmc_zero", "fwl", "rsat", "aee", "outlier_pct", "aee_zero"
 class PredictResult:
     """What :func:`predict` wrote and measured.
 
-    per_window: {metric: (K,) float64} (NaN where not defined); seconds: wall time of the loop.
+    per_window: {metric: (K,) float64} (NaN where not defined or not scored); seconds: wall time
+    of the loop; stages: its seconds by stage ("input": reading the window and building the
+    network's input, "flow": the policy, finish included, "metrics", "writing", "preview").
     """
 
     path: Path
@@ -80,6 +82,19 @@ class PredictResult:
     events: int
     seconds: float
     per_window: dict[str, np.ndarray] = field(default_factory=dict)
+    stages: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def scored(self) -> int:
+        """How many windows the metrics were taken on."""
+        values = self.per_window.get("hmc")
+        return 0 if values is None else int(np.isfinite(values).sum())
+
+    def where_the_time_goes(self) -> str:
+        """One line: milliseconds per window by stage (metrics per scored window too)."""
+        n = max(self.windows, 1)
+        parts = [f"{name} {1e3 * sec / n:.0f}" for name, sec in self.stages.items()]
+        return f"ms per window: {', '.join(parts)} (of {1e3 * self.seconds / n:.0f})"
 
     def mean(self, key: str) -> float:
         values = self.per_window[key]
@@ -305,6 +320,7 @@ def predict(
     compression: int = 4,
     overwrite: bool = False,
     split: int = 1,
+    score_windows: int | None = 100,
 ) -> PredictResult:
     """Run ``policy`` over every window of ``recording`` and write the flows (module docstring).
 
@@ -323,6 +339,9 @@ def predict(
     split: step the network through this many equal sub-windows of every window and compose
     their flows (``agents.wrappers.subwindows``; for windows longer than the network's usual step).
     policy: any flow policy (``agents.policy.FlowPolicy``), rolled by ``agents.rollout.rollout``.
+    score_windows: the per-window metrics (L_HMC, zero flow's, FWL, RSAT, AEE) are taken on this
+    many windows spread evenly over the run (None: every window; 0: none); on a large sensor they
+    cost more than the network (``PredictResult.where_the_time_goes``).
     """
     _check_options(window, split)
     with contextlib.ExitStack() as claims:  # every output claimed before any work (envs.outputs)
@@ -335,14 +354,26 @@ def predict(
             attributes = _file_attributes(recording, reader, (env.height, env.width), mode, size, provenance, split)
             preview = (_Preview(len(bounds), video_frames, video_width, video_arrows, reader.t_start, flow_max)
                        if video_out else None)
+            scored = _spread(len(bounds), score_windows)
             result = _run(SubWindowPolicy(policy, int(split)), env, {"sequence": index, "windows": bounds}, flow_out,
-                          attributes, per_event=per_event, compression=compression, progress=progress, preview=preview)
+                          attributes, per_event=per_event, compression=compression, progress=progress, preview=preview,
+                          scored=scored)
         finally:  # an exception (KeyboardInterrupt included) discards the temporary: nothing under the final name
             env.close()
         if preview is not None and preview.items:
+            began = time.perf_counter()
             result.video = save_animation(video_out.path, preview.frames(), video_fps)
+            result.stages["preview"] += time.perf_counter() - began
+            result.seconds += time.perf_counter() - began
         flow_out.commit()
         return result
+
+
+def _spread(windows: int, count: int | None) -> set[int]:
+    """``count`` window indices spread evenly over ``windows`` (None: all of them)."""
+    if count is None or count >= windows:
+        return set(range(windows))
+    return set(np.linspace(0, windows - 1, count).round().astype(int).tolist()) if count > 0 else set()
 
 
 def _check_options(window: str, split: int) -> None:
@@ -375,12 +406,13 @@ def _file_attributes(recording, reader, sensor_size: tuple[int, int], mode: str,
 
 
 def _run(actor: FlowPolicy, env: EventFlowEnv, options: dict, flow_out: Output, attributes: dict, *, per_event: bool,
-         compression: int, progress: bool, preview: _Preview | None) -> PredictResult:
+         compression: int, progress: bool, preview: _Preview | None, scored: set[int]) -> PredictResult:
     """Roll ``actor`` through the windows ``options`` give (``env.reset`` options), write their
-    flows to ``flow_out``'s temporary file (with ``attributes``), score each window and add the
-    preview's frames. Returns the result, without its video."""
+    flows to ``flow_out``'s temporary file (with ``attributes``), score the windows of ``scored``
+    and add the preview's frames. Returns the result, without its video, with the time by stage."""
     bounds = options["windows"]
     per_window = {key: np.full(len(bounds), np.nan) for key in PER_WINDOW}
+    stages = dict.fromkeys(("input", "flow", "metrics", "writing", "preview"), 0.0)
     bar = tqdm(total=len(bounds), desc=f"predict {env.sequence_names[options['sequence']]}", unit="win",
                disable=not progress)
     t0 = time.perf_counter()
@@ -388,19 +420,33 @@ def _run(actor: FlowPolicy, env: EventFlowEnv, options: dict, flow_out: Output, 
         with h5py.File(flow_out.temporary, "w") as f:
             f.attrs.update(attributes)
             flows = _FlowFile(f, bounds, (env.height, env.width), per_event=per_event, compression=compression)
+            mark = time.perf_counter()
             for step in rollout(actor, env, options=options):
+                now = time.perf_counter()  # the generator's time since the last step: the input, then the flow
+                stages["flow"] += step.seconds
+                stages["input"] += now - mark - step.seconds
+                mark = now
                 if step.index == 0:
                     f.attrs["crop"] = step.info["crop"]  # where the env's frame sits in the sensor
-                flows.write(step.index, step.flow, step.window)
-                _score_window(per_window, step, env)
+                mark = _timed(stages, "writing", mark, flows.write, step.index, step.flow, step.window)
+                if step.index in scored:
+                    mark = _timed(stages, "metrics", mark, _score_window, per_window, step, env)
                 if preview is not None:
-                    preview.add(step)
+                    mark = _timed(stages, "preview", mark, preview.add, step)
                 bar.update(1)
             flows.finish(per_window)
         seconds = time.perf_counter() - t0
     finally:
         bar.close()
-    return PredictResult(flow_out.path, None, len(bounds), flows.events, seconds, per_window)
+    return PredictResult(flow_out.path, None, len(bounds), flows.events, seconds, per_window, stages)
+
+
+def _timed(stages: dict, stage: str, since: float, fn, *args) -> float:
+    """Call ``fn(*args)``, add the time since ``since`` to ``stages[stage]``; the time now."""
+    fn(*args)
+    now = time.perf_counter()
+    stages[stage] += now - since
+    return now
 
 
 def _score_window(per_window: dict, step: WindowStep, env: EventFlowEnv) -> None:
@@ -432,12 +478,14 @@ def summary_table(result: PredictResult, name: str = "model") -> str:
     zero flow, which scores 1 on both."""
     m = result.mean
     truth = math.isfinite(m("aee"))
+    scored = f"{result.scored} of {result.windows}"
     lines = [
-        "| | windows | L_HMC | FWL (higher better) | RSAT (lower better) |" + (" AEE | % outliers |" if truth else ""),
+        "| | windows scored | L_HMC | FWL (higher better) | RSAT (lower better) |"
+        + (" AEE | % outliers |" if truth else ""),
         "|---|---|---|---|---|" + ("---|---|" if truth else ""),
-        f"| {name} | {result.windows} | {_fmt(m('hmc'))} | {_fmt(m('fwl'))} | {_fmt(m('rsat'))} |"
+        f"| {name} | {scored} | {_fmt(m('hmc'))} | {_fmt(m('fwl'))} | {_fmt(m('rsat'))} |"
         + (f" {_fmt(m('aee'), 3)} | {_fmt(m('outlier_pct'), 2)} |" if truth else ""),
-        f"| zero flow | {result.windows} | {_fmt(m('hmc_zero'))} | 1.0000 | 1.0000 |"
+        f"| zero flow | {scored} | {_fmt(m('hmc_zero'))} | 1.0000 | 1.0000 |"
         + (f" {_fmt(m('aee_zero'), 3)} | - |" if truth else ""),
     ]
     return "\n".join(lines)
@@ -446,5 +494,6 @@ def summary_table(result: PredictResult, name: str = "model") -> str:
 def summary_dict(result: PredictResult) -> dict[str, Any]:
     """The means of :func:`summary_table` as a JSON-ready dict (NaN -> None)."""
     clean = lambda v: v if math.isfinite(v) else None  # noqa: E731
-    return {"windows": result.windows, "events": result.events, "seconds": result.seconds,
+    return {"windows": result.windows, "windows_scored": result.scored, "events": result.events,
+            "seconds": result.seconds, "seconds_by_stage": result.stages,
             **{key: clean(result.mean(key)) for key in PER_WINDOW}}

@@ -249,3 +249,21 @@ def test_a_gif_shares_one_dithered_palette_and_keeps_the_colours(tmp_path):
     for original, back in zip(frames, decoded):
         blocks = lambda a: a[:128, :128].reshape(16, 8, 16, 8, 3).mean(axis=(1, 3))  # noqa: E731
         assert np.abs(blocks(original.astype(np.float32)) - blocks(back)).mean() < 3.0
+
+
+def test_predict_scores_the_windows_asked_for_and_says_where_the_time_goes(tmp_path, plugin_path):
+    from evflow_cli.predict import _spread
+
+    assert _spread(10, 3) == {0, 4, 9} and _spread(5, None) == _spread(5, 9) == set(range(5)) and _spread(5, 0) == set()
+    policy = tiny_policy()
+    full = predict(policy, "synthetic-mini", tmp_path / "all.h5", window="time", window_size=20_000, progress=False,
+                   score_windows=None)
+    some = predict(policy, "synthetic-mini", tmp_path / "some.h5", window="time", window_size=20_000, progress=False,
+                   score_windows=3)
+    assert full.windows == some.windows > 3 and full.scored == full.windows and some.scored == 3
+    picked = sorted(_spread(full.windows, 3))
+    np.testing.assert_array_equal(some.per_window["hmc"][picked], full.per_window["hmc"][picked])  # the same values
+    assert np.isnan(np.delete(some.per_window["hmc"], picked)).all()
+    assert set(some.stages) == {"input", "flow", "metrics", "writing", "preview"}
+    assert all(v >= 0 for v in some.stages.values()) and sum(some.stages.values()) <= some.seconds * 1.01
+    assert full.stages["metrics"] > some.stages["metrics"] and "ms per window: input" in some.where_the_time_goes()

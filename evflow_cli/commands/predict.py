@@ -98,11 +98,19 @@ class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progr
     """step the network through N equal sub-windows of each window and compose their flows (long windows of fast motion; N network steps per window); default: the default model's mode (agents/weights/default.json's split: one pass, or one step per ground-truth interval), 1 for any other model"""
     per_event: bool = False
     """also store the flow at every event"""
+    score: str = option("100", metavar="N|all")
+    """take the per-window metrics of the summary (L_HMC, FWL, RSAT, AEE) on N windows spread over the run, or on all (on a large sensor they cost more than the network); 0: none"""
     json: str | None = None
     """also write the summary as JSON here"""
 
     def __post_init__(self) -> None:
         check_choices(self)
+        if self.score != "all" and not self.score.isdigit():
+            raise ValueError(f"--score takes a number of windows or 'all', got {self.score!r}")
+
+    def score_windows(self) -> int | None:
+        """--score as predict()'s score_windows (None: every window)."""
+        return None if self.score == "all" else int(self.score)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -142,13 +150,13 @@ def main(argv=None) -> int:  # opens as the other commands do: parse, then set t
             end_s=args.end, crop=args.crop, sequence=sequence, data_format=args.format, per_event=args.per_event,
             data_options=args.data_options() or None,
             video=video, video_fps=args.fps, video_frames=args.video_frames, video_arrows=args.arrows, provenance=provenance,
-            video_width=args.video_width, flow_max=args.flow_max,
+            video_width=args.video_width, flow_max=args.flow_max, score_windows=args.score_windows(),
             no_gt_window_us=args.no_gt_window, progress=not args.no_progress, overwrite=args.overwrite, split=split,
         )
         name = provenance.get("name") or provenance.get("path") or "model"
         print(summary_table(result, name=str(name)))
         print(f"\n{result.windows} windows, {result.events} events in {result.seconds:.1f} s "
-              f"({result.windows_per_second:.1f} windows/s)")
+              f"({result.windows_per_second:.1f} windows/s); {result.where_the_time_goes()}")
         print(f"wrote {result.path}" + (f" and {result.video}" if result.video else ""))
         if json_out:
             json_out.write_text(json.dumps({"model": provenance, **summary_dict(result)}, indent=2, default=str) + "\n")
