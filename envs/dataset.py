@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
-from envs.memory import events_from_memory, is_event_data
+from envs.memory import dataset_sample_events, events_from_memory, is_event_data, is_event_dataset, sensor_size_of
 from envs.readers.base import ArrayReader, EventReader
 
 __all__ = ["SequenceSource", "resolve_data", "RECORDING_SUFFIXES"]
@@ -60,6 +60,24 @@ def _synthetic_sources(split: str) -> list[SequenceSource]:
     ]
 
 
+def _dataset_sources(dataset, options: dict) -> list[SequenceSource]:
+    """A tonic-style dataset's samples as recordings named ``<class>-<index>``, each opened when
+    first read, at the dataset's ``sensor_size`` (tonic's (width, height, polarities)) unless the
+    options give one."""
+    kind = type(dataset).__name__
+    size = sensor_size_of(options.get("sensor_size") or dataset.sensor_size, source=f"data {kind}")
+    if len(dataset) == 0:
+        raise ValueError(f"data: the dataset {kind} holds no samples")
+
+    def opener(index: int):
+        name = f"{kind}-{index}"
+        events = events_from_memory(dataset_sample_events(dataset, index), size, source=f"data {name}")
+        return ArrayReader(events, name=name)
+
+    return [SequenceSource(f"{kind}-{i}", (lambda i=i: opener(i)), size if isinstance(size, tuple) else None)
+            for i in range(len(dataset))]
+
+
 def _is_synthetic_name(item) -> bool:
     return isinstance(item, str) and item.startswith("synthetic") and not os.path.exists(item)
 
@@ -72,6 +90,8 @@ def resolve_data(
     Raises FileNotFoundError naming a missing path and ValueError for an unknown split or an
     empty directory."""
     options = dict(options or {})
+    if is_event_dataset(data):  # tonic's datasets: one recording per sample, opened when first read
+        return _dataset_sources(data, options)
     items = [data] if isinstance(data, (str, os.PathLike)) or is_event_data(data) else list(data)
     if not items:
         raise ValueError("data: empty list of recordings")

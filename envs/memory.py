@@ -17,9 +17,25 @@ import numpy as np
 
 from envs.events import Events
 
-__all__ = ["FIELDS", "is_event_data", "events_from_memory", "sensor_size_of"]
+__all__ = ["FIELDS", "is_event_data", "is_event_dataset", "dataset_sample_events", "events_from_memory",
+           "sensor_size_of"]
 
 FIELDS = ("x", "y", "t", "p")
+
+
+def is_event_dataset(obj) -> bool:
+    """True for a dataset of event recordings as tonic makes them (``tonic.datasets.*``, or any
+    object with ``sensor_size``, ``__len__`` and ``__getitem__`` giving a sample): each sample is
+    one recording, its events the sample itself or the first item of an ``(events, target)`` pair."""
+    if isinstance(obj, (str, bytes, np.ndarray, Mapping, list, tuple, Events)):
+        return False
+    return hasattr(obj, "sensor_size") and hasattr(obj, "__len__") and hasattr(obj, "__getitem__")
+
+
+def dataset_sample_events(dataset, index: int):
+    """The events of sample ``index`` of a tonic-style dataset (:func:`is_event_dataset`)."""
+    sample = dataset[index]
+    return sample[0] if isinstance(sample, tuple) else sample
 
 
 def is_event_data(obj) -> bool:

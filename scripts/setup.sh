@@ -20,5 +20,5 @@ if ! "$PY" -c "import torch" >/dev/null 2>&1; then
   "$PY" -m pip install --quiet --disable-pip-version-check torch==2.13.0
 fi
 echo "[setup] installing the project and its test extras"
-"$PY" -m pip install --quiet --disable-pip-version-check -e ".[test,dsec]"
+"$PY" -m pip install --quiet --disable-pip-version-check -e ".[test,dsec,tonic]"
 echo "$want" > "$stamp"
