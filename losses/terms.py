@@ -30,7 +30,7 @@ __all__ = ["Term", "TermInputs", "TERMS", "term_values", "combine_terms", "rampe
 Weight = float | torch.Tensor
 
 
-@dataclass
+@dataclass(eq=False)
 class TermInputs:
     """What the terms read on one scale: the events (``tau`` in windows: k + tau for window k of
     K accumulated ones), the flow at each event ``u`` (B, N, 2), the full-resolution flows the
