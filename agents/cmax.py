@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
-from losses import CMAX_WEIGHTS, EventBatch, LossWeights, contrast_maximisation_flow
+from losses import CMAX_WEIGHTS, EventBatch, LossSpec, contrast_maximisation_flow
 
 __all__ = ["CMaxSettings", "ContrastMaximisationPolicy", "EVIDENCE_PRIOR", "FRAME_US"]
 
@@ -96,9 +96,14 @@ class CMaxSettings:
     evidence_prior: float = 0.0
 
     @property
-    def weights(self) -> LossWeights:
-        """The loss weights of the solve."""
-        return LossWeights(self.lambda_1, self.lambda_2, self.alpha, self.border_penalty, self.border_ramp)
+    def loss_spec(self) -> LossSpec:
+        """The loss of the solve (losses.LossSpec, from the fields that bear its settings' names)."""
+        return LossSpec.from_options(self)
+
+    @property
+    def weights(self) -> LossSpec:
+        """:attr:`loss_spec` under its earlier name."""
+        return self.loss_spec
 
     def __post_init__(self) -> None:
         check_solver_settings(self, "CMaxSettings")
@@ -125,7 +130,7 @@ class CMaxSettings:
         flow = contrast_maximisation_flow(
             batch, height, width, grids=self.grids, steps=self.steps, lr=self.lr_per_frame * frames,
             sensor_scales=self.sensor_scales, lr_decay=self.lr_decay, flow_scaling=self.flow_scaling,
-            weights=self.weights, base=offset, prior_weight=prior,
+            weights=self.loss_spec, base=offset, prior_weight=prior,
         )
         return flow[0].cpu().numpy().astype(np.float32)
 

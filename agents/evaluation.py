@@ -145,7 +145,7 @@ def evaluate(
     the default AEE / outlier % over pixels with events and valid ground truth, and is also
     called on windows without events. flow_sink: ``(reader, window, flow)`` called with every
     window's predicted flow (window: ``info["window"]``, its bounds and events), e.g. a benchmark
-    submission writer. L_HMC is the env's reward: ``window_loss`` with the env's weights and
+    submission writer. L_HMC is the env's reward: ``window_loss`` with the env's loss spec and
     ``flow_scaling`` (the border rule included).
     Per window the time the policy takes to produce its flow is measured (``ms``).
     shard: (rank, world): only sequences rank, rank + world, rank + 2 world, ... (the share of one
@@ -258,13 +258,12 @@ def _animation_frame(step: WindowStep) -> np.ndarray:
 
 def env_loss(env: EventFlowEnv, flow: np.ndarray, window: Window) -> dict[str, float]:
     """``{"hmc": .., "hmc_zero": ..}``: the window's loss under ``flow`` as ``env`` rewards it (its
-    loss, weights and flow scaling, border rule included: the env's -reward for that action) and
+    loss spec and flow scaling, border rule included: the env's -reward for that action) and
     under zero flow. flow: (2, H, W) float32 pixels over the window."""
-    options = dict(loss=env.loss_name, flow_scaling=env.flow_scaling)
     action = torch.from_numpy(np.asarray(flow, np.float32))[None]
-    zero = zero_flow_loss(action, window, env.loss_weights, **options).per_sample
+    zero = zero_flow_loss(action, window, env.loss_spec, flow_scaling=env.flow_scaling).per_sample
     with torch.no_grad():
-        loss = window_loss(action, window, env.loss_weights, zero_flow=zero, **options)
+        loss = window_loss(action, window, env.loss_spec, flow_scaling=env.flow_scaling, zero_flow=zero)
     return {"hmc": float(loss.loss), "hmc_zero": float(zero[0])}
 
 

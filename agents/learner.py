@@ -13,7 +13,8 @@ One update, read top to bottom (:meth:`Learner.update`):
 
 The envs run with ``compute_reward=False``: the learner computes the env's loss itself, with
 gradients, on the B windows of a step padded into one batch: ``losses.window_loss`` of the
-windows in ``info["window"]``, the border rule included (``border_penalty`` x the window's
+windows in ``info["window"]`` under the run's spec (``cfg.loss_spec``, the envs' too), the border
+rule included (``border_penalty`` x the window's
 zero-flow loss x the share of events pushed out of the image, ramped over ``border_ramp``
 pixels); so each window's loss is the env's -reward for the same flow (the EventFlowEnv
 docstring says when), and the env need not compute it twice.
@@ -44,7 +45,6 @@ from envs.env import EventFlowEnv
 from envs.representations import OBSERVATIONS
 from losses import (
     EventBatch,
-    check_border_ramp,
     window_loss,
     zero_flow_loss,
 )
@@ -80,6 +80,7 @@ def make_vector_env(cfg: TrainConfig, *, rank: int = 0, world: int = 1, data=Non
         data=data, window=cfg.window, window_size=cfg.window_size, crop=cfg.crop, random_crop=cfg.random_crop,
         flips=cfg.flips if flips is None else flips, event_keep=cfg.event_keep, compute_reward=False, sequences=shard,
         flow_scaling=cfg.flow_scaling, observations=(cfg.input,), voxel_bins=cfg.voxel_bins, data_options=options,
+        loss_spec=cfg.loss_spec,
     )
     fns = [lambda i=i: EventFlowEnv(**kwargs, env_index=i) for i in range(cfg.num_envs)]
     cls = gymnasium.vector.SyncVectorEnv if cfg.vector == "sync" else gymnasium.vector.AsyncVectorEnv
@@ -108,7 +109,7 @@ class Learner:
 
     def __init__(self, cfg: TrainConfig) -> None:
         check_choices(cfg)  # again: a field may have been set after the config was made
-        check_border_ramp(cfg.border_ramp)  # before any env or output exists
+        self.loss_spec = cfg.loss_spec  # its settings checked before any env or output exists
         if cfg.teacher_cache and cfg.loss != "teacher":
             raise ValueError(f"teacher_cache is for loss 'teacher', not {cfg.loss!r}")
         self.teacher = TeacherTargets(cfg.teacher_cache) if cfg.teacher_cache else None
@@ -168,11 +169,11 @@ class Learner:
             # the B envs' windows in one padded batch: each window's loss is the one it has alone
             batch = EventBatch.from_windows(windows_from_info(self.info, cfg.num_envs), device=self.device)
             # the reference the border rule scales with, and a logged baseline
-            zero = zero_flow_loss(flows[-1], batch, cfg.weights, **self.loss_options)
+            zero = zero_flow_loss(flows[-1], batch, self.loss_spec, **self.loss_options)
             if cfg.loss_mode == "window" or cfg.loss == "teacher":  # the finest flow's loss: the env's -reward
                 with torch.no_grad():
-                    logged_losses.append(window_loss(flows[-1].detach(), batch, cfg.weights, zero_flow=zero.per_sample,
-                                                     **self.loss_options).loss)
+                    logged_losses.append(window_loss(flows[-1].detach(), batch, self.loss_spec,
+                                                     zero_flow=zero.per_sample, **self.loss_options).loss)
             rollout.append(RolloutWindow(flows, batch, zero, self.info))
             self.obs, _, terminated, truncated, self.info = self.envs.step(flows[-1].detach().cpu().numpy())
             done = np.logical_or(terminated, truncated)

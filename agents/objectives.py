@@ -19,8 +19,8 @@ from envs.windows import Window
 from losses import (
     EventBatch,
     LossOutput,
-    accumulated_hmc_loss,
-    border_rule_weight,
+    LossSpec,
+    accumulated_window_loss,
     contrast_maximisation_flow,
     event_pixel_mask,
     to_full_resolution,
@@ -55,17 +55,18 @@ class RolloutWindow:
 
 def loss_options(cfg: TrainConfig, flow_scaling: float) -> dict:
     """How ``losses.window_loss`` (and ``zero_flow_loss``) scores a window under ``cfg``, beside
-    its weights ``cfg.weights``: L_HMC (eq. 17), or L_AT (eq. 14) with ``loss="at"``, with the
-    readings docs/method.md lists. The teacher and supervised objectives log L_HMC. With the
-    defaults this is the env's reward."""
-    return {"loss": "at" if cfg.loss == "at" else "hmc", "flow_scaling": flow_scaling, "upsampling": cfg.upsampling,
-            "reference_times": cfg.reference_times, "at_normalisation": cfg.at_normalisation}
-
-
-def _loss_options(cfg: TrainConfig, flow_scaling: float, kind: str) -> dict:
-    """Keyword arguments of hmc_loss / at_loss (and accumulated_hmc_loss) under ``cfg``."""
+    its spec ``cfg.loss_spec`` (L_HMC, eq. 17, or L_AT with ``loss="at"``; the teacher and
+    supervised objectives log L_HMC): the flow's scaling and the readings docs/method.md lists.
+    With the defaults this is the env's reward."""
     return {"flow_scaling": flow_scaling, "upsampling": cfg.upsampling, "reference_times": cfg.reference_times,
-            "at_normalisation": cfg.at_normalisation, **cfg.weights.of(kind)}
+            "at_normalisation": cfg.at_normalisation}
+
+
+def _hmc_spec(cfg: TrainConfig) -> LossSpec:
+    """The run's spec with L_HMC, whatever loss it trains: the unrolled finish solves L_HMC
+    (docs/finish.md), and the accumulated loss exists for L_HMC alone (``--loss at`` with
+    ``--loss-mode accumulated`` trains it too)."""
+    return dataclasses.replace(cfg.loss_spec, loss="hmc")
 
 
 def _endpoint_error(flow: torch.Tensor, target: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
@@ -97,7 +98,7 @@ def _finished(cfg: TrainConfig, window: RolloutWindow, flow_scaling: float) -> l
     frames = torch.tensor([max(1.0, (int(w["t_end"]) - int(w["t_start"])) / FRAME_US) for w in windows],
                           dtype=full.dtype, device=full.device)
     finished = unrolled_finish(full, window.batch, steps=cfg.finish_steps, lr=cfg.finish_lr * frames,
-                               grid=cfg.finish_grid, weights=cfg.weights, flow_scaling=flow_scaling)
+                               grid=cfg.finish_grid, weights=_hmc_spec(cfg), flow_scaling=flow_scaling)
     return [*window.flows[:-1], finished]
 
 
@@ -107,33 +108,26 @@ class WindowLoss:
 
     def __init__(self, cfg: TrainConfig, flow_scaling: float, **_) -> None:
         self.cfg, self.options, self.flow_scaling = cfg, loss_options(cfg, flow_scaling), flow_scaling
+        self.spec = cfg.loss_spec
 
     def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:
-        losses = [window_loss(_scales(self.cfg, _finished(self.cfg, w, self.flow_scaling)), w.batch, self.cfg.weights,
+        losses = [window_loss(_scales(self.cfg, _finished(self.cfg, w, self.flow_scaling)), w.batch, self.spec,
                               zero_flow=w.zero.per_sample, **self.options).loss for w in rollout]
         return torch.stack(losses).mean(), {}
 
 
 class AccumulatedLoss:
     """Hagenaars' sequential learning: one L_HMC over the events of all L windows (window k's
-    events at k + tau, references 0 and L); with the border rule on, also the slope back into the
-    frame (outside distance, same per-window weight) so that a net whose events all left the frame
-    is not stuck where the dropped share is flat."""
+    events at k + tau, references 0 and L), ``losses.accumulated_window_loss``; with the border
+    rule on, also the slope back into the frame (outside distance, same per-window weight) so that
+    a net whose events all left the frame is not stuck where the dropped share is flat."""
 
     def __init__(self, cfg: TrainConfig, flow_scaling: float, **_) -> None:
-        self.cfg = cfg
-        self.options = _loss_options(cfg, flow_scaling, "hmc")
-
-    def _loss(self, flows, batches, border_penalty=0.0) -> LossOutput:
-        return accumulated_hmc_loss(flows, batches, border_penalty=border_penalty, outside_weight=border_penalty,
-                                    **self.options)
+        self.cfg, self.options, self.spec = cfg, loss_options(cfg, flow_scaling), _hmc_spec(cfg)
 
     def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:
         flows = [_scales(self.cfg, w.flows) for w in rollout]
-        batches = [w.batch for w in rollout]
-        zero_flows = [torch.zeros_like(f[-1]) for f in flows]
-        penalty = border_rule_weight(self._loss, zero_flows, batches, self.cfg.border_penalty)
-        return self._loss(flows, batches, penalty).loss, {}
+        return accumulated_window_loss(flows, [w.batch for w in rollout], self.spec, **self.options).loss, {}
 
 
 class SupervisedLoss:
@@ -178,6 +172,7 @@ class TeacherLoss:
                  teacher: TeacherTargets | None = None) -> None:
         self.cfg, self.flow_scaling, self.device = cfg, flow_scaling, device
         self.height, self.width, self.teacher = height, width, teacher
+        self.spec = dataclasses.replace(cfg.loss_spec, lambda_2=cfg.teacher_lambda_2)  # the solve's loss
 
     def _targets(self, windows: list[Mapping]) -> torch.Tensor:
         cfg = self.cfg
@@ -186,7 +181,7 @@ class TeacherLoss:
         return contrast_maximisation_flow(
             EventBatch.from_windows(windows, device=self.device), self.height, self.width, grids=cfg.teacher_grids,
             steps=cfg.teacher_steps, lr=cfg.teacher_lr, flow_scaling=self.flow_scaling,
-            weights=dataclasses.replace(cfg.weights, lambda_2=cfg.teacher_lambda_2),
+            weights=self.spec,
         )
 
     def __call__(self, rollout: list[RolloutWindow]) -> tuple[torch.Tensor, dict]:

@@ -42,7 +42,7 @@ from envs.atomic import remove_stale_temporaries, temporary_path
 from envs.dataset import resolve_data
 from envs.env import EventFlowEnv
 from envs.windows import Window, window_bounds
-from losses import CMAX_WEIGHTS, EventBatch, LossWeights, contrast_maximisation_flow
+from losses import CMAX_WEIGHTS, EventBatch, LossSpec, contrast_maximisation_flow
 
 from .cmax import check_solver_settings
 from .policy import ZeroFlowPolicy
@@ -80,9 +80,14 @@ class TeacherSettings:
         check_solver_settings(self, "TeacherSettings")
 
     @property
-    def weights(self) -> LossWeights:
-        """The loss weights of the solve."""
-        return LossWeights(self.lambda_1, self.lambda_2, self.alpha, self.border_penalty, self.border_ramp)
+    def loss_spec(self) -> LossSpec:
+        """The loss of the solve (losses.LossSpec, from the fields that bear its settings' names)."""
+        return LossSpec.from_options(self)
+
+    @property
+    def weights(self) -> LossSpec:
+        """:attr:`loss_spec` under its earlier name."""
+        return self.loss_spec
 
     def describe(self) -> dict:
         """The settings as a target file's config records them (no evidence prior: not named, as
@@ -326,7 +331,7 @@ def _solve_coarse(batch: EventBatch, height: int, width: int, s: TeacherSettings
     prior = [s.evidence_prior / max(int(n), 1) for n in counts] if s.evidence_prior else 0.0
     flow = contrast_maximisation_flow(
         batch, height, width, grids=s.grids, steps=s.steps if isinstance(s.steps, int) else tuple(s.steps), lr=lr,
-        flow_scaling=s.flow_scaling, weights=s.weights, return_coarse=True,
+        flow_scaling=s.flow_scaling, weights=s.loss_spec, return_coarse=True,
         sensor_scales=s.sensor_scales, lr_decay=s.lr_decay, prior_weight=prior,
     )
     return flow.cpu()

@@ -11,7 +11,7 @@ from typing import Any, Literal
 
 from envs.env import check_event_keep
 from envs.representations import OBSERVATIONS
-from losses import CMAX_WEIGHTS, LossWeights
+from losses import CMAX_WEIGHTS, LossSpec
 
 from .options import (
     ModelWidth,
@@ -108,15 +108,15 @@ class TrainConfig(ModelWidth, Windows, SensorSizeOptions):
     """window: references at the window bounds; events: at the first and last event"""
     at_normalisation: Literal["event_pixels", "sum"] = "event_pixels"
     """L_AT over the pixels holding events, or sum: eq. 14's bare sum"""
-    lambda_1: float = option(LossWeights.lambda_1, type=non_negative_float)
+    lambda_1: float = option(LossSpec.lambda_1, type=non_negative_float)
     """weight of the event-count term in L_HMC (eq. 17)"""
-    lambda_2: float = option(LossWeights.lambda_2, type=non_negative_float)
+    lambda_2: float = option(LossSpec.lambda_2, type=non_negative_float)
     """weight of the smoothness term (eq. 17)"""
-    alpha: float = option(LossWeights.alpha, type=positive_float)
-    """Charbonnier exponent of the smoothness term (eq. 16)"""
-    border_penalty: float = LossWeights.border_penalty
+    alpha: float = option(LossSpec.alpha, type=positive_float)
+    """exponent of the event-count term (eqs. 15-16)"""
+    border_penalty: float = LossSpec.border_penalty
     """border rule weight: x zero-flow loss x share of events pushed out of the image (0: the paper's loss)"""
-    border_ramp: float = LossWeights.border_ramp
+    border_ramp: float = LossSpec.border_ramp
     """border rule ramp: an event d px beyond the image pays min(1, d / ramp) of its share (0: all of it)"""
     flow_scaling: float | None = option(None, type=positive_float)
     """pixels per network unit (default max(H, W))"""
@@ -164,9 +164,15 @@ class TrainConfig(ModelWidth, Windows, SensorSizeOptions):
         return dataclasses.asdict(self)
 
     @property
-    def weights(self) -> LossWeights:
-        """The loss weights of this run."""
-        return LossWeights(self.lambda_1, self.lambda_2, self.alpha, self.border_penalty, self.border_ramp)
+    def loss_spec(self) -> LossSpec:
+        """The loss of this run (losses.LossSpec, built from the fields that bear its settings'
+        names): L_AT with ``loss="at"``, else L_HMC (what the teacher and supervised runs log)."""
+        return LossSpec.from_options(self, loss="at" if self.loss == "at" else "hmc")
+
+    @property
+    def weights(self) -> LossSpec:
+        """:attr:`loss_spec` under its earlier name."""
+        return self.loss_spec
 
 
 _RECIPE = {"model": "ev-mgrflownet", "width": "cpu", "input": "voxel_grid", "crop": (64, 64), "random_crop": True,
@@ -181,8 +187,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     # gives the paper's bare loss).
     "paper": {
         "model": "ev-mgrflownet", "width": "paper", "input": "count_image", "lr": 1e-4, "unroll": 10,
-        "loss": "hmc", "loss_mode": "accumulated", "loss_scales": "all", "lambda_1": LossWeights.lambda_1,
-        "lambda_2": LossWeights.lambda_2, "alpha": LossWeights.alpha, "grad_clip": 100.0, "decay": "none",
+        "loss": "hmc", "loss_mode": "accumulated", "loss_scales": "all", "lambda_1": LossSpec.lambda_1,
+        "lambda_2": LossSpec.lambda_2, "alpha": LossSpec.alpha, "grad_clip": 100.0, "decay": "none",
         "warmup_steps": 0,
     },
     # The project's recipe (docs/results.md), stage 1: distil the per-window contrast-maximisation

@@ -24,7 +24,7 @@ from envs.windows import (
     window_bounds,
     window_grid,
 )
-from losses import LOSS_NAMES, LossWeights, check_border_ramp, window_loss
+from losses import LossSpec, window_loss
 
 __all__ = ["EventFlowEnv", "OBSERVATION_KEYS", "Window", "NoWindowsError"]
 
@@ -66,9 +66,8 @@ class EventFlowEnv(gym.Env):
     **Reward**: ``-L_HMC(action, events of the window just observed)`` (docs/method.md, "Losses":
     L_AT(0) + L_AT(1) + lambda_1 (L_EC(0) + L_EC(1)) + lambda_2 L_smooth), or ``-L_AT``
     (+ smoothing) with ``loss="at"``, border rule included: exactly
-    ``-losses.window_loss(action, window, env.loss_weights, loss=env.loss_name,
-    flow_scaling=env.flow_scaling)`` with ``window = info["window"]`` of the observation acted
-    on. A Python float; higher is better; 0 is unattainable for a window with events.
+    ``-losses.window_loss(action, window, env.loss_spec, flow_scaling=env.flow_scaling)`` with
+    ``window = info["window"]`` of the observation acted on. A Python float; higher is better; 0 is unattainable for a window with events.
 
     *Training's batched path equals -reward*: the learner (``agents/learner.py``) runs its envs
     with ``compute_reward=False`` and computes the same ``window_loss`` itself, with gradients,
@@ -170,10 +169,12 @@ class EventFlowEnv(gym.Env):
             keeping each with probability ``p``, drawn once per episode log-uniformly in the range
             (an augmentation: the motion, and so the ground truth, is unchanged while the events
             per pixel fall, so that a network cannot read the speed off the event density).
-        loss: ``"hmc"`` or ``"at"``; lambda_1, lambda_2, alpha: the loss weights (paper
-            defaults); border_penalty: the border rule's weight (default 1; 0 = paper);
-            border_ramp: its ramp in pixels (default 16; 0 = the plain dropped share). The
-            defaults are :class:`losses.LossWeights`'; ``env.loss_weights`` holds the env's.
+        loss_spec: the reward's :class:`losses.LossSpec` (the loss, its weights, the border
+            rule), given whole; or, instead, some of its settings as keywords (None: the
+            spec's default): loss: ``"hmc"`` or ``"at"``; lambda_1, lambda_2, alpha: the loss
+            weights (paper defaults); border_penalty: the border rule's weight (default 1;
+            0 = paper); border_ramp: its ramp in pixels (default 16; 0 = the plain dropped
+            share). ``env.loss_spec`` holds the env's spec.
         flow_scaling: pixels per network unit in the smoothness term (default max(H, W)).
         flow_limit: F, the action bound (default flow_scaling).
         random_start: start each episode at a random window instead of the first.
@@ -204,12 +205,13 @@ class EventFlowEnv(gym.Env):
         max_window_events: int | None = MAX_WINDOW_EVENTS,
         flips: bool | Sequence[str] = False,
         event_keep: float | Sequence[float] | None = None,
-        loss: str = "hmc",
-        lambda_1: float = LossWeights.lambda_1,
-        lambda_2: float = LossWeights.lambda_2,
-        alpha: float = LossWeights.alpha,
-        border_penalty: float = LossWeights.border_penalty,
-        border_ramp: float = LossWeights.border_ramp,
+        loss: str | None = None,
+        lambda_1: float | None = None,
+        lambda_2: float | None = None,
+        alpha: float | None = None,
+        border_penalty: float | None = None,
+        border_ramp: float | None = None,
+        loss_spec: LossSpec | None = None,
         flow_scaling: float | None = None,
         flow_limit: float | None = None,
         random_start: bool = False,
@@ -238,11 +240,8 @@ class EventFlowEnv(gym.Env):
         if unknown or not observations:
             raise ValueError(f"observations must be a non-empty subset of {OBSERVATION_KEYS}, got {list(observations)}")
         self.observation_keys = tuple(observations)
-        if loss not in LOSS_NAMES:
-            raise ValueError(f"loss must be one of {LOSS_NAMES}, got {loss!r}")
-        self.loss_name = loss
-        check_border_ramp(border_ramp)
-        self.loss_weights = LossWeights(lambda_1, lambda_2, alpha, border_penalty, border_ramp)
+        self.loss_spec = _loss_spec(loss_spec, loss=loss, lambda_1=lambda_1, lambda_2=lambda_2, alpha=alpha,
+                                    border_penalty=border_penalty, border_ramp=border_ramp)
         flips = ("h", "v", "p") if flips is True else (() if flips is False else tuple(flips))
         if any(f not in ("h", "v", "p") for f in flips):
             raise ValueError(f"flips must be True/False or a subset of ('h', 'v', 'p'), got {flips}")
@@ -465,10 +464,19 @@ class EventFlowEnv(gym.Env):
 
     @torch.no_grad()
     def _score(self, flow: np.ndarray, window: Window) -> tuple[float, dict]:
-        out = window_loss(torch.from_numpy(flow).unsqueeze(0), window, self.loss_weights, loss=self.loss_name,
-                          flow_scaling=self.flow_scaling)
+        out = window_loss(torch.from_numpy(flow).unsqueeze(0), window, self.loss_spec, flow_scaling=self.flow_scaling)
         components = {k: float(v.reshape(-1)[0]) for k, v in out.components.items()}
         return -float(out.loss), components
+
+    @property
+    def loss_name(self) -> str:
+        """The reward's loss, ``"hmc"`` or ``"at"`` (``loss_spec.loss``)."""
+        return self.loss_spec.loss
+
+    @property
+    def loss_weights(self) -> LossSpec:
+        """The reward's spec under its earlier name (``loss_spec``)."""
+        return self.loss_spec
 
     @property
     def current_window(self) -> Window | None:
@@ -657,3 +665,16 @@ def _sizes_differ(sizes: dict[str, tuple[int, int]]) -> str:
             "crop=(height, width) to use that crop of each, or make one env per size (scripts/evaluate.py "
             "evaluates each recording whole at its own size)")
 
+
+
+def _loss_spec(spec: LossSpec | None, **settings) -> LossSpec:
+    """The reward's spec: ``spec`` given whole, or one built from the settings given as keywords
+    (None: not given, the spec's default); both at once is a ValueError."""
+    given = {name: value for name, value in settings.items() if value is not None}
+    if spec is None:
+        return LossSpec.from_options(given)
+    if not isinstance(spec, LossSpec):
+        raise ValueError(f"loss_spec must be a losses.LossSpec, got {type(spec).__name__}")
+    if given:
+        raise ValueError(f"give the loss as loss_spec or as its settings {sorted(given)}, not both")
+    return spec

@@ -12,15 +12,12 @@ from .events import EventBatch
 from .finish import unrolled_finish
 from .hmc import (
     AT_NORMALISATIONS,
-    BORDER_RAMP,
     REFERENCE_TIMES,
     UPSAMPLINGS,
     LossOutput,
-    LossWeights,
     accumulated_hmc_loss,
     at_loss,
     border_rule_weight,
-    check_border_ramp,
     hmc_loss,
     rebase_to_events,
     to_full_resolution,
@@ -40,9 +37,11 @@ from .metrics import (
 )
 from .sampling import sample_flow
 from .smoothness import charbonnier_smoothness, event_pixel_mask
+from .spec import BORDER_RAMP, LOSS_NAMES, LossSpec, LossWeights, border_weight, check_border_ramp
 from .splat import bilinear_splat, crop_padding, padded_corners, splat_rows
+from .terms import TERMS, Term, TermInputs
 from .warp import forward_warp_flow, warp_events
-from .window import LOSS_NAMES, window_loss, zero_flow_loss
+from .window import accumulated_window_loss, window_loss, zero_flow_loss
 
 __all__ = [
     "contrast_maximisation_flow",
@@ -52,9 +51,15 @@ __all__ = [
     "set_cpu_kernels",
     "EventBatch",
     "LossOutput",
+    "LossSpec",
     "LossWeights",
     "window_loss",
     "zero_flow_loss",
+    "accumulated_window_loss",
+    "TERMS",
+    "Term",
+    "TermInputs",
+    "border_weight",
     "unrolled_finish",
     "LOSS_NAMES",
     "border_rule_weight",

@@ -22,14 +22,14 @@ import torch
 import torch.nn.functional as F
 
 from .events import EventBatch
-from .hmc import LossWeights
+from .spec import LossSpec
 from .window import window_loss, zero_flow_loss
 
 __all__ = ["contrast_maximisation_flow", "CMAX_WEIGHTS"]
 
-#: The solver's weights: the env's reward but for a stronger smoothness term, which regularises
+#: The solver's loss: the env's reward but for a stronger smoothness term, which regularises
 #: the coarse grid of flow vectors.
-CMAX_WEIGHTS = LossWeights(lambda_2=1e-2)
+CMAX_WEIGHTS = LossSpec(lambda_2=1e-2)
 
 
 def contrast_maximisation_flow(
@@ -41,7 +41,7 @@ def contrast_maximisation_flow(
     steps: int | Sequence[int] = 40,
     lr: float = 0.05,
     flow_scaling: float | None = None,
-    weights: LossWeights = CMAX_WEIGHTS,
+    weights: LossSpec = CMAX_WEIGHTS,
     return_coarse: bool = False,
     sensor_scales: Sequence[int] | None = None,
     lr_decay: float = 1.0,
@@ -53,8 +53,8 @@ def contrast_maximisation_flow(
     events: EventBatch of B windows (tau in [0, 1]). grids: the coarse-to-fine levels, the
     number of cells along the longer image side (the other side in proportion, at least 1).
     steps: Adam steps per level (one int for all, or one per level), lr: its step size in
-    pixels. The loss is ``window_loss`` (L_HMC) with ``weights``, border rule included (default
-    :data:`CMAX_WEIGHTS`). Returns a detached tensor on the events' device, float32; with ``return_coarse``
+    pixels. The loss is ``window_loss`` with the spec ``weights`` (L_HMC by default), border rule
+    included (default :data:`CMAX_WEIGHTS`). Returns a detached tensor on the events' device, float32; with ``return_coarse``
     the last level's (B, 2, gh, gw) grid instead (the flow is its bilinear upsampling,
     align_corners=False).
 
@@ -101,7 +101,7 @@ def contrast_maximisation_flow(
                 init = F.interpolate(coarse, size=(gh, gw), mode="bilinear", align_corners=False)
             level_events, (hs, ws) = _coarsen(events, scale), (-(-height // scale), -(-width // scale))
             # the sensor grid s times coarser: flows, the flow scaling and the ramp in its pixels
-            level = dict(weights=dataclasses.replace(weights, border_ramp=weights.border_ramp / scale),
+            level = dict(spec=dataclasses.replace(weights, border_ramp=weights.border_ramp / scale),
                          flow_scaling=scaling / scale)
             zero = None
             if weights.border_penalty:  # the border rule's reference, once per level

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from .events import EventBatch
-from .hmc import LossWeights
+from .spec import LossSpec
 from .window import window_loss, zero_flow_loss
 
 __all__ = ["unrolled_finish"]
@@ -36,7 +36,7 @@ def unrolled_finish(
     steps: int,
     lr: float | torch.Tensor,
     grid: int = 16,
-    weights: LossWeights = LossWeights(),
+    weights: LossSpec = LossSpec(),
     flow_scaling: float | None = None,
     create_graph: bool = True,
 ) -> torch.Tensor:

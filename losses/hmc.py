@@ -1,6 +1,6 @@
 """Hybrid motion-compensation loss L_HMC (docs/method.md, "Losses", eq. 17) and the baseline L_AT.
 
-A composite that is only a weighted sum:
+A composite that is only a weighted sum of the terms registered in :mod:`losses.terms`:
 ``L_HMC = L_AT(0) + L_AT(1) + lambda_1 (L_EC(0) + L_EC(1)) + lambda_2 L_smooth``;
 the baseline ``L_AT`` drops the L_EC term (same smoothing). Multi-scale input: every scale is
 brought to full resolution, the loss is computed on each and averaged over scales. Over a batch:
@@ -12,23 +12,26 @@ events' splat weight that stayed inside the image (mean over the reference times
 ``border_penalty`` (default 0, i.e. the paper's loss) adds
 ``border_penalty * sum_s (1 - kept_s)`` for the project to close the hole with; it is a float
 or a (B,) tensor of per-window weights (the env and the learner pass a multiple of each
-window's zero-flow loss, so that pushing events out never pays, however dense the window).
+window's zero-flow loss, so that pushing events out never pays, however dense the window:
+``losses.window_loss`` with a :class:`losses.LossSpec`). ``border_ramp`` defaults to the spec's.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Sequence, get_args
+from typing import Literal, Mapping, Sequence, get_args
 
 import torch
 import torch.nn.functional as F
 
 from ._validation import check_events, check_flow
 from .events import EventBatch
-from .image_terms import AT_NORMALISATIONS, AtNormalisation, event_image_terms
+from .image_terms import AT_NORMALISATIONS, AtNormalisation
 from .sampling import sample_flow
-from .smoothness import charbonnier_smoothness, event_pixel_mask
-from .warp import beyond_image, outside_distance, warp_events
+from .smoothness import event_pixel_mask
+from .spec import BORDER_RAMP, LossSpec, LossWeights, _check_choice, border_weight, check_border_ramp
+from .terms import TermInputs, Weight, combine_terms, ramped_dropped_share, term_values
+from .warp import outside_distance
 
 __all__ = ["LossOutput", "hmc_loss", "at_loss", "accumulated_hmc_loss", "to_full_resolution",
            "ramped_dropped_share", "check_border_ramp", "BORDER_RAMP", "Upsampling", "ReferenceTimes",
@@ -43,47 +46,17 @@ UPSAMPLINGS = get_args(Upsampling)
 ReferenceTimes = Literal["window", "events"]
 REFERENCE_TIMES = get_args(ReferenceTimes)
 
-#: The border rule's ramp (pixels) that the env's reward and the learner use by default
-#: (docs/results.md, fifth round); the loss functions themselves default to 0 (the plain share).
-BORDER_RAMP = 16.0
-
 FlowInput = torch.Tensor | Sequence[torch.Tensor]
 
 
-@dataclass(frozen=True)
-class LossWeights:
-    """The weights of L_HMC (eq. 17) and of the border rule (docs/method.md, "Losses").
-
-    The defaults are the env's reward: the paper's lambda_1, lambda_2 and alpha, with the
-    project's border rule on. Every other default of these weights is read from here."""
-
-    lambda_1: float = 1.0
-    """weight of the event-count term L_EC"""
-    lambda_2: float = 1e-3
-    """weight of the smoothness term"""
-    alpha: float = 0.6
-    """Charbonnier exponent of the smoothness term"""
-    border_penalty: float = 1.0
-    """border rule: x the window's zero-flow loss x the share of its events pushed out of the image"""
-    border_ramp: float = BORDER_RAMP
-    """the border rule's ramp, pixels beyond the border (0: the plain share)"""
-
-    def of(self, loss: Literal["hmc", "at"]) -> dict:
-        """The keyword arguments of ``hmc_loss`` / ``at_loss`` (the border penalty is per window:
-        :func:`border_rule_weight`)."""
-        _check_choice("loss", loss, ("hmc", "at"))
-        weights = {"lambda_2": self.lambda_2, "border_ramp": self.border_ramp}
-        return {**weights, "lambda_1": self.lambda_1, "alpha": self.alpha} if loss == "hmc" else weights
-
-
 def border_rule_weight(loss_fn, zero_flow: torch.Tensor, events: EventBatch, border_penalty: float, **loss_kwargs):
-    """The border rule's weight of each window: ``border_penalty`` x the window's loss under zero
-    flow (``loss_fn(zero_flow, events, **loss_kwargs)``, no graph), (B,); 0.0 when the penalty is
-    0. The loss charges this weight x the (ramped) share of the window's events pushed out."""
+    """The border rule's weight of each window (:func:`losses.spec.border_weight`) with the
+    zero-flow loss ``loss_fn(zero_flow, events, **loss_kwargs)`` (no graph), (B,); 0.0 when the
+    penalty is 0 (the loss is then not computed)."""
     if not border_penalty:
         return 0.0
     with torch.no_grad():
-        return border_penalty * loss_fn(zero_flow, events, **loss_kwargs).per_sample
+        return border_weight(border_penalty, loss_fn(zero_flow, events, **loss_kwargs).per_sample)
 
 
 @dataclass(frozen=True)
@@ -96,11 +69,6 @@ class LossOutput:
     loss: torch.Tensor
     per_sample: torch.Tensor
     components: dict
-
-
-def _check_choice(name: str, value, allowed: tuple) -> None:
-    if value not in allowed:
-        raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
 
 
 def to_full_resolution(flow: FlowInput, upsampling: Upsampling = "bilinear") -> list[torch.Tensor]:
@@ -156,71 +124,14 @@ def rebase_to_events(t: torch.Tensor, u: torch.Tensor, mask: torch.Tensor, span:
     return (t - first) / ratio, u * ratio.unsqueeze(-1).to(u.dtype)
 
 
-def ramped_dropped_share(events: EventBatch, u, height, width, references, ramp) -> torch.Tensor:
-    """(B, R) the border charge per reference time with a distance ramp of ``ramp`` pixels.
-
-    Each valid event's charge is the share of its bilinear splat weight that falls outside the
-    image times ``min(1, d / ramp)``, d = the L1 distance (pixels) by which the warped event
-    lies beyond the image; the mean over valid events. Events just across the border (real
-    motion leaves by at most |u| pixels) cost little; events pushed far out cost their whole
-    dropped share, as with no ramp (``ramp -> 0`` gives the plain dropped share).
-    """
-    x, y, t, _, mask = events
-    m = mask.to(u.dtype)
-    n = m.sum(dim=1).clamp_min(1)
-    out = []
-    for s in references:
-        xw, yw = warp_events(x.to(u.dtype), y.to(u.dtype), t.to(u.dtype), u, s)
-        kx = torch.minimum(xw + 1, width - xw).clamp(0, 1)  # share of the x-weights on the sensor
-        ky = torch.minimum(yw + 1, height - yw).clamp(0, 1)
-        charge = (1 - kx * ky) * (beyond_image(xw, yw, height, width) / ramp).clamp(max=1)
-        out.append((charge * m).sum(dim=1) / n)
-    return torch.stack(out, dim=1)
+def _output(per_sample: torch.Tensor, components: dict) -> LossOutput:
+    return LossOutput(loss=per_sample.mean(), per_sample=per_sample, components=components)
 
 
-def _terms(
-    events: EventBatch, u, flow_for_smooth: Sequence[torch.Tensor], masks_for_smooth,
-    height, width, references, span, alpha, flow_scaling, need_ec, border_ramp=0.0,
-    at_normalisation: AtNormalisation = "event_pixels",
-) -> dict:
-    """(B,) tensors at, ec, smooth, dropped for one set of (possibly accumulated) events; their
-    ``tau`` is the time in windows (k + tau for window k of K accumulated ones)."""
-    at, ec, kept = event_image_terms(events, u, height, width, references, span, alpha, at_normalisation)
-    at = at.sum(dim=1)  # L_AT(s0) + L_AT(s1)
-    ec = ec.sum(dim=1) if need_ec else ec.sum(dim=1).detach()
-    n_valid = events.mask.sum(dim=1).to(u.dtype)  # (B,)
-    kept = kept / n_valid.clamp_min(1).unsqueeze(1)  # (B, R) share of splat weight kept
-    dropped = torch.where(n_valid.unsqueeze(1) > 0, 1 - kept, torch.zeros_like(kept))
-    if border_ramp > 0:
-        charge = ramped_dropped_share(events, u, height, width, references, border_ramp)
-    else:
-        charge = dropped
-    smooth = sum(
-        charbonnier_smoothness(f, m, flow_scaling) for f, m in zip(flow_for_smooth, masks_for_smooth)
-    ) / len(flow_for_smooth)
-    return {"at": at, "ec": ec, "smooth": smooth, "dropped": dropped, "charge": charge}
-
-
-def _combine(terms_per_scale, lambda_1, lambda_2, border_penalty, use_ec) -> LossOutput:
-    per = []
-    for tm in terms_per_scale:
-        s = tm["at"] + lambda_2 * tm["smooth"]
-        if use_ec:
-            s = s + lambda_1 * tm["ec"]
-        if isinstance(border_penalty, torch.Tensor) or border_penalty:
-            s = s + border_penalty * tm["charge"].sum(dim=1)
-        per.append(s)
-    n = len(terms_per_scale)
-    per_sample = sum(per) / n
-    comps = {
-        k: (sum(tm[k] for tm in terms_per_scale) / n).detach() for k in ("at", "ec", "smooth")
-    }
-    comps["kept"] = (1 - sum(tm["dropped"] for tm in terms_per_scale) / n).mean(dim=1).detach()
-    return LossOutput(loss=per_sample.mean(), per_sample=per_sample, components=comps)
-
-
-def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_penalty, use_ec,
-                border_ramp=0.0, upsampling="bilinear", reference_times="window", at_normalisation="event_pixels"):
+def _per_window(flow, events, loss: str, weights: Mapping[str, Weight], alpha, border_ramp, flow_scaling,
+                upsampling="bilinear", reference_times="window", at_normalisation="event_pixels") -> LossOutput:
+    """The loss ``loss`` of each window: its terms (losses.terms) weighed by ``weights`` (the
+    names of the terms' weights; the border term's is per window), on every scale."""
     _check_choice("reference_times", reference_times, REFERENCE_TIMES)
     _check_choice("at_normalisation", at_normalisation, AT_NORMALISATIONS)
     flows = to_full_resolution(flow, upsampling)
@@ -230,25 +141,16 @@ def _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_pe
     scaling = float(max(H, W)) if flow_scaling is None else float(flow_scaling)
     ramp = check_border_ramp(border_ramp)
     ev_mask = event_pixel_mask(events.x, events.y, events.mask, H, W)
-    terms = []
+    per_scale = []
     for f in flows:
         u = sample_flow(f, events.x, events.y, events.mask)
         t = events.tau
         if reference_times == "events":
             t, u = rebase_to_events(t.to(u.dtype), u, events.mask, 1.0)
-        terms.append(
-            _terms(events._replace(tau=t), u, [f], [ev_mask], H, W, (0.0, 1.0), 1.0, alpha, scaling, use_ec, ramp,
-                   at_normalisation)
-        )
-    return _combine(terms, lambda_1, lambda_2, border_penalty, use_ec)
-
-
-def check_border_ramp(border_ramp) -> float:
-    """The ramp as a float; ValueError unless it is a finite number of pixels >= 0."""
-    ramp = float(border_ramp)
-    if not ramp >= 0 or ramp == float("inf"):
-        raise ValueError(f"border_ramp must be a finite number of pixels >= 0, got {border_ramp!r}")
-    return ramp
+        inputs = TermInputs(events._replace(tau=t), u, [f], [ev_mask], H, W, (0.0, 1.0), 1.0, alpha, scaling, ramp,
+                            at_normalisation)
+        per_scale.append(term_values(inputs, loss, weights))
+    return _output(*combine_terms(per_scale, loss, weights))
 
 
 def hmc_loss(
@@ -256,11 +158,11 @@ def hmc_loss(
     events: EventBatch,
     *,
     flow_scaling: float | None = None,
-    lambda_1: float = LossWeights.lambda_1,
-    lambda_2: float = LossWeights.lambda_2,
-    alpha: float = LossWeights.alpha,
+    lambda_1: float = LossSpec.lambda_1,
+    lambda_2: float = LossSpec.lambda_2,
+    alpha: float = LossSpec.alpha,
     border_penalty: float | torch.Tensor = 0.0,
-    border_ramp: float = 0.0,
+    border_ramp: float = LossSpec.border_ramp,
     upsampling: Upsampling = "bilinear",
     reference_times: ReferenceTimes = "window",
     at_normalisation: AtNormalisation = "event_pixels",
@@ -271,10 +173,11 @@ def hmc_loss(
         or a list of such tensors at several resolutions (see ``to_full_resolution``).
     events: EventBatch of B windows (x, y pixels; tau in [0, 1]; padded with mask).
     flow_scaling: pixels per network unit for the smoothness term; default max(H, W).
-    lambda_1, lambda_2, alpha: defaults from :class:`LossWeights` (the paper's). border_penalty: 0 (paper), or the
+    lambda_1, lambda_2, alpha: defaults from :class:`LossSpec` (the paper's). border_penalty: 0 (paper), or the
     weight (float, or (B,) tensor per window) of ``sum_s (1 - kept_s)`` (see the module doc).
     border_ramp: pixels; > 0 charges each event's dropped share times ``min(1, d / border_ramp)``,
     d = how far beyond the image it lands (``ramped_dropped_share``); 0: the plain share.
+    Default: the spec's (16), which matters only where ``border_penalty`` is given.
     upsampling: how coarse scales reach full resolution (``to_full_resolution``).
     reference_times: "window" (s = 0 and 1, the window's bounds) or "events" (the first and
     last valid event of each window, ``rebase_to_events``).
@@ -285,8 +188,9 @@ def hmc_loss(
     Raises ValueError for a bad flow shape, NaN/inf flow, batch-size mismatch, empty batch,
     tau outside [0, 1] or an unknown choice.
     """
-    return _per_window(flow, events, flow_scaling, lambda_1, lambda_2, alpha, border_penalty, True,
-                       border_ramp, upsampling, reference_times, at_normalisation)
+    weights = {"lambda_1": lambda_1, "lambda_2": lambda_2, "border_penalty": border_penalty}
+    return _per_window(flow, events, "hmc", weights, alpha, border_ramp, flow_scaling, upsampling, reference_times,
+                       at_normalisation)
 
 
 # at_loss repeats hmc_loss's keyword-only options (less lambda_1 and alpha), so that each
@@ -296,17 +200,18 @@ def at_loss(
     events: EventBatch,
     *,
     flow_scaling: float | None = None,
-    lambda_2: float = LossWeights.lambda_2,
+    lambda_2: float = LossSpec.lambda_2,
     border_penalty: float | torch.Tensor = 0.0,
-    border_ramp: float = 0.0,
+    border_ramp: float = LossSpec.border_ramp,
     upsampling: Upsampling = "bilinear",
     reference_times: ReferenceTimes = "window",
     at_normalisation: AtNormalisation = "event_pixels",
 ) -> LossOutput:
     """Baseline loss "L_AT": ``L_AT(0) + L_AT(1) + lambda_2 L_smooth`` (same args as hmc_loss).
     ``components["ec"]`` is still reported (detached, the default alpha) for logging."""
-    return _per_window(flow, events, flow_scaling, LossWeights.lambda_1, lambda_2, LossWeights.alpha, border_penalty,
-                       False, border_ramp, upsampling, reference_times, at_normalisation)
+    weights = {"lambda_2": lambda_2, "border_penalty": border_penalty}
+    return _per_window(flow, events, "at", weights, LossSpec.alpha, border_ramp, flow_scaling, upsampling,
+                       reference_times, at_normalisation)
 
 
 def accumulated_hmc_loss(
@@ -314,12 +219,12 @@ def accumulated_hmc_loss(
     events_list: Sequence[EventBatch],
     *,
     flow_scaling: float | None = None,
-    lambda_1: float = LossWeights.lambda_1,
-    lambda_2: float = LossWeights.lambda_2,
-    alpha: float = LossWeights.alpha,
+    lambda_1: float = LossSpec.lambda_1,
+    lambda_2: float = LossSpec.lambda_2,
+    alpha: float = LossSpec.alpha,
     border_penalty: float | torch.Tensor = 0.0,
     outside_weight: float | torch.Tensor = 0.0,
-    border_ramp: float = 0.0,
+    border_ramp: float = LossSpec.border_ramp,
     upsampling: Upsampling = "bilinear",
     reference_times: ReferenceTimes = "window",
     at_normalisation: AtNormalisation = "event_pixels",
@@ -343,9 +248,13 @@ def accumulated_hmc_loss(
     border_ramp, upsampling, at_normalisation: as in ``hmc_loss``. reference_times: "window"
     (0 and K) or "events" (the first event of the first window and the last of the last).
     """
-    _check_choice("reference_times", reference_times, REFERENCE_TIMES)
-    _check_choice("at_normalisation", at_normalisation, AT_NORMALISATIONS)
-    events_list = list(events_list)
+    weights = {"lambda_1": lambda_1, "lambda_2": lambda_2, "border_penalty": border_penalty}
+    return _accumulated(flows, events_list, weights, alpha, border_ramp, outside_weight, flow_scaling, upsampling,
+                        reference_times, at_normalisation)
+
+
+def _accumulated_scales(flows, events_list, upsampling) -> list[list[torch.Tensor]]:
+    """Every window's flows at full resolution, [window][scale], after checking the windows agree."""
     if len(flows) == 0 or len(flows) != len(events_list):
         raise ValueError(
             f"accumulated_hmc_loss: need K >= 1 flows and K event batches, got {len(flows)} "
@@ -358,9 +267,20 @@ def accumulated_hmc_loss(
         if per_window[0].shape != scales[0][0].shape:
             raise ValueError(f"flows[{k}] has shape {tuple(per_window[0].shape)} != flows[0] "
                              f"{tuple(scales[0][0].shape)}")
-    B, _, H, W = scales[0][0].shape
+    B = scales[0][0].shape[0]
     for k, ev in enumerate(events_list):
         check_events(ev, batch_size=B, name=f"events_list[{k}]")
+    return scales
+
+
+def _accumulated(flows, events_list, weights: Mapping[str, Weight], alpha, border_ramp, outside_weight, flow_scaling,
+                 upsampling="bilinear", reference_times="window", at_normalisation="event_pixels") -> LossOutput:
+    """L_HMC over the events of K windows (``accumulated_hmc_loss``), its terms weighed by ``weights``."""
+    _check_choice("reference_times", reference_times, REFERENCE_TIMES)
+    _check_choice("at_normalisation", at_normalisation, AT_NORMALISATIONS)
+    events_list = list(events_list)
+    scales = _accumulated_scales(flows, events_list, upsampling)
+    B, _, H, W = scales[0][0].shape
     events_list = [ev.zero_padding() for ev in events_list]  # as in _per_window
     K = len(scales)
     scaling = float(max(H, W)) if flow_scaling is None else float(flow_scaling)
@@ -369,7 +289,7 @@ def accumulated_hmc_loss(
     x, y, p, mask = cat("x"), cat("y"), cat("p"), cat("mask")
     dtype = scales[0][0].dtype
     masks = [event_pixel_mask(ev.x, ev.y, ev.mask, H, W) for ev in events_list]
-    terms, distances = [], []
+    per_scale, distances = [], []
     for j in range(len(scales[0])):
         window_flows = [per_window[j] for per_window in scales]
         u = torch.cat([sample_flow(f, ev.x, ev.y, ev.mask) for f, ev in zip(window_flows, events_list)], dim=1)
@@ -377,14 +297,14 @@ def accumulated_hmc_loss(
         if reference_times == "events":
             t, u = rebase_to_events(t, u, mask, float(K))
         accumulated = EventBatch(x, y, t, p, mask)  # tau: time in windows, k + tau
-        terms.append(_terms(accumulated, u, window_flows, masks, H, W, (0.0, float(K)), float(K), alpha,
-                            scaling, True, ramp, at_normalisation))
+        inputs = TermInputs(accumulated, u, window_flows, masks, H, W, (0.0, float(K)), float(K), alpha, scaling, ramp,
+                            at_normalisation)
+        per_scale.append(term_values(inputs, "hmc", weights))
         if isinstance(outside_weight, torch.Tensor) or outside_weight:
             distances.append(outside_distance(accumulated, u, H, W, (0.0, float(K))))
-    out = _combine(terms, lambda_1, lambda_2, border_penalty, True)
+    per_sample, components = combine_terms(per_scale, "hmc", weights)
     if distances:
         distance = sum(distances) / len(distances)
-        per_sample = out.per_sample + outside_weight * distance / max(H, W)
-        out = LossOutput(loss=per_sample.mean(), per_sample=per_sample,
-                         components={**out.components, "outside_px": distance.detach()})
-    return out
+        per_sample = per_sample + outside_weight * distance / max(H, W)
+        components = {**components, "outside_px": distance.detach()}
+    return _output(per_sample, components)

@@ -632,7 +632,8 @@ def test_kept_share_and_border_penalty_expose_the_border_hole(backend):
     assert out.loss.item() < out_zero.loss.item()
     assert out.components["kept"].item() < 0.01
     assert out_zero.components["kept"].item() == pytest.approx(1.0)
-    pen, pen_zero = hmc_loss(away, ev, border_penalty=1.0), hmc_loss(zero, ev, border_penalty=1.0)
+    pen = hmc_loss(away, ev, border_penalty=1.0, border_ramp=0.0)
+    pen_zero = hmc_loss(zero, ev, border_penalty=1.0, border_ramp=0.0)
     assert pen.loss.item() > pen_zero.loss.item()
     assert pen_zero.loss.item() == pytest.approx(out_zero.loss.item())
 
@@ -673,7 +674,7 @@ def test_border_ramp_matches_slow_reference(ramp, backend):
         assert ramped.per_sample[b].item() == pytest.approx(expected, rel=RTOL, abs=1e-12)
     assert ramped.per_sample[2].item() == plain.per_sample[2].item()  # empty window: no charge
     # the ramp only ever lowers the charge, and a vanishing ramp is the plain dropped share
-    full = hmc_loss(flow, ev, border_penalty=weight)
+    full = hmc_loss(flow, ev, border_penalty=weight, border_ramp=0.0)
     assert (ramped.per_sample <= full.per_sample + 1e-12).all()
     tiny = hmc_loss(flow, ev, border_penalty=weight, border_ramp=1e-9)
     torch.testing.assert_close(tiny.per_sample, full.per_sample, rtol=1e-6, atol=1e-9)
@@ -688,7 +689,7 @@ def test_border_ramp_charges_near_motion_little_and_far_pushes_fully():
         flow = torch.zeros(1, 2, H, W, dtype=torch.float64)
         flow[:, 0] = v
         plain = hmc_loss(flow, ev)
-        full = hmc_loss(flow, ev, border_penalty=zero).loss - plain.loss
+        full = hmc_loss(flow, ev, border_penalty=zero, border_ramp=0.0).loss - plain.loss
         ramped = hmc_loss(flow, ev, border_penalty=zero, border_ramp=16.0).loss - plain.loss
         if share:  # pushed 1e6 px out: the ramp changes nothing, the game costs 2 x zero flow's loss
             assert ramped.item() == pytest.approx(full.item(), rel=1e-4)
@@ -902,7 +903,7 @@ def test_compiled_kernels_equal_torch_path(scale, monkeypatch):
         monkeypatch.setattr(warp, "_kernels", None)
         for dtype in (torch.float64, torch.float32):
             f = torch.from_numpy(flow).to(dtype).requires_grad_()
-            out = hmc_loss(f, EventBatch.from_windows(wins, dtype=dtype), border_penalty=0.7)
+            out = hmc_loss(f, EventBatch.from_windows(wins, dtype=dtype), border_penalty=0.7, border_ramp=0.0)
             (out.per_sample * torch.arange(1, 5, dtype=dtype)).sum().backward()
             results[name, dtype] = (out.per_sample.detach().double(), out.components["kept"].double(), f.grad.double())
     for a, b in zip(results["compiled", torch.float64], results["torch", torch.float64]):
@@ -950,7 +951,7 @@ def test_parallel_kernels_equal_serial_kernels():
             for threads in (1, 2, 2):
                 torch.set_num_threads(threads)
                 f = flow.clone().requires_grad_()
-                out = hmc_loss(f, ev, border_penalty=0.3)
+                out = hmc_loss(f, ev, border_penalty=0.3, border_ramp=0.0)
                 (out.per_sample * torch.arange(1, B + 1)).sum().backward()
                 results.append((out.per_sample.detach(), f.grad))
         finally:

@@ -192,25 +192,30 @@ def test_loss_weights_name_the_loss_they_serve():
     assert TrainConfig(lambda_2=0.1).weights.lambda_2 == 0.1
 
 
-def test_every_default_of_the_loss_weights_is_loss_weights_own():
-    """The weights' defaults are written once, in LossWeights (the contrast-maximisation solver's
-    once, in CMAX_WEIGHTS): every function and config that takes them defaults to those values."""
+def test_every_default_of_the_loss_spec_is_the_specs_own():
+    """The loss's defaults are written once, in LossSpec (the contrast-maximisation solver's
+    once, in CMAX_WEIGHTS): every function and config that takes them defaults to those values,
+    and the env's keywords default to None, the spec's."""
     import inspect
 
     from agents.cmax import CMaxSettings
     from agents.teacher import TeacherSettings
     from envs.env import EventFlowEnv
-    from losses import CMAX_WEIGHTS, LossWeights, accumulated_hmc_loss, at_loss, hmc_loss
+    from losses import CMAX_WEIGHTS, LossSpec, LossWeights, accumulated_hmc_loss, at_loss, hmc_loss
 
-    paper = LossWeights()
-    assert (paper.lambda_1, paper.lambda_2, paper.alpha) == (1.0, 1e-3, 0.6)  # eq. 17's values
-    for fn in (hmc_loss, at_loss, accumulated_hmc_loss, EventFlowEnv):
+    paper = LossSpec()
+    assert LossWeights is LossSpec
+    assert (paper.lambda_1, paper.lambda_2, paper.alpha, paper.loss) == (1.0, 1e-3, 0.6, "hmc")  # eq. 17's values
+    for fn in (hmc_loss, at_loss, accumulated_hmc_loss):
         defaults = inspect.signature(fn).parameters
-        for name in ("lambda_1", "lambda_2", "alpha"):
+        for name in ("lambda_1", "lambda_2", "alpha", "border_ramp"):
             if name in defaults:
                 assert defaults[name].default == getattr(paper, name), (fn, name)
-    assert TrainConfig().weights == paper == EventFlowEnv("synthetic-mini").loss_weights
+    env_defaults = inspect.signature(EventFlowEnv).parameters
+    for name in ("loss", "lambda_1", "lambda_2", "alpha", "border_penalty", "border_ramp", "loss_spec"):
+        assert env_defaults[name].default is None, name
+    assert TrainConfig().loss_spec == TrainConfig().weights == paper == EventFlowEnv("synthetic-mini").loss_spec
     assert (PRESETS["paper"]["lambda_1"], PRESETS["paper"]["lambda_2"]) == (paper.lambda_1, paper.lambda_2)
-    assert CMAX_WEIGHTS == LossWeights(lambda_2=1e-2)
-    assert CMaxSettings().weights == TeacherSettings().weights == CMAX_WEIGHTS
+    assert CMAX_WEIGHTS == LossSpec(lambda_2=1e-2)
+    assert CMaxSettings().loss_spec == TeacherSettings().loss_spec == CMaxSettings().weights == CMAX_WEIGHTS
     assert TrainConfig().teacher_lambda_2 == CMAX_WEIGHTS.lambda_2

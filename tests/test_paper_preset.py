@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-import agents.objectives as objectives_module
+import losses.window as window_module
 from agents.learner import PRESETS, Learner, TrainConfig, preset_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,13 +40,13 @@ def test_paper_preset_update_is_one_loss_over_the_windows_of_all_scales(monkeypa
     """Sequential learning: one accumulated L_HMC per update over the L = 10 windows, each
     window contributing its four scales' flows, the border rule weighted by the zero-flow loss."""
     calls = []
-    original = objectives_module.accumulated_hmc_loss
+    original = window_module._accumulated  # what losses.accumulated_window_loss evaluates
 
     def spy(flows, batches, **kwargs):
         calls.append(([len(f) if isinstance(f, list) else 1 for f in flows], len(batches), kwargs))
         return original(flows, batches, **kwargs)
 
-    monkeypatch.setattr(objectives_module, "accumulated_hmc_loss", spy)
+    monkeypatch.setattr(window_module, "_accumulated", spy)
     learner = Learner(preset_config("paper", width=2, data="synthetic-mini", num_envs=1))
     try:
         stats = learner.update()
@@ -56,7 +56,8 @@ def test_paper_preset_update_is_one_loss_over_the_windows_of_all_scales(monkeypa
     (zero_scales, zero_k, zero_kwargs), (scales, k, kwargs) = calls  # zero-flow reference, then the loss
     assert zero_k == k == 10 and scales == [4] * 10 and zero_scales == [1] * 10
     assert kwargs["reference_times"] == "window" and kwargs["upsampling"] == "bilinear"
-    assert float(kwargs["border_penalty"].sum()) > 0 and zero_kwargs["border_penalty"] == 0.0
+    assert float(kwargs["weights"]["border_penalty"].sum()) > 0 and zero_kwargs["weights"]["border_penalty"] == 0.0
+    assert kwargs["outside_weight"] is kwargs["weights"]["border_penalty"] and zero_kwargs["outside_weight"] == 0.0
 
 
 @pytest.mark.parametrize("extra", [[], ["--border-penalty", "0", "--loss-scales", "finest", "--reference-times", "events",

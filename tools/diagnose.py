@@ -40,9 +40,21 @@ import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
 
 from envs.env import EventFlowEnv  # noqa: E402
-from losses import CMAX_WEIGHTS, EventBatch, contrast_maximisation_flow, event_pixel_mask, hmc_loss  # noqa: E402
+from losses import (  # noqa: E402
+    CMAX_WEIGHTS,
+    EventBatch,
+    LossSpec,
+    contrast_maximisation_flow,
+    event_pixel_mask,
+    window_loss,
+    zero_flow_loss,
+)
 
 SCALES = (0.5, 0.75, 1.0, 1.25, 1.5, 2.0)
+#: The border rule as the rounds that used these diagnostics measured it: weight 1, no ramp.
+PLAIN_RULE = LossSpec(border_ramp=0.0)
+#: L_HMC without the border rule (the paper's loss).
+NO_RULE = LossSpec(border_penalty=0.0)
 
 
 def windows(args) -> list[dict]:
@@ -70,8 +82,9 @@ def scale(args) -> None:
     rows = []
     for info in windows(args):
         b, gt, _ = batch_of([info])
-        zero = hmc_loss(torch.zeros_like(gt), b, flow_scaling=args.flow_scaling).loss.item()
-        rows.append([hmc_loss(c * gt, b, flow_scaling=args.flow_scaling, border_penalty=zero).loss.item() / zero
+        kw = dict(flow_scaling=args.flow_scaling)
+        zero = zero_flow_loss(gt, b, PLAIN_RULE, **kw)
+        rows.append([window_loss(c * gt, b, PLAIN_RULE, zero_flow=zero.per_sample, **kw).loss.item() / zero.loss.item()
                      for c in SCALES])
     r = np.array(rows)
     print(f"dt = {args.window_size}: {len(r)} windows; loss / zero-flow loss for c x truth, c = {SCALES}:")
@@ -88,11 +101,12 @@ def border(args) -> None:
     rows, games = [], []
     for info in windows(args):
         b, gt, _ = batch_of([info])
-        kw = dict(flow_scaling=args.flow_scaling)
-        zero = hmc_loss(torch.zeros_like(gt), b, **kw).loss.item()
-        plain = hmc_loss(gt, b, **kw)
+        reference = zero_flow_loss(gt, b, NO_RULE, flow_scaling=args.flow_scaling)
+        kw = dict(flow_scaling=args.flow_scaling, zero_flow=reference.per_sample)
+        zero = reference.loss.item()
+        plain = window_loss(gt, b, NO_RULE, **kw)
         row = [plain.loss.item() / zero]
-        row += [hmc_loss(gt, b, border_penalty=zero, border_ramp=r, **kw).loss.item() / zero for r in ramps]
+        row += [window_loss(gt, b, LossSpec(border_ramp=r), **kw).loss.item() / zero for r in ramps]
         rows.append(row + [1 - plain.components["kept"].item()])
         game = []  # per rule and magnitude: the best of 8 directions
         for r in [None] + ramps:  # None: no rule
@@ -101,8 +115,8 @@ def border(args) -> None:
                 for a in angles:
                     const = torch.zeros_like(gt)
                     const[:, 0], const[:, 1] = m * np.cos(a), m * np.sin(a)
-                    rule = dict(border_penalty=0.0) if r is None else dict(border_penalty=zero, border_ramp=r)
-                    best = min(best, hmc_loss(const, b, **rule, **kw).loss.item() / zero)
+                    rule = NO_RULE if r is None else LossSpec(border_ramp=r)
+                    best = min(best, window_loss(const, b, rule, **kw).loss.item() / zero)
                 game.append(best)
         games.append(game)
     r = np.array(rows)
@@ -180,9 +194,9 @@ def overfit(args) -> None:
     b, gt, valid = batch_of(infos)
     H, W = gt.shape[-2:]
     mask = valid & event_pixel_mask(b.x, b.y, b.mask, H, W)
-    zero = hmc_loss(torch.zeros_like(gt), b, flow_scaling=args.flow_scaling)
-    penalty = zero.per_sample.detach()  # the border rule
-    truth = hmc_loss(gt, b, flow_scaling=args.flow_scaling, border_penalty=penalty).loss.item() / zero.loss.item()
+    zero = zero_flow_loss(gt, b, PLAIN_RULE, flow_scaling=args.flow_scaling)
+    kw = dict(flow_scaling=args.flow_scaling, zero_flow=zero.per_sample)  # the border rule's reference
+    truth = window_loss(gt, b, PLAIN_RULE, **kw).loss.item() / zero.loss.item()
     torch.manual_seed(0)
     model = make_model("ev-flownet", width="cpu", flow_scaling=args.flow_scaling, in_channels=x.shape[1])
     init_flow_heads(model, 0.01)
@@ -191,7 +205,7 @@ def overfit(args) -> None:
     print(f"{gt.shape[0]} windows {H}x{W}, dt = {args.window_size}; the true flow's loss / zero flow's: {truth:.3f}")
     for step in range(args.steps + 1):
         flows, _ = model(x, None)
-        out = hmc_loss(flows, b, flow_scaling=args.flow_scaling, border_penalty=penalty)
+        out = window_loss(flows, b, PLAIN_RULE, **kw)
         if step % 30 == 0:
             f = flows[-1].detach()
             print(f"  step {step:>3}: loss / zero {out.loss.item() / zero.loss.item():.3f}, "
