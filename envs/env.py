@@ -16,6 +16,7 @@ from envs.readers._common import check_flow_gt, resolve_crop
 from envs.representations import OBSERVATIONS, count_image
 from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import (
+    DEFAULT_WINDOW_SIZES,
     MAX_WINDOW_EVENTS,
     WINDOW_MODES,
     Window,
@@ -227,7 +228,7 @@ class EventFlowEnv(gym.Env):
             raise ValueError(f"window must be one of {WINDOW_MODES}, got {window!r}")
         self.window = window
         if window_size is None:
-            window_size = {"frames": 1, "time": 10_000, "count": 15_000}[window]
+            window_size = DEFAULT_WINDOW_SIZES[window]
         given = list(window_size) if isinstance(window_size, (list, tuple, np.ndarray)) else [window_size]
         if not given or not all(_is_whole(v) and int(v) > 0 for v in given):
             raise ValueError(f"window_size must be a positive integer or a non-empty list of them "
