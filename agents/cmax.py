@@ -24,12 +24,13 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import torch
 
+from envs.windows import FALLBACK_INTERVAL_US
 from losses import CMAX_WEIGHTS, EventBatch, LossSpec, contrast_maximisation_flow
 
 __all__ = ["CMaxSettings", "ContrastMaximisationPolicy", "EVIDENCE_PRIOR", "FRAME_US"]
 
 #: The step size is given per 30 Hz frame of window length: a longer window moves further.
-FRAME_US = 33_333
+FRAME_US = FALLBACK_INTERVAL_US
 
 #: ``CMaxSettings.evidence_prior`` as measured (docs/history/2026-12-05-round-15.md, "Still scenes and the solve"):
 #: a window of 30,000 events is held to zero flow with weight 1.

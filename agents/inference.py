@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs.env import EventFlowEnv
+from envs.windows import FALLBACK_INTERVAL_US
 
 from .policy import RecurrentPolicy
 from .rollout import observation_options
@@ -25,7 +26,7 @@ from .rollout import observation_options
 __all__ = ["predict_flow"]
 
 
-def predict_flow(events, sensor_size=None, *, window_us: int = 33_333, model: str | None = None,
+def predict_flow(events, sensor_size=None, *, window_us: int = FALLBACK_INTERVAL_US, model: str | None = None,
                  finish: bool = True, device: str = "cpu", max_windows: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The flow of every ``window_us`` window of ``events`` (a structured array with fields x, y,
     t, p, t in µs; a mapping of those arrays; ``Events``; or a recording path), as (flows (K, 2,

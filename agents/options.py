@@ -206,6 +206,39 @@ def _shared_group(cls: type, name: str) -> str | None:
     return None
 
 
+def _argument_kwargs(f: dataclasses.Field, hint, default, help: str) -> dict[str, Any]:
+    """``add_argument``'s keywords for field ``f`` of type ``hint`` (Optional unwrapped) with
+    ``default``: the dest, the help (its default appended), a flag's action or the type,
+    choices and nargs the type implies, then the field's own ``cli`` settings."""
+    cli = dict(f.metadata.get("cli", {}))
+    for key in ("flag", "convert", "aliases", "positional", "exclusive"):
+        cli.pop(key, None)
+    kwargs: dict[str, Any] = {"dest": f.name, "help": help}
+    if hint is bool:
+        kwargs.update(action="store_false" if default else "store_true", default=default)
+    else:
+        if typing.get_origin(hint) is Literal:
+            kwargs.update(choices=list(typing.get_args(hint)))
+        elif hint in (int, float, str, Path):
+            kwargs.update(type=hint)
+        elif typing.get_origin(hint) in (tuple, list):
+            item = typing.get_args(hint)[0]
+            if typing.get_origin(item) is Literal:
+                kwargs.update(nargs="+", choices=list(typing.get_args(item)))
+            else:
+                kwargs.update(nargs="+", type=item)
+        kwargs.update(default=default)
+        kwargs.update(cli)
+        if kwargs.get("action") == "append":
+            kwargs["default"] = []
+    kwargs["help"] = kwargs["help"].replace("%", "%%")  # argparse formats the help with %
+    shown = kwargs.get("default")
+    if "action" not in kwargs and shown is not None and not (isinstance(shown, (str, list, tuple)) and not shown):
+        shown = " ".join(map(str, shown)) if isinstance(shown, (list, tuple)) else str(shown)
+        kwargs["help"] += f" (default: {shown.replace('%', '%%')})"
+    return kwargs
+
+
 def add_options(parser: argparse.ArgumentParser, cls: type, *, groups: dict[str, str] | None = None,
                 defaults: dict[str, Any] | None = None) -> None:
     """Add one option per field of dataclass ``cls`` to ``parser`` (dest = the field's name): the
@@ -232,36 +265,11 @@ def add_options(parser: argparse.ArgumentParser, cls: type, *, groups: dict[str,
             if title not in titled:
                 titled[title] = parser.add_argument_group(title)
             target = titled[title]
-        cli = dict(f.metadata.get("cli", {}))
         default = (defaults or {}).get(f.name, f.default if f.default is not dataclasses.MISSING else
                                        f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
         hint = _unwrap_optional(hints[f.name])
-        for key in ("flag", "convert", "aliases", "positional", "exclusive"):
-            cli.pop(key, None)
         meta = f.metadata.get("cli", {})
-        kwargs: dict[str, Any] = {"dest": f.name, "help": docs.get(f.name, "")}
-        if hint is bool:
-            kwargs.update(action="store_false" if default else "store_true", default=default)
-        else:
-            if typing.get_origin(hint) is Literal:
-                kwargs.update(choices=list(typing.get_args(hint)))
-            elif hint in (int, float, str, Path):
-                kwargs.update(type=hint)
-            elif typing.get_origin(hint) in (tuple, list):
-                item = typing.get_args(hint)[0]
-                if typing.get_origin(item) is Literal:
-                    kwargs.update(nargs="+", choices=list(typing.get_args(item)))
-                else:
-                    kwargs.update(nargs="+", type=item)
-            kwargs.update(default=default)
-            kwargs.update(cli)
-            if kwargs.get("action") == "append":
-                kwargs["default"] = []
-        kwargs["help"] = kwargs["help"].replace("%", "%%")  # argparse formats the help with %
-        shown = kwargs.get("default")
-        if "action" not in kwargs and shown is not None and not (isinstance(shown, (str, list, tuple)) and not shown):
-            shown = " ".join(map(str, shown)) if isinstance(shown, (list, tuple)) else str(shown)
-            kwargs["help"] += f" (default: {shown.replace('%', '%%')})"
+        kwargs = _argument_kwargs(f, hint, default, docs.get(f.name, ""))
         container = target
         if "exclusive" in meta:
             if meta["exclusive"] not in exclusive:

@@ -23,6 +23,7 @@ import h5py
 import torch
 
 from envs.atomic import write_atomic
+from envs.windows import FALLBACK_INTERVAL_US
 
 from .checkpoint import CheckpointError, check_model_name, load_checkpoint, load_model, save_checkpoint
 from .provenance import code_version
@@ -93,7 +94,7 @@ def default_finish(choice: dict[str, Any] | None = None) -> list[dict]:
     return list(choice.get("finish") or [])
 
 
-def default_steps(window: str, window_size: int | None, frame_us: int = 33_333,
+def default_steps(window: str, window_size: int | None, frame_us: int = FALLBACK_INTERVAL_US,
                   choice: dict[str, Any] | None = None) -> int:
     """Network steps per window of the default model's mode (:func:`default_split`, or
     ``choice``'s ``split``): ``"dt"``, one step per ground-truth interval: ``window_size`` frames

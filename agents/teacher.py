@@ -237,6 +237,27 @@ def copy_targets(source: str | os.PathLike, out: str | os.PathLike, dtype=None) 
     return out
 
 
+def _take_windows(path, f: h5py.File, sizes: Sequence[int], smallest: int, grids: dict[str, list],
+                  bounds: dict[str, list], sizes_of: dict[str, tuple]) -> None:
+    """Add to ``bounds`` and ``grids`` (per recording) the windows of the open part ``f`` (read
+    from ``path``) whose length is one of ``sizes`` frames (``smallest``: the part's smallest
+    window size), and each recording's sensor size to ``sizes_of``; a recording at another
+    sensor size or grid shape than in the parts before raises ValueError."""
+    for name, group in f.items():
+        b, g = group["bounds"][()], group["grid"][()].astype(np.float32)
+        frame = (b[:, 1] - b[:, 0]).min() / smallest
+        length = np.rint((b[:, 1] - b[:, 0]) / frame).astype(int)
+        keep = np.isin(length, list(sizes))
+        if name in sizes_of and tuple(sizes_of[name]) != tuple(group.attrs["sensor_size"]):
+            raise ValueError(f"{path}: recording {name} at another sensor size than in the other parts")
+        if grids.get(name) and grids[name][0].shape[1:] != g.shape[1:]:
+            raise ValueError(f"{path}: recording {name} with {g.shape[2:]} grids, the other parts "
+                             f"{grids[name][0].shape[2:]}")
+        sizes_of[name] = tuple(int(v) for v in group.attrs["sensor_size"])
+        bounds.setdefault(name, []).append(b[keep])
+        grids.setdefault(name, []).append(g[keep])
+
+
 def merge_targets(parts: Sequence[tuple[str | os.PathLike, Sequence[int]]], out: str | os.PathLike,
                   dtype=None) -> Path:
     """One target file from several complete ones: from each ``(path, sizes)`` the windows whose
@@ -262,20 +283,7 @@ def merge_targets(parts: Sequence[tuple[str | os.PathLike, Sequence[int]]], out:
                 raise ValueError(f"{path}: targets of data {config['data']!r} for recording {shared[0]} that a part "
                                  f"of other data ({other_data[0]['config']['data']!r}) holds too")
             data_recordings[configs[-1]["source"]] = set(f)
-            smallest = min(config["window_sizes"])
-            for name, group in f.items():
-                b, g = group["bounds"][()], group["grid"][()].astype(np.float32)
-                frame = (b[:, 1] - b[:, 0]).min() / smallest
-                length = np.rint((b[:, 1] - b[:, 0]) / frame).astype(int)
-                keep = np.isin(length, list(sizes))
-                if name in sizes_of and tuple(sizes_of[name]) != tuple(group.attrs["sensor_size"]):
-                    raise ValueError(f"{path}: recording {name} at another sensor size than in the other parts")
-                if grids.get(name) and grids[name][0].shape[1:] != g.shape[1:]:
-                    raise ValueError(f"{path}: recording {name} with {g.shape[2:]} grids, the other parts "
-                                     f"{grids[name][0].shape[2:]}")
-                sizes_of[name] = tuple(int(v) for v in group.attrs["sensor_size"])
-                bounds.setdefault(name, []).append(b[keep])
-                grids.setdefault(name, []).append(g[keep])
+            _take_windows(path, f, sizes, min(config["window_sizes"]), grids, bounds, sizes_of)
     first = configs[0]["config"]
     datas = []  # the parts' data, in order, each once
     for c in configs:
@@ -411,6 +419,34 @@ class TeacherTargets:
         ])
 
 
+def _smoothed(velocity: torch.Tensor, smooth: int) -> torch.Tensor:
+    """Each of the (K, 2, H, W) velocities averaged with its ``smooth`` neighbours on each side
+    (a triangular weight, 1 at the window, falling to 0 after smooth + 1; the ends repeated)."""
+    weights = torch.tensor([smooth + 1 - abs(d) for d in range(-smooth, smooth + 1)], dtype=torch.float32)
+    padded = torch.cat([velocity[:1].expand(smooth, *velocity.shape[1:]), velocity,
+                        velocity[-1:].expand(smooth, *velocity.shape[1:])])
+    return sum(w * padded[i : i + len(velocity)] for i, w in enumerate(weights)) / weights.sum()
+
+
+def _derived_windows(reader, sizes: list[int], long: np.ndarray, velocity: torch.Tensor,
+                     partial: bool) -> tuple[list[list[int]], list[torch.Tensor]]:
+    """The bounds and flows of every ``sizes``-frame window of ``reader``: the velocity of the
+    ``long`` windows it overlaps, weighted by the overlap (past the last: the nearest one's),
+    times its duration; ``partial``: only windows within the long ones solved."""
+    bounds, out_grids = [], []
+    for k in sizes:
+        for t0, t1 in window_bounds(reader, "frames", k)[:, :2].tolist():
+            if partial and t1 > long[-1, 1]:
+                break  # past the solved span
+            overlap = np.clip(np.minimum(long[:, 1], t1) - np.maximum(long[:, 0], t0), 0, None)
+            if overlap.sum() == 0:  # past the last long window (the frames do not divide): the nearest
+                overlap = (np.arange(len(long)) == np.argmin(np.abs(long.mean(1) - (t0 + t1) / 2))) * 1.0
+            w = torch.from_numpy((overlap / overlap.sum()).astype(np.float32)).view(-1, 1, 1, 1)
+            out_grids.append((w * velocity).sum(0) * (t1 - t0))
+            bounds.append([t0, t1])
+    return bounds, out_grids
+
+
 def derive_targets(source: str | os.PathLike, out: str | os.PathLike, *, from_size: int,
                    window_sizes: Sequence[int] = (1, 2, 3, 4), smooth: int = 0) -> Path:
     """Targets of every ``window_sizes`` window derived from the ``from_size``-frame ones of
@@ -450,21 +486,8 @@ def derive_targets(source: str | os.PathLike, out: str | os.PathLike, *, from_si
                 grids = torch.stack([src.grid(name, a, b) for a, b in long])
                 velocity = grids / torch.from_numpy((long[:, 1] - long[:, 0]).astype(np.float32)).view(-1, 1, 1, 1)
                 if smooth:
-                    weights = torch.tensor([smooth + 1 - abs(d) for d in range(-smooth, smooth + 1)], dtype=torch.float32)
-                    padded = torch.cat([velocity[:1].expand(smooth, *velocity.shape[1:]), velocity,
-                                        velocity[-1:].expand(smooth, *velocity.shape[1:])])
-                    velocity = sum(w * padded[i : i + len(velocity)] for i, w in enumerate(weights)) / weights.sum()
-                bounds, out_grids = [], []
-                for k in sizes:
-                    for t0, t1 in window_bounds(reader, "frames", k)[:, :2].tolist():
-                        if partial and t1 > long[-1, 1]:
-                            break  # past the solved span
-                        overlap = np.clip(np.minimum(long[:, 1], t1) - np.maximum(long[:, 0], t0), 0, None)
-                        if overlap.sum() == 0:  # past the last long window (the frames do not divide): the nearest
-                            overlap = (np.arange(len(long)) == np.argmin(np.abs(long.mean(1) - (t0 + t1) / 2))) * 1.0
-                        w = torch.from_numpy((overlap / overlap.sum()).astype(np.float32)).view(-1, 1, 1, 1)
-                        out_grids.append((w * velocity).sum(0) * (t1 - t0))
-                        bounds.append([t0, t1])
+                    velocity = _smoothed(velocity, smooth)
+                bounds, out_grids = _derived_windows(reader, sizes, long, velocity, partial)
                 group = f.create_group(name)
                 group.attrs["sensor_size"] = src.sensor_size_of(name)
                 group["bounds"] = np.array(bounds, np.int64).reshape(-1, 2)

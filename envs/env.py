@@ -16,6 +16,7 @@ from envs.readers._common import check_flow_gt, resolve_crop
 from envs.representations import OBSERVATIONS, count_image
 from envs.visualize import count_image_to_rgb, flow_to_rgb
 from envs.windows import (
+    DEFAULT_WINDOW_SIZES,
     MAX_WINDOW_EVENTS,
     WINDOW_MODES,
     Window,
@@ -223,66 +224,35 @@ class EventFlowEnv(gym.Env):
     ) -> None:
         if sensor_size is not None:  # events from memory, or a file without geometry
             data_options = {**(data_options or {}), "sensor_size": sensor_size}
-        if window not in WINDOW_MODES:
-            raise ValueError(f"window must be one of {WINDOW_MODES}, got {window!r}")
+        sizes = _window_sizes(window, window_size)
         self.window = window
-        if window_size is None:
-            window_size = {"frames": 1, "time": 10_000, "count": 15_000}[window]
-        given = list(window_size) if isinstance(window_size, (list, tuple, np.ndarray)) else [window_size]
-        if not given or not all(_is_whole(v) and int(v) > 0 for v in given):
-            raise ValueError(f"window_size must be a positive integer or a non-empty list of them "
-                             f"({'grid steps' if window == 'frames' else 'us' if window == 'time' else 'events'}), "
-                             f"got {window_size!r}")
-        sizes = [int(v) for v in given]
         self.window_sizes = tuple(sizes)  # one is drawn per episode when there are several
         self.window_size = sizes[0]
-        unknown = [k for k in observations if k not in OBSERVATION_KEYS]
-        if unknown or not observations:
-            raise ValueError(f"observations must be a non-empty subset of {OBSERVATION_KEYS}, got {list(observations)}")
-        self.observation_keys = tuple(observations)
+        self.observation_keys = _observation_keys(observations)
         self.loss_spec = _loss_spec(loss_spec, loss=loss, lambda_1=lambda_1, lambda_2=lambda_2, alpha=alpha,
                                     border_penalty=border_penalty, border_ramp=border_ramp)
-        flips = ("h", "v", "p") if flips is True else (() if flips is False else tuple(flips))
-        if any(f not in ("h", "v", "p") for f in flips):
-            raise ValueError(f"flips must be True/False or a subset of ('h', 'v', 'p'), got {flips}")
-        self.flip_kinds = flips
+        self.flip_kinds = _flip_kinds(flips)
         self.event_keep = check_event_keep(event_keep)
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
-        self.render_mode = render_mode
+        self.render_mode = _render_mode(render_mode, self.metadata["render_modes"])
         self.random_start = random_start
         self.compute_reward = compute_reward
         self.voxel_bins = int(voxel_bins)
         self.max_events = int(max_events)
-        if max_window_events is not None and not (_is_whole(max_window_events) and int(max_window_events) > 0):
-            raise ValueError(f"max_window_events must be a positive integer or None, got {max_window_events!r}")
-        self.max_window_events = None if max_window_events is None else int(max_window_events)
-        if window == "count":
-            for size in sizes:
-                check_window_events(size, self.max_window_events, f"a count window of {size} events")
+        self.max_window_events = _max_window_events(max_window_events, window, sizes)
 
         self.sources = resolve_data(data, format=data_format or format, options=data_options)
         if sequences is not None:
-            names = [s.name for s in self.sources]
-            picked = []
-            for item in sequences:
-                if isinstance(item, str):
-                    if item not in names:
-                        raise ValueError(f"sequences: unknown sequence {item!r}; known: {names}")
-                    item = names.index(item)
-                if not 0 <= int(item) < len(self.sources):
-                    raise ValueError(f"sequences: index {item} outside [0, {len(self.sources)})")
-                picked.append(self.sources[int(item)])
-            if not picked:
-                raise ValueError("sequences: empty selection")
-            self.sources = picked
+            self.sources = _pick_sequences(self.sources, sequences)
         self.env_index = int(env_index)
-        if multiprocessing.parent_process() is not None:
-            # A worker of an async vector env (forked by default on Linux): torch's OpenMP
-            # pool inherited from a parent that already ran torch ops deadlocks on first use
-            # in the child, so the reward runs single-threaded there (one window is small).
-            torch.set_num_threads(1)
+        _single_thread_in_worker()
         self.sequence_names = [s.name for s in self.sources]
+        self._set_frame(crop, random_crop, flow_scaling, flow_limit)
+        self._clear_episode()
+
+    def _set_frame(self, crop, random_crop: bool, flow_scaling, flow_limit) -> None:
+        """The frame the env works in: the sensor size (the first recording's; without a crop
+        every recording must share it), the crop and its size, the flow's scale and limit, and
+        the observation and action spaces at that size."""
         first = self.sources[0].reader()
         self.sensor_size = tuple(first.sensor_size)
         self._crop_given = crop is not None
@@ -298,13 +268,27 @@ class EventFlowEnv(gym.Env):
         self.random_crop = bool(random_crop)
         self._origin: tuple[int, int] | None = None  # this episode's crop corner (random_crop)
         for name, value in (("flow_scaling", flow_scaling), ("flow_limit", flow_limit)):
-            if value is not None and not (isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
-                                          and np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive finite number of pixels (or None for the default), "
-                                 f"got {value!r}")
+            _check_pixels(name, value)
         self.flow_scaling = float(flow_scaling if flow_scaling is not None else max(self.height, self.width))
         self.flow_limit = float(flow_limit if flow_limit is not None else self.flow_scaling)
+        self.observation_space = self._observation_space()
+        self.action_space = spaces.Box(-self.flow_limit, self.flow_limit, (2, self.height, self.width), np.float32)
 
+    def _clear_episode(self) -> None:
+        """No episode yet: its windows, place, augmentations and last window and action unset."""
+        self._bounds: np.ndarray | None = None
+        self._windowing = ""
+        self._seq_index = -1
+        self._step = 0
+        self._flips: dict[str, bool] = {}
+        self._keep: tuple[float, int] | None = None  # this episode's (keep probability, seed) (event_keep)
+        self._window: Window | None = None
+        self._last_action: np.ndarray | None = None
+        self._scored_window: Window | None = None
+
+    def _observation_space(self) -> spaces.Dict:
+        """The observations asked for, at the crop's size (``events``: ``max_events`` rows of
+        x, y, t, p and their count)."""
         h, w = self.height, self.width
         parts: dict[str, spaces.Space] = {
             name: spaces.Box(*observation.bounds((h, w), self.voxel_bins), dtype=np.float32)
@@ -315,18 +299,7 @@ class EventFlowEnv(gym.Env):
             high = np.tile(np.array([w - 1, h - 1, 1, 1], np.float32), (self.max_events, 1))
             parts["events"] = spaces.Box(low, high, dtype=np.float32)
             parts["num_events"] = spaces.Box(0.0, float(self.max_events), (1,), np.float32)
-        self.observation_space = spaces.Dict(parts)
-        self.action_space = spaces.Box(-self.flow_limit, self.flow_limit, (2, h, w), np.float32)
-
-        self._bounds: np.ndarray | None = None
-        self._windowing = ""
-        self._seq_index = -1
-        self._step = 0
-        self._flips: dict[str, bool] = {}
-        self._keep: tuple[float, int] | None = None  # this episode's (keep probability, seed) (event_keep)
-        self._window: Window | None = None
-        self._last_action: np.ndarray | None = None
-        self._scored_window: Window | None = None
+        return spaces.Dict(parts)
 
     # ------------------------------------------------------------------------------------------
     @staticmethod
@@ -640,6 +613,91 @@ def _is_whole(value) -> bool:
     if isinstance(value, (int, np.integer)):
         return True
     return isinstance(value, (float, np.floating)) and np.isfinite(value) and float(value).is_integer()
+
+
+def _window_sizes(window: str, window_size) -> list[int]:
+    """The window sizes asked for (``window_size``: one or a list; None: the mode's default,
+    ``DEFAULT_WINDOW_SIZES``) as positive ints; an unknown ``window`` mode or a size that is not
+    a positive whole number is a ValueError."""
+    if window not in WINDOW_MODES:
+        raise ValueError(f"window must be one of {WINDOW_MODES}, got {window!r}")
+    if window_size is None:
+        window_size = DEFAULT_WINDOW_SIZES[window]
+    given = list(window_size) if isinstance(window_size, (list, tuple, np.ndarray)) else [window_size]
+    if not given or not all(_is_whole(v) and int(v) > 0 for v in given):
+        raise ValueError(f"window_size must be a positive integer or a non-empty list of them "
+                         f"({'grid steps' if window == 'frames' else 'us' if window == 'time' else 'events'}), "
+                         f"got {window_size!r}")
+    return [int(v) for v in given]
+
+
+def _observation_keys(observations: Sequence[str]) -> tuple[str, ...]:
+    """``observations`` as a tuple: a non-empty subset of ``OBSERVATION_KEYS``."""
+    unknown = [k for k in observations if k not in OBSERVATION_KEYS]
+    if unknown or not observations:
+        raise ValueError(f"observations must be a non-empty subset of {OBSERVATION_KEYS}, got {list(observations)}")
+    return tuple(observations)
+
+
+def _render_mode(render_mode: str | None, modes: Sequence[str]) -> str | None:
+    """``render_mode``: None or one of ``modes``."""
+    if render_mode is not None and render_mode not in modes:
+        raise ValueError(f"render_mode must be None or one of {modes}, got {render_mode!r}")
+    return render_mode
+
+
+def _max_window_events(max_window_events, window: str, sizes: list[int]) -> int | None:
+    """``max_window_events`` as an int (or None: no bound); in ``count`` mode every window size
+    must fit it."""
+    if max_window_events is not None and not (_is_whole(max_window_events) and int(max_window_events) > 0):
+        raise ValueError(f"max_window_events must be a positive integer or None, got {max_window_events!r}")
+    limit = None if max_window_events is None else int(max_window_events)
+    if window == "count":
+        for size in sizes:
+            check_window_events(size, limit, f"a count window of {size} events")
+    return limit
+
+
+def _single_thread_in_worker() -> None:
+    """In a worker of an async vector env (forked by default on Linux), torch's OpenMP pool
+    inherited from a parent that already ran torch ops deadlocks on first use in the child, so
+    the reward runs single-threaded there (one window is small)."""
+    if multiprocessing.parent_process() is not None:
+        torch.set_num_threads(1)
+
+
+def _flip_kinds(flips) -> tuple[str, ...]:
+    """``flips`` (True: all, False: none, or a subset of "h", "v", "p") as a tuple of kinds."""
+    flips = ("h", "v", "p") if flips is True else (() if flips is False else tuple(flips))
+    if any(f not in ("h", "v", "p") for f in flips):
+        raise ValueError(f"flips must be True/False or a subset of ('h', 'v', 'p'), got {flips}")
+    return flips
+
+
+def _pick_sequences(sources: list, sequences) -> list:
+    """The sources ``sequences`` names (each a sequence name or an index into ``sources``), in
+    that order; an unknown name, an index out of range or an empty selection is a ValueError."""
+    names = [s.name for s in sources]
+    picked = []
+    for item in sequences:
+        if isinstance(item, str):
+            if item not in names:
+                raise ValueError(f"sequences: unknown sequence {item!r}; known: {names}")
+            item = names.index(item)
+        if not 0 <= int(item) < len(sources):
+            raise ValueError(f"sequences: index {item} outside [0, {len(sources)})")
+        picked.append(sources[int(item)])
+    if not picked:
+        raise ValueError("sequences: empty selection")
+    return picked
+
+
+def _check_pixels(name: str, value) -> None:
+    """``value`` (the option ``name``) is None or a positive finite number of pixels."""
+    if value is not None and not (isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
+                                  and np.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive finite number of pixels (or None for the default), "
+                         f"got {value!r}")
 
 
 def _check_windows(windows) -> np.ndarray:

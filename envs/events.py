@@ -27,6 +27,28 @@ class EventError(ValueError):
     """Raised for malformed event data; the message names the field and the first bad index."""
 
 
+def _check_order_and_bounds(source: str, x: np.ndarray, y: np.ndarray, t: np.ndarray, height: int, width: int,
+                            rectified: bool) -> None:
+    """Raise :class:`EventError` (naming ``source``, the field and the first bad index) unless
+    ``t`` never decreases and the coordinates lie inside the ``height`` x ``width`` sensor
+    (``rectified``: float coordinates, finite and in [0, size - 1])."""
+    dt = np.diff(t)
+    if (dt < 0).any():
+        i = _first_index(dt < 0) + 1
+        raise EventError(
+            f"{source}: field 't' must be non-decreasing; index {i} has t={t[i]} "
+            f"after t={t[i - 1]} at index {i - 1}"
+        )
+    for name, arr, size in (("x", x, width), ("y", y, height)):
+        bad = ~np.isfinite(arr) | (arr < 0) | (arr > size - 1) if rectified else (arr < 0) | (arr >= size)
+        if bad.any():
+            i = _first_index(bad)
+            raise EventError(
+                f"{source}: field '{name}' must lie in [0, {size}) for sensor "
+                f"{height}x{width} (height x width); index {i} holds {arr[i]}"
+            )
+
+
 def _first_index(bad: np.ndarray) -> int:
     return int(np.flatnonzero(bad)[0])
 
@@ -116,21 +138,7 @@ class Events:
             x = x.astype(np.float32, copy=False)
             y = y.astype(np.float32, copy=False)
         if validate and n:
-            dt = np.diff(t)
-            if (dt < 0).any():
-                i = _first_index(dt < 0) + 1
-                raise EventError(
-                    f"{source}: field 't' must be non-decreasing; index {i} has t={t[i]} "
-                    f"after t={t[i - 1]} at index {i - 1}"
-                )
-            for name, arr, size in (("x", x, width), ("y", y, height)):
-                bad = ~np.isfinite(arr) | (arr < 0) | (arr > size - 1) if rectified else (arr < 0) | (arr >= size)
-                if bad.any():
-                    i = _first_index(bad)
-                    raise EventError(
-                        f"{source}: field '{name}' must lie in [0, {size}) for sensor "
-                        f"{height}x{width} (height x width); index {i} holds {arr[i]}"
-                    )
+            _check_order_and_bounds(source, x, y, t, height, width, rectified)
         if not rectified:
             x = x.astype(np.int16, copy=False)
             y = y.astype(np.int16, copy=False)

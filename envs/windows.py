@@ -29,11 +29,13 @@ from envs.events import Events
 from envs.readers.base import EventReader
 from losses import EventBatch
 
-__all__ = ["Window", "check_window_fits", "check_window_events", "MAX_WINDOW_EVENTS", "iter_windows", "window_bounds", "window_grid", "WINDOW_MODES", "FALLBACK_INTERVAL_US"]
+__all__ = ["Window", "check_window_fits", "check_window_events", "MAX_WINDOW_EVENTS", "iter_windows", "window_bounds", "window_grid", "WINDOW_MODES", "FALLBACK_INTERVAL_US", "DEFAULT_WINDOW_SIZES"]
 
 WINDOW_MODES = ("time", "count", "frames")
 #: The ``frames`` grid's interval on a recording with neither ground truth nor frames (30 Hz).
 FALLBACK_INTERVAL_US = 33_333
+#: A window's size per mode where none is given: one grid step, 10 ms, 15,000 events.
+DEFAULT_WINDOW_SIZES = {"frames": 1, "time": 10_000, "count": 15_000}
 
 
 @dataclass(frozen=True, eq=False)
@@ -201,7 +203,7 @@ def window_bounds(
 
 
 def iter_windows(
-    reader: EventReader, mode: str = "time", size: int = 10_000, *, t_from: int | None = None
+    reader: EventReader, mode: str = "time", size: int = DEFAULT_WINDOW_SIZES["time"], *, t_from: int | None = None
 ) -> Iterator[Window]:
     """Yield the recording's windows in order (see :func:`window_bounds` for the arguments).
 

@@ -582,9 +582,7 @@ def render_tables(rows: list[dict], zero: dict, budget: Budget, seeds: tuple[int
     def metric(name: str, split: str, dt: str, key: str) -> list[float]:
         return [r["eval"][split][dt].get(key) for r in by_name[name]]
 
-    def short(split: str) -> str:  # "../shared/devval" -> "devval", "synthetic-test" -> "test"
-        return Path(split).name.replace("synthetic-", "")
-
+    short = _short_split
     accuracy = [(s, d) for s in splits for d in dts]
     head = (["configuration", "seeds"] + [f"AEE {short(s)} {d}" for s, d in accuracy]
             + [f"% out {short(splits[0])} {dts[0]}", f"cos {short(splits[0])} {dts[0]}",
@@ -617,10 +615,25 @@ def render_tables(rows: list[dict], zero: dict, budget: Budget, seeds: tuple[int
                 "|---|---|" + "---:|" * (len(head) - 3) + "---|", "| " + " | ".join(zero_cells) + " |",
                 *[accuracy_row(n) for n in names], ""]
 
+    lines = [
+        START,
+        _report_intro(rows, by_name, budget, seeds),
+        "",
+        *table(2, "network ablations (L_HMC)"),
+        *table(3, "losses and baselines"),
+        *_quality_table(by_name, splits, dts, pending),
+        END,
+    ]
+    return "\n".join(lines)
+
+
+def _quality_table(by_name: dict[str, list[dict]], splits: list[str], dts: list[str], pending) -> list[str]:
+    """The lines of the Table 4 layout: FWL and RSAT per split and dt (``pending(name, columns)``:
+    the row of a configuration not finished yet)."""
     quality = [(s, d, key) for s in splits for d in dts for key in ("fwl", "rsat")]
     table4 = ["**Table 4 layout: FWL (higher is better) and RSAT (lower is better), scored from the events alone "
               "(no ground truth read)**", "",
-              "| configuration | seeds | " + " | ".join(f"{k.upper()} {short(s)} {d}" for s, d, k in quality)
+              "| configuration | seeds | " + " | ".join(f"{k.upper()} {_short_split(s)} {d}" for s, d, k in quality)
               + " | paper MVSEC dt=1 AEE |",
               "|---|---|" + "---:|" * len(quality) + "---|",
               "| zero flow (reference) | - | " + " | ".join("1.0000" for _ in quality) + " | - |"]
@@ -628,18 +641,30 @@ def render_tables(rows: list[dict], zero: dict, budget: Budget, seeds: tuple[int
         if name not in by_name:
             table4.append(pending(name, len(quality)))
             continue
-        table4.append(f"| {by_name[name][0]['label']} | {', '.join(str(r['seed']) for r in by_name[name])} | "
-                      + " | ".join(_cell(metric(name, s, d, k), 4) for s, d, k in quality) + f" | {_paper(name)} |")
+        runs = by_name[name]
+        table4.append(f"| {runs[0]['label']} | {', '.join(str(r['seed']) for r in runs)} | "
+                      + " | ".join(_cell([r["eval"][s][d].get(k) for r in runs], 4) for s, d, k in quality)
+                      + f" | {_paper(name)} |")
+    return table4
+
+
+def _short_split(split: str) -> str:
+    """A split's short name in a column head: "../shared/devval" -> "devval", "synthetic-test" -> "test"."""
+    return Path(split).name.replace("synthetic-", "")
+
+
+def _report_intro(rows: list[dict], by_name: dict[str, list[dict]], budget: Budget, seeds: tuple[int, ...]) -> str:
+    """The paragraph above the tables: the budget, the seeds, what was evaluated, the runs finished."""
+    splits, dts = budget.eval_splits, [f"dt{k}" for k in budget.eval_dts]
     dates = sorted({r["date"] for r in rows})
     seed_sets = [{r["seed"] for r in group} for group in by_name.values()]
     common = sorted(set.intersection(*seed_sets)) if seed_sets else []
     more = "" if all(len(s) == len(common) for s in seed_sets) else ", more where the seeds column lists them"
-    lines = [
-        START,
+    return (
         f"Budget per configuration: {budget.describe()}. "
         + (f"Seeds {', '.join(map(str, common))} for every configuration{more}. " if len(common) > 1 else
            f"Seeds {', '.join(map(str, seeds))} for the full model; the others seed {seeds[0]}, and seed {seeds[1]} "
-           f"too where their {short(splits[0])} {dts[0]} AEE is within 2 standard deviations of the full model's. "
+           f"too where their {_short_split(splits[0])} {dts[0]} AEE is within 2 standard deviations of the full model's. "
            if len(seeds) > 1 else
            f"Seed {seeds[0]} for every configuration so far (the seed column says which rows have more). ")
         + "Mean ± sample standard deviation over seeds. Evaluated on every window"
@@ -647,14 +672,7 @@ def render_tables(rows: list[dict], zero: dict, budget: Budget, seeds: tuple[int
         + f" of {', '.join(f'`{s}`' for s in splits)} at their own sensor size. "
         f"Runs finished (configuration x seed): {len(rows)}" + (f", {dates[0]} to {dates[-1]}" if dates else "") + ". "
         "The paper column is MVSEC, another data set: compare orderings, not values. "
-        "Validation curves: `curves/<configuration>.png` in the record folder (`docs/ablations` by default).",
-        "",
-        *table(2, "network ablations (L_HMC)"),
-        *table(3, "losses and baselines"),
-        *table4,
-        END,
-    ]
-    return "\n".join(lines)
+        "Validation curves: `curves/<configuration>.png` in the record folder (`docs/ablations` by default).")
 
 
 def write_report(path: Path, block: str) -> None:
@@ -680,6 +698,18 @@ def _dashed(draw, start: tuple[float, float], end: tuple[float, float], colour: 
                    start[0] + b * (end[0] - start[0]), start[1] + b * (end[1] - start[1])], fill=colour)
 
 
+def _curve_range(points: list[tuple]) -> tuple[float, float, float]:
+    """The plot's last step and its value range (the val AEE and zero flow's, padded by 5%; at
+    least 1 px wide) for (step, val AEE, zero-flow AEE or None) points."""
+    x_max = max(p[0] for p in points) or 1
+    values = [p[1] for p in points] + [p[2] for p in points if p[2] is not None]
+    y_min, y_max = min(values), max(values)
+    if y_max - y_min < 1e-9:
+        y_min, y_max = y_min - 0.5, y_max + 0.5
+    pad = 0.05 * (y_max - y_min)
+    return x_max, y_min - pad, y_max + pad
+
+
 def plot_validation_curves(rows: list[dict], path: Path, size: tuple[int, int] = (640, 400)) -> Path:
     """A PNG of val AEE against step (both stages) for the runs of one configuration, one line
     per seed, zero flow's val AEE dashed, the start of the fine-tuning stage dotted (Pillow)."""
@@ -694,13 +724,7 @@ def plot_validation_curves(rows: list[dict], path: Path, size: tuple[int, int] =
     title = f"{rows[0]['label'] if rows else ''}: validation AEE (px) vs step"
     draw.text((left, 8), title, fill="black")
     if points:
-        x_max = max(p[0] for p in points) or 1
-        values = [p[1] for p in points] + [p[2] for p in points if p[2] is not None]
-        y_min, y_max = min(values), max(values)
-        if y_max - y_min < 1e-9:
-            y_min, y_max = y_min - 0.5, y_max + 0.5
-        pad = 0.05 * (y_max - y_min)
-        y_min, y_max = y_min - pad, y_max + pad
+        x_max, y_min, y_max = _curve_range(points)
 
         def xy(step: float, value: float) -> tuple[float, float]:
             return (left + (width - left - right) * step / x_max,

@@ -57,7 +57,7 @@ from envs.visualize import (
     panel,
     save_animation,
 )
-from envs.windows import WINDOW_MODES, Window, check_window_fits, window_bounds
+from envs.windows import FALLBACK_INTERVAL_US, WINDOW_MODES, Window, check_window_fits, window_bounds
 from losses import flow_error, fwl, rsat
 
 __all__ = ["FLOW_FORMAT", "PredictResult", "load_policy", "predict", "summary_table"]
@@ -315,7 +315,7 @@ def predict(
     video_arrows: bool = False,
     flow_max: float | None = None,
     provenance: dict | None = None,
-    no_gt_window_us: int = 33_333,
+    no_gt_window_us: int = FALLBACK_INTERVAL_US,
     progress: bool = True,
     compression: int = 4,
     overwrite: bool = False,

@@ -53,6 +53,28 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
+def _copy_recording(reader: EventReader, writer: H5Writer, chunk_events: int, flow_dt: int | None, frames: bool,
+                    bar) -> None:
+    """Copy ``reader``'s events (``chunk_events`` at a time, counted on ``bar`` if any), its
+    ground truth every ``flow_dt`` grid steps (None: none) and its frames (``frames``) to ``writer``."""
+    for i0 in range(0, reader.num_events, chunk_events):
+        i1 = min(reader.num_events, i0 + chunk_events)
+        writer.append_events(_integer_pixels(reader.events_range(i0, i1)))
+        if bar is not None:
+            bar.update(i1 - i0)
+    grid = reader.flow_timestamps() if flow_dt else None
+    if grid is not None:
+        ts = np.asarray(grid, np.int64)[::flow_dt]
+        for t0, t1 in zip(ts[:-1], ts[1:]):
+            gt = reader.flow_between(int(t0), int(t1))
+            if gt is not None:
+                writer.add_flow(int(t0), int(t1), gt[0], gt[1])
+    frame_t = reader.frame_timestamps() if frames else None
+    if frame_t is not None:
+        for k, t in enumerate(np.asarray(frame_t, np.int64)):
+            writer.add_frame(int(t), _to_uint8(reader.frame(k)))
+
+
 def convert_recording(
     reader: EventReader,
     out_path: str | os.PathLike | Output,
@@ -98,22 +120,7 @@ def convert_recording(
     try:
         with H5Writer(target, reader.sensor_size, name=reader.name, provenance=provenance, t_start_us=reader.t_start,
                       t_end_us=reader.t_end, overwrite=overwrite, inputs=inputs, exclusive=True) as writer:
-            for i0 in range(0, reader.num_events, chunk_events):
-                i1 = min(reader.num_events, i0 + chunk_events)
-                writer.append_events(_integer_pixels(reader.events_range(i0, i1)))
-                if bar is not None:
-                    bar.update(i1 - i0)
-            grid = reader.flow_timestamps() if flow_dt else None
-            if grid is not None:
-                ts = np.asarray(grid, np.int64)[::flow_dt]
-                for t0, t1 in zip(ts[:-1], ts[1:]):
-                    gt = reader.flow_between(int(t0), int(t1))
-                    if gt is not None:
-                        writer.add_flow(int(t0), int(t1), gt[0], gt[1])
-            frame_t = reader.frame_timestamps() if frames else None
-            if frame_t is not None:
-                for k, t in enumerate(np.asarray(frame_t, np.int64)):
-                    writer.add_frame(int(t), _to_uint8(reader.frame(k)))
+            _copy_recording(reader, writer, chunk_events, flow_dt, frames, bar)
     finally:
         if bar is not None:
             bar.close()

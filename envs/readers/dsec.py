@@ -138,6 +138,27 @@ class DSECReader(EventReader):
     layout = "dsec"
 
     # Like every reader: the path, then keyword-only options (open_recording passes them on).
+    def _check_layout(self) -> dict[str, int]:
+        """The lengths of the event datasets x, y, t, p, once the file is checked to hold the
+        DSEC layout (events of one length, ``ms_to_idx``, ``t_offset``, their compression
+        readable); else the file is closed and a FormatError raised."""
+        f = self._file
+        try:
+            require(
+                f, self.path, "DSEC",
+                {"events/x": ("iu", 1), "events/y": ("iu", 1), "events/t": ("iu", 1), "events/p": ("iub", 1), "ms_to_idx": ("iu", 1)},
+            )
+            if "t_offset" not in f:
+                raise FormatError(f"{self.path}: missing dataset '/t_offset' (required by the DSEC layout)")
+            lengths = {k: f["events"][k].shape[0] for k in "xytp"}
+            if len(set(lengths.values())) != 1:
+                raise FormatError(f"{self.path}: event datasets differ in length: {lengths}")
+            require_hdf5plugin(self.path, [f["events"][k] for k in "xytp"])
+        except Exception:
+            f.close()
+            raise
+        return lengths
+
     def __init__(
         self,
         path: str | os.PathLike,
@@ -155,20 +176,7 @@ class DSECReader(EventReader):
         self.name = parts[-4] if len(parts) >= 4 and parts[-3:-1] in (("events", "left"), ("events", "right")) else self.path.parent.name
         self.validate = validate
         self._file = f = open_h5(self.path, "DSEC")
-        try:
-            require(
-                f, self.path, "DSEC",
-                {"events/x": ("iu", 1), "events/y": ("iu", 1), "events/t": ("iu", 1), "events/p": ("iub", 1), "ms_to_idx": ("iu", 1)},
-            )
-            if "t_offset" not in f:
-                raise FormatError(f"{self.path}: missing dataset '/t_offset' (required by the DSEC layout)")
-            lengths = {k: f["events"][k].shape[0] for k in "xytp"}
-            if len(set(lengths.values())) != 1:
-                raise FormatError(f"{self.path}: event datasets differ in length: {lengths}")
-            require_hdf5plugin(self.path, [f["events"][k] for k in "xytp"])
-        except Exception:
-            f.close()
-            raise
+        lengths = self._check_layout()
         self._ds = {k: f["events"][k] for k in "xytp"}
         self._ms_to_idx = f["ms_to_idx"]
         self.t_offset = int(np.asarray(f["t_offset"][()]).ravel()[0])

@@ -58,13 +58,11 @@ class HagenaarsReader(EventReader):
 
     layout = "hagenaars"
 
-    def __init__(self, path: str | os.PathLike, *, flow_timestamp: str = "end", validate: bool = True) -> None:
-        if flow_timestamp not in ("end", "start"):
-            raise ValueError(f"flow_timestamp must be 'end' or 'start', got {flow_timestamp!r}")
-        self.path = Path(path)
-        self.name = self.path.stem
-        self.validate = validate
-        self._file = f = open_h5(self.path, "Hagenaars/Monash h5")
+    def _check_layout(self) -> tuple[dict[str, int], np.ndarray]:
+        """The lengths of the event datasets xs, ys, ts, ps and the ``sensor_resolution``
+        attribute (height, width), once the file is checked to hold the layout (events of one
+        length, a positive resolution); else the file is closed and a FormatError raised."""
+        f = self._file
         try:
             require(
                 f, self.path, "Hagenaars/Monash h5",
@@ -81,6 +79,16 @@ class HagenaarsReader(EventReader):
         except Exception:
             f.close()
             raise
+        return lengths, res
+
+    def __init__(self, path: str | os.PathLike, *, flow_timestamp: str = "end", validate: bool = True) -> None:
+        if flow_timestamp not in ("end", "start"):
+            raise ValueError(f"flow_timestamp must be 'end' or 'start', got {flow_timestamp!r}")
+        self.path = Path(path)
+        self.name = self.path.stem
+        self.validate = validate
+        self._file = f = open_h5(self.path, "Hagenaars/Monash h5")
+        lengths, res = self._check_layout()
         self.sensor_size = (int(res[0]), int(res[1]))
         self.num_events = lengths["ts"]
         self._ds = {k: f["events"][k] for k in ("xs", "ys", "ts", "ps")}

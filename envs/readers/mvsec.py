@@ -198,19 +198,7 @@ class MVSECReader(EventReader):
         self._file = open_h5(self.path, "MVSEC")
         f = self._file
         base = f"davis/{camera}"
-        try:
-            require(f, self.path, "MVSEC", {f"{base}/events": ("f", 2)})
-            ev = f[f"{base}/events"]
-            if ev.shape[1] != 4:
-                raise FormatError(
-                    f"{self.path}: dataset '/{base}/events' has shape {ev.shape}, the MVSEC layout "
-                    "expects (N, 4) columns [x, y, t_seconds, p]"
-                )
-            if ev.shape[0] == 0:
-                raise FormatError(f"{self.path}: dataset '/{base}/events' is empty")
-        except Exception:
-            f.close()
-            raise
+        ev = self._events_dataset(base)
         self._events = ev
         self.num_events = int(ev.shape[0])
         self.full_sensor_size = MVSEC_SENSOR_SIZE
@@ -228,20 +216,7 @@ class MVSECReader(EventReader):
             f.close()
             raise
         self._times = SortedColumn(lambda i0, i1: self._seconds_to_us(self._events[i0:i1, 2], i0), self.num_events)
-        # frames
-        self._images = None
-        self._image_t = None
-        if f"{base}/image_raw" in f:
-            if f"{base}/image_raw_ts" not in f:
-                f.close()
-                raise FormatError(f"{self.path}: '/{base}/image_raw' has no timestamps: missing dataset '/{base}/image_raw_ts'")
-            self._images = f[f"{base}/image_raw"]
-            try:
-                self._image_t = seconds_to_us(f[f"{base}/image_raw_ts"][:], self.origin_us, source=str(self.path),
-                                              field=f"/{base}/image_raw_ts")
-            except Exception:
-                f.close()
-                raise
+        self._open_frames(base)
         # ground truth
         if gt is None:
             candidate = self.path.with_name(self.name + "_gt_flow_dist.npz")
@@ -260,6 +235,43 @@ class MVSECReader(EventReader):
                 self.close()
                 raise
         self.grid = grid
+
+    def _events_dataset(self, base: str):
+        """The camera's (N, 4) events dataset ``/<base>/events`` (non-empty); else the file is
+        closed and a FormatError raised."""
+        f = self._file
+        try:
+            require(f, self.path, "MVSEC", {f"{base}/events": ("f", 2)})
+            ev = f[f"{base}/events"]
+            if ev.shape[1] != 4:
+                raise FormatError(
+                    f"{self.path}: dataset '/{base}/events' has shape {ev.shape}, the MVSEC layout "
+                    "expects (N, 4) columns [x, y, t_seconds, p]"
+                )
+            if ev.shape[0] == 0:
+                raise FormatError(f"{self.path}: dataset '/{base}/events' is empty")
+        except Exception:
+            f.close()
+            raise
+        return ev
+
+    def _open_frames(self, base: str) -> None:
+        """The camera's APS frames and their times in µs from the origin, where the file has
+        them (else None); frames without timestamps close the file and raise a FormatError."""
+        f = self._file
+        self._images = None
+        self._image_t = None
+        if f"{base}/image_raw" in f:
+            if f"{base}/image_raw_ts" not in f:
+                f.close()
+                raise FormatError(f"{self.path}: '/{base}/image_raw' has no timestamps: missing dataset '/{base}/image_raw_ts'")
+            self._images = f[f"{base}/image_raw"]
+            try:
+                self._image_t = seconds_to_us(f[f"{base}/image_raw_ts"][:], self.origin_us, source=str(self.path),
+                                              field=f"/{base}/image_raw_ts")
+            except Exception:
+                f.close()
+                raise
 
     def _open_gt(self, path: Path) -> None:
         if not path.exists():

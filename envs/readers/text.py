@@ -155,6 +155,27 @@ class TextReader(EventReader):
                 offset += len(line)
         return size, offset
 
+    def _parse_lines(self, body: bytes, count: int, n: int, first_t: int | None,
+                     last_t: int | None) -> tuple[np.ndarray, np.ndarray]:
+        """The ``count`` lines of ``body`` (events ``n`` on) as rows (t, x, y, p) and their times
+        in µs, checked: finite times, pixel coordinates, values (``first_t``: the file's first
+        time in µs, None before it is read) and, with ``validate``, times in order after
+        ``last_t`` (the previous lines' last time)."""
+        rows = _parse(body, self.path, n + 1)
+        if len(rows) != count:
+            raise FormatError(f"{self.path}: could not split the lines near event {n + 1} into 't x y p'")
+        check_finite(rows[:, 0], str(self.path), "t", n)
+        for column, field in ((1, "x"), (2, "y")):
+            check_pixel_coordinates(rows[:, column], str(self.path), field, n)
+        self._check_values(rows, n, None if first_t is None else first_t / self._scale)
+        t = self._to_us(rows[:, 0])
+        if self.validate:
+            dt = np.diff(t)
+            if (dt < 0).any() or (last_t is not None and len(t) and t[0] < last_t):
+                i = 0 if last_t is not None and t[0] < last_t else int(np.flatnonzero(dt < 0)[0]) + 1
+                raise FormatError(f"{self.path}: field 't' decreases at event {n + i} (line {n + i + 1} of the events)")
+        return rows, t
+
     def _index(self) -> None:
         """One pass: block offsets and first times, event count, coordinate range, time order."""
         b = self.block_lines
@@ -188,21 +209,9 @@ class TextReader(EventReader):
                         line = n + int(np.flatnonzero(blank)[0]) + 1
                         raise FormatError(f"{self.path}: blank line after event {line - 1} (the line index needs one event per line)")
                     break
-                rows = _parse(body, self.path, n + 1)
-                if len(rows) != len(starts):
-                    raise FormatError(f"{self.path}: could not split the lines near event {n + 1} into 't x y p'")
-                check_finite(rows[:, 0], str(self.path), "t", n)
-                for column, field in ((1, "x"), (2, "y")):
-                    check_pixel_coordinates(rows[:, column], str(self.path), field, n)
-                self._check_values(rows, n, None if first_t is None else first_t / self._scale)
-                t = self._to_us(rows[:, 0])
+                rows, t = self._parse_lines(body, len(starts), n, first_t, last_t)
                 if first_t is None and len(t):
                     first_t = int(t[0])
-                if self.validate:
-                    dt = np.diff(t)
-                    if (dt < 0).any() or (last_t is not None and len(t) and t[0] < last_t):
-                        i = 0 if last_t is not None and t[0] < last_t else int(np.flatnonzero(dt < 0)[0]) + 1
-                        raise FormatError(f"{self.path}: field 't' decreases at event {n + i} (line {n + i + 1} of the events)")
                 sel = np.flatnonzero((n + np.arange(len(t))) % b == 0)
                 offsets.extend((pos + starts[sel]).tolist())
                 block_t.extend(t[sel].tolist())

@@ -311,6 +311,52 @@ def cmd_resume(args) -> int:
         release_folder(campaign.work)
 
 
+def _child_env(threads: int | None) -> dict[str, str]:
+    """The environment of the children: training and validation run with the campaign's --threads."""
+    env = dict(os.environ)
+    if threads:
+        env.update({k: str(threads) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")})
+    return env
+
+
+def _validate_init(campaign: Campaign, spec: CampaignSpec, here: str, device: str, log, env: dict) -> None:
+    """Score the initial weights (``spec.init``: a shipped name or a checkpoint) as the curve's step 0."""
+    row = validate(campaign, spec, ["--pretrained", spec.init] if "/" not in spec.init and not spec.init.endswith(
+        ".pt") else ["--checkpoint", spec.init], "init", device, log, env)
+    campaign.append_curve({"step": 0, **row, "wall_h": 0.0, "stretch": 0, "machine": here, "init": spec.init,
+                           "date": datetime.date.today().isoformat()})
+    log(f"[campaign] the initial weights ({spec.init}): score {row['score']:.4f} {row['aee']}")
+
+
+def _train_args(campaign: Campaign, spec: CampaignSpec, args, minutes: float) -> list[str]:
+    """train.py's arguments for one interval of ``minutes``: resuming the working checkpoint
+    where there is one, else the recipe from its start (and ``spec.init``)."""
+    train = ["--out", str(campaign.work / "train"), "--minutes", f"{minutes:.2f}", "--val-data", "",
+             "--device", args.device, *(["--no-progress"] if args.quiet else [])]
+    if campaign.checkpoint.exists():  # the recipe's step count may have grown since
+        return ["--resume", *train, *_steps_of(spec.train)]
+    return [*spec.train, *train, *(["--init", spec.init] if spec.init else [])]
+
+
+def _validate_step(campaign: Campaign, spec: CampaignSpec, step: int, progress: dict, here: str, weights_dir: Path,
+                   device: str, log, env: dict) -> None:
+    """Score the working checkpoint at ``step``, add it to the curve, and export it when it
+    beats the best so far."""
+    row = validate(campaign, spec, ["--checkpoint", str(campaign.checkpoint)], f"step{step}", device,
+                   log, env)
+    best = campaign.best(spec.mode)
+    improved = best is None or row["score"] < best["score"]
+    campaign.append_curve({"step": step, **row, "wall_h": round(progress["wall_s"] / 3600, 4),
+                           "stretch": progress["stretches"], "machine": here,
+                           "date": datetime.date.today().isoformat(), "exported": improved})
+    log(f"[campaign] step {step}: score {row['score']:.4f} {row['aee']} "
+        f"(best before: {best['score'] if best else '-'})")
+    if improved:
+        name, users = export(campaign, spec, row, step, here, weights_dir)
+        kept = f" ({spec.export} is the init of {', '.join(users)}: left as it is)" if users else ""
+        log(f"[campaign] exported to {weights_dir / name}.pt{kept}")
+
+
 def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
     def log(message: str) -> None:
         print(f"{datetime.datetime.now():%H:%M:%S} {message}", flush=True)
@@ -324,9 +370,7 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
             child["proc"].send_signal(signal.SIGTERM)  # train.py finishes its step and saves
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    env = dict(os.environ)  # of the children: training and validation run with the campaign's --threads
-    if args.threads:
-        env.update({k: str(args.threads) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")})
+    env = _child_env(args.threads)
     weights_dir = Path(args.weights_dir) if args.weights_dir else ROOT / "agents" / "weights"
     source = campaign.restore_working_checkpoint()
     progress = campaign.progress()
@@ -335,11 +379,7 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
     log(f"[campaign] {campaign.name}: stretch {progress['stretches']} on {here}, from the "
         f"{ {'working': 'working checkpoint', 'state': 'committed state', 'fresh': 'start'}[source]}")
     if source == "fresh" and spec.init and spec.val_data and not campaign.curve():
-        row = validate(campaign, spec, ["--pretrained", spec.init] if "/" not in spec.init and not spec.init.endswith(
-            ".pt") else ["--checkpoint", spec.init], "init", args.device, log, env)
-        campaign.append_curve({"step": 0, **row, "wall_h": 0.0, "stretch": 0, "machine": here, "init": spec.init,
-                               "date": datetime.date.today().isoformat()})
-        log(f"[campaign] the initial weights ({spec.init}): score {row['score']:.4f} {row['aee']}")
+        _validate_init(campaign, spec, here, args.device, log, env)
     elif spec.val_data:
         rescore_export(campaign, spec, weights_dir, here, progress, args.device, log, env)
     deadline = time.time() + 3600 * args.hours if args.hours else float("inf")
@@ -348,12 +388,7 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
     try:
         while time.time() < deadline and stop["signal"] is None:
             minutes = min(spec.interval_minutes, max(0.25, (deadline - time.time()) / 60))
-            train = ["--out", str(campaign.work / "train"), "--minutes", f"{minutes:.2f}", "--val-data", "",
-                     "--device", args.device, *(["--no-progress"] if args.quiet else [])]
-            if campaign.checkpoint.exists():  # the recipe's step count may have grown since
-                train = ["--resume", *train, *_steps_of(spec.train)]
-            else:
-                train = [*spec.train, *train, *(["--init", spec.init] if spec.init else [])]
+            train = _train_args(campaign, spec, args, minutes)
             started = time.time()
             child["proc"] = subprocess.Popen([PYTHON, str(ROOT / "scripts" / "train.py"), *train], env=env,
                                              preexec_fn=_die_with_parent)
@@ -367,19 +402,7 @@ def _resume(campaign: Campaign, spec: CampaignSpec, args) -> int:
             payload = load_checkpoint(campaign.checkpoint)
             step, total = int(payload["step"]), int(payload["config"]["steps"])
             if stop["signal"] is None and spec.val_data:
-                row = validate(campaign, spec, ["--checkpoint", str(campaign.checkpoint)], f"step{step}", args.device,
-                               log, env)
-                best = campaign.best(spec.mode)
-                improved = best is None or row["score"] < best["score"]
-                campaign.append_curve({"step": step, **row, "wall_h": round(progress["wall_s"] / 3600, 4),
-                                       "stretch": progress["stretches"], "machine": here,
-                                       "date": datetime.date.today().isoformat(), "exported": improved})
-                log(f"[campaign] step {step}: score {row['score']:.4f} {row['aee']} "
-                    f"(best before: {best['score'] if best else '-'})")
-                if improved:
-                    name, users = export(campaign, spec, row, step, here, weights_dir)
-                    kept = f" ({spec.export} is the init of {', '.join(users)}: left as it is)" if users else ""
-                    log(f"[campaign] exported to {weights_dir / name}.pt{kept}")
+                _validate_step(campaign, spec, step, progress, here, weights_dir, args.device, log, env)
             size, dropped = campaign.write_state(campaign.checkpoint, progress, int(spec.state_budget_mb * 2**20))
             log(f"[campaign] state at step {step}: {campaign.state_path} ({size / 2**20:.1f} MB; left out to fit "
                 f"{spec.state_budget_mb:g} MB: {dropped})")

@@ -192,20 +192,12 @@ def dsec_sinks(args, protocol, policies: dict) -> dict:
     return {name: DSECSubmissionWriter(root / name.replace(" ", "_"), protocol) for name in policies}
 
 
-def build_policies(args) -> dict:
-    """Row name -> policy (None: zero flow), in table order."""
-    from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
-    from agents.wrappers.refine import FinishedPolicy, RefinedPolicy
-    from agents.wrappers.still import StillGuard
+def _add_pretrained(policies: dict, args) -> None:
+    """Add the rows of the shipped models ``--pretrained`` names (none given: the default): each
+    in the default's mode where that applies (split dt, the finish, with the network alone beside
+    it), else as it is."""
+    from agents.wrappers.refine import FinishedPolicy
 
-    policies: dict = {}
-    names = args.name or []
-    for i, path in enumerate(args.checkpoint):
-        model, payload = load_model(path, map_location=args.device, expect_model=args.model)
-        name = names[i] if i < len(names) else Path(path).parent.name or Path(path).stem
-        cfg = payload.get("config") or {}
-        policies[name] = RecurrentPolicy(model, device=args.device, input_key=cfg.get("input", "count_image"),
-                                         voxel_bins=cfg.get("voxel_bins", 5))
     pretrained = [] if args.pretrained is None else (args.pretrained or [pretrained_module.DEFAULT_PRETRAINED])
     for name in pretrained:
         policy = RecurrentPolicy.from_pretrained(name, device=args.device)
@@ -221,6 +213,23 @@ def build_policies(args) -> dict:
             policies[f"{label}, network alone"] = SubWindowPolicy(alone, splits=1) if default_mode_split(args) else alone
         else:
             policies[label + (" (the default's mode)" if default_mode_split(args) else "")] = policy
+
+
+def build_policies(args) -> dict:
+    """Row name -> policy (None: zero flow), in table order."""
+    from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
+    from agents.wrappers.refine import FinishedPolicy, RefinedPolicy
+    from agents.wrappers.still import StillGuard
+
+    policies: dict = {}
+    names = args.name or []
+    for i, path in enumerate(args.checkpoint):
+        model, payload = load_model(path, map_location=args.device, expect_model=args.model)
+        name = names[i] if i < len(names) else Path(path).parent.name or Path(path).stem
+        cfg = payload.get("config") or {}
+        policies[name] = RecurrentPolicy(model, device=args.device, input_key=cfg.get("input", "count_image"),
+                                         voxel_bins=cfg.get("voxel_bins", 5))
+    _add_pretrained(policies, args)
     if args.model and not args.checkpoint:
         policies[args.model] = RecurrentPolicy(make_model(args.model, **width_kwargs(args.width)).eval(),
                                                device=args.device)

@@ -50,6 +50,7 @@ from agents.options import (
 from agents.pretrained import default_finish, default_steps
 from agents.wrappers.refine import FinishedPolicy
 from envs.outputs import Output
+from envs.windows import FALLBACK_INTERVAL_US
 from evflow_cli.predict import load_policy, predict, summary_dict, summary_table
 
 
@@ -82,7 +83,7 @@ class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progr
     """frames per second of the preview"""
     arrows: bool = False
     """preview: also sparse arrows over the flow at the events"""
-    no_gt_window: int = option(33_333, type=positive_int)
+    no_gt_window: int = option(FALLBACK_INTERVAL_US, type=positive_int)
     """us; --window frames on a recording without a ground-truth grid"""
     start: float | None = option(None, type=non_negative_float)
     """seconds from the recording's start"""

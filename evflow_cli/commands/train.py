@@ -525,18 +525,26 @@ def main(argv=None) -> int:
         release_folder(args.out)  # (a killed process's lock is released by the kernel)
 
 
-def _main(args, argv) -> int:
-    out = Path(args.out)
+def _prepare(args, out: Path) -> bool:
+    """Before any work: the logger installed (else an error printed and False), a new run's
+    folder free (``out``, unless resuming), torch's thread count as asked."""
     if args.logger == "tensorboard":
         try:
-            require_tensorboard()  # before any work
+            require_tensorboard()
         except ImportError as err:
             print(f"error: {err}", file=sys.stderr)
-            return 2
+            return False
     if not args.resume:
         check_new_run_folder(out, args.overwrite)
     if args.threads:
         torch.set_num_threads(args.threads)
+    return True
+
+
+def _main(args, argv) -> int:
+    out = Path(args.out)
+    if not _prepare(args, out):
+        return 2
     rank = setup_distributed(args)
     cfg, learner, payload = open_run(args, argv, rank)
     record = RunRecord(args, learner, rank, resumed=payload is not None)
