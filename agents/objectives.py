@@ -65,7 +65,7 @@ def loss_options(cfg: TrainConfig, flow_scaling: float) -> dict:
 def _hmc_spec(cfg: TrainConfig) -> LossSpec:
     """The run's spec with L_HMC, whatever loss it trains: the unrolled finish solves L_HMC
     (docs/finish.md), and the accumulated loss exists for L_HMC alone (``--loss at`` with
-    ``--loss-mode accumulated`` trains it too)."""
+    ``--loss-mode accumulated`` is refused by TrainConfig)."""
     return dataclasses.replace(cfg.loss_spec, loss="hmc")
 
 

@@ -151,6 +151,9 @@ class TrainConfig(ModelWidth, Windows, SensorSizeOptions):
 
     def __post_init__(self) -> None:
         check_choices(self)
+        if self.loss == "at" and self.loss_mode == "accumulated":  # it would train L_HMC without saying so
+            raise ValueError("--loss-mode accumulated is one L_HMC over the L windows (Hagenaars' sequential "
+                             "learning) and exists for --loss hmc alone: --loss at takes --loss-mode window")
         if self.finish_steps and self.loss_mode == "accumulated" and self.loss in ("hmc", "at"):
             raise ValueError("--finish-steps finishes each window's flow: it needs --loss-mode window (or a teacher)")
         if self.event_keep is not None:  # refused where the options are read, not when the envs are built

@@ -1,5 +1,6 @@
 """agents/objectives.py: the teacher's endpoint error against the obvious form with torch's norm."""
 
+import pytest
 import torch
 
 from agents.objectives import _endpoint_error
@@ -31,3 +32,15 @@ def test_endpoint_error_of_float32_teacher_sizes_agrees_with_the_norm():
     weight = torch.ones(8, 1, 96, 96)
     torch.testing.assert_close(_endpoint_error(flow, target, weight), _reference(flow, target, weight),
                                rtol=1e-6, atol=0)
+
+
+def test_settings_that_would_train_another_loss_than_named_are_refused():
+    """L_AT has no accumulated mode: the pair trained L_HMC without a word; now it is refused, as
+    the unrolled finish is beside the accumulated loss."""
+    from agents.train_config import TrainConfig
+
+    with pytest.raises(ValueError, match="exists for --loss hmc alone: --loss at takes --loss-mode window"):
+        TrainConfig(loss="at", loss_mode="accumulated")
+    with pytest.raises(ValueError, match="--finish-steps finishes each window's flow"):
+        TrainConfig(loss="hmc", loss_mode="accumulated", finish_steps=2)
+    assert TrainConfig(loss="at").loss_mode == "window" and TrainConfig(loss="hmc", loss_mode="accumulated")
