@@ -18,6 +18,7 @@ order. The iterator reads window by window through the reader, never the whole r
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Iterator
@@ -78,6 +79,62 @@ class Window(Mapping):
     def batch(self, device=None, dtype: torch.dtype = torch.float32) -> EventBatch:
         """The window as a batch of one, what the losses take (x, y pixels, tau in [0, 1])."""
         return EventBatch.from_windows([self], device=device, dtype=dtype)
+
+    @classmethod
+    def of(cls, events: Events, t_start: int, t_end: int, index: int = 0) -> "Window":
+        """The window ``[t_start, t_end)`` holding ``events`` (no recording behind it: ``i_start``,
+        ``i_end`` count its own events, from 0)."""
+        return cls(int(index), int(t_start), int(t_end), 0, len(events), events)
+
+    def cut(self, t_start: int, t_end: int) -> "Window":
+        """The part ``[t_start, t_end)`` of the window, its own events (binary search on t): a
+        part that ends where the window ends keeps the events stamped ``t_end`` too, as the
+        window does. ``i_start``, ``i_end`` follow; the ground truth is kept only by a cut of the
+        whole window (it is the flow over the whole window)."""
+        t_start, t_end = int(t_start), int(t_end)
+        i0, i1 = np.searchsorted(self.events.t, (t_start, t_end), side="left")
+        if t_end == self.t_end:
+            i1 = len(self.events)
+        whole = (t_start, t_end) == (self.t_start, self.t_end)
+        return Window(self.index, t_start, t_end, self.i_start + int(i0), self.i_start + int(i1),
+                      self.events[int(i0):int(i1)], self.flow_gt if whole else None,
+                      self.flow_gt_valid if whole else None)
+
+    def split(self, parts: int) -> list["Window"]:
+        """The window cut (:meth:`cut`) into ``parts`` consecutive parts of equal length (integer
+        µs bounds ``t_start + duration * k // parts``): every event in exactly one part."""
+        if int(parts) < 1:
+            raise ValueError(f"splits must be >= 1, got {parts}")
+        parts = int(parts)
+        bounds = [self.t_start + self.duration_us * k // parts for k in range(parts)] + [self.t_end]
+        return [self.cut(bounds[k], bounds[k + 1]) for k in range(parts)]
+
+    def subsample(self, max_events: int, *, rounding: str = "nearest") -> "Window":
+        """The window with at most ``max_events`` events, taken evenly along the (time-ordered)
+        stream: indices ``np.linspace(0, n - 1, max_events)`` rounded to the nearest (``rounding=
+        "nearest"``, the teacher's rule) or down (``"floor"``, the solver's and the finish's). The
+        window itself where it holds no more; bounds and ground truth are kept."""
+        n = len(self.events)
+        if n <= max_events:
+            return self
+        pick = np.linspace(0, n - 1, int(max_events))
+        if rounding == "nearest":
+            pick = pick.round()
+        elif rounding != "floor":
+            raise ValueError(f"rounding must be 'nearest' or 'floor', got {rounding!r}")
+        return dataclasses.replace(self, events=self.events[pick.astype(np.int64)])
+
+    def bin(self, factor: int) -> "Window":
+        """The window's events on a grid ``factor`` times coarser: pixel (x, y) to
+        (x // factor, y // factor), the sensor ``ceil(H / factor)`` x ``ceil(W / factor)``;
+        times, polarities and bounds kept, the ground truth (on the sensor grid) dropped."""
+        f = int(factor)
+        if f < 1:
+            raise ValueError(f"factor must be >= 1, got {factor}")
+        height, width = self.sensor_size
+        ev = self.events
+        events = Events(np.asarray(ev.x) // f, np.asarray(ev.y) // f, ev.t, ev.p, (-(-height // f), -(-width // f)))
+        return dataclasses.replace(self, events=events, flow_gt=None, flow_gt_valid=None)
 
     # the window dict (x, y, t, p, t_start, t_end) as a read-only mapping
     _KEYS = ("x", "y", "t", "p", "t_start", "t_end")

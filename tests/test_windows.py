@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 import torch
 
+from envs.events import Events
 from envs.readers import ArrayReader, H5Reader, write_h5
-from envs.windows import iter_windows, window_bounds, window_grid
+from envs.windows import Window, iter_windows, window_bounds, window_grid
 from losses import EventBatch
 from tests.conftest import random_events
 
@@ -114,3 +115,71 @@ def test_a_window_is_the_window_dict_and_gives_the_losses_batch(rng):
     assert window == list(iter_windows(ArrayReader(ev, t_range=(1_000, 21_000)), "time", 20_000))[0]
     with pytest.raises(KeyError):
         window["flow_gt"]  # the mapping is the window dict; the ground truth is an attribute
+
+
+def _one_window(rng, n=500, size=(20, 30), t_start=1_000, t_end=101_001):
+    t = np.sort(rng.integers(t_start, t_end + 1, n))
+    t[:20], t[-5:] = t_start, t_end  # repeated timestamps at both edges, some stamped t_end
+    ev = Events.create(rng.integers(0, size[1], n), rng.integers(0, size[0], n), t, rng.choice([-1, 1], n), size)
+    return Window(3, t_start, t_end, 7, 7 + n, ev, np.ones((2, *size), np.float32), np.ones(size, bool))
+
+
+def _dict_parts(window, splits):
+    """The sub-windows as cut on window dicts: equal integer bounds, events by binary search."""
+    t0, t1 = window.t_start, window.t_end
+    bounds = [t0 + (t1 - t0) * k // splits for k in range(splits)] + [t1]
+    t = window.events.t
+    edges = [0, *np.searchsorted(t, bounds[1:-1], side="left").tolist(), len(t)]
+    return [({k: getattr(window.events, k)[edges[k_]:edges[k_ + 1]] for k in ("x", "y", "t", "p")},
+             bounds[k_], bounds[k_ + 1]) for k_ in range(splits)]
+
+
+@pytest.mark.parametrize("splits", [1, 3, 4])
+def test_split_cuts_as_the_window_dicts_were_cut(rng, splits):
+    window = _one_window(rng)
+    parts = window.split(splits)
+    for part, (arrays, t0, t1) in zip(parts, _dict_parts(window, splits), strict=True):
+        assert isinstance(part, Window) and (part.t_start, part.t_end) == (t0, t1)
+        assert part.sensor_size == window.sensor_size and part.index == window.index
+        for key, value in arrays.items():
+            np.testing.assert_array_equal(getattr(part.events, key), value)
+        assert (part.flow_gt is None) == (splits > 1)
+    assert [p.i_start for p in parts[1:]] == [p.i_end for p in parts[:-1]]
+    assert (parts[0].i_start, parts[-1].i_end) == (window.i_start, window.i_end)
+    with pytest.raises(ValueError, match="splits"):
+        window.split(0)
+
+
+def test_cut_keeps_the_half_open_part_and_the_closing_events(rng):
+    window = _one_window(rng)
+    mid = window.cut(20_000, 60_000)
+    assert np.all((mid.events.t >= 20_000) & (mid.events.t < 60_000)) and mid.flow_gt is None
+    assert len(mid.events) == int(np.sum((window.events.t >= 20_000) & (window.events.t < 60_000)))
+    assert window.cut(60_000, window.t_end).events.t[-1] == window.t_end
+    assert window.cut(window.t_start, window.t_end) == window
+
+
+@pytest.mark.parametrize("rounding", ["nearest", "floor"])
+def test_subsample_takes_the_even_subsample_of_the_dict_code(rng, rounding):
+    window = _one_window(rng, n=1000)
+    assert window.subsample(1000) is window
+    got = window.subsample(333, rounding=rounding)
+    pick = np.linspace(0, 999, 333)
+    pick = (pick.round() if rounding == "nearest" else pick).astype(np.int64)
+    for key in ("x", "y", "t", "p"):
+        np.testing.assert_array_equal(getattr(got.events, key), getattr(window.events, key)[pick])
+    assert (got.t_start, got.t_end, got.index) == (window.t_start, window.t_end, window.index)
+    with pytest.raises(ValueError, match="rounding"):
+        window.subsample(10, rounding="up")
+
+
+def test_bin_divides_the_pixels_and_the_sensor(rng):
+    window = _one_window(rng, size=(21, 31))
+    binned = window.bin(2)
+    assert binned.sensor_size == (11, 16) and binned.flow_gt is None
+    np.testing.assert_array_equal(binned.events.x, np.asarray(window.events.x) // 2)
+    np.testing.assert_array_equal(binned.events.y, np.asarray(window.events.y) // 2)
+    np.testing.assert_array_equal(binned.events.t, window.events.t)
+    assert window.bin(1).events.sensor_size == window.sensor_size
+    with pytest.raises(ValueError, match="factor"):
+        window.bin(0)
