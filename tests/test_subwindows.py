@@ -10,6 +10,8 @@ from agents.policy import RecurrentPolicy
 from agents.registry import make_model
 from agents.wrappers.subwindows import SubWindowPolicy, compose_flows, sub_windows
 from envs.env import EventFlowEnv
+from envs.events import Events
+from envs.windows import Window
 from evflow_cli.commands import evaluate as evaluate_script
 from tests.recordings import write_translating_recording
 
@@ -17,24 +19,24 @@ from tests.recordings import write_translating_recording
 def _window(rng, n=500, size=(20, 30), t_start=1_000, t_end=101_001):
     t = np.sort(rng.integers(t_start, t_end, n))
     t[:20] = t_start  # repeated timestamps at the edges too
-    return {"x": rng.integers(0, size[1], n), "y": rng.integers(0, size[0], n), "t": t,
-            "p": rng.choice([-1, 1], n), "t_start": t_start, "t_end": t_end}
+    events = Events.create(rng.integers(0, size[1], n), rng.integers(0, size[0], n), t, rng.choice([-1, 1], n), size)
+    return Window.of(events, t_start, t_end)
 
 
 @pytest.mark.parametrize("splits", [1, 3, 4])
 def test_sub_windows_cut_time_in_equal_parts_and_keep_every_event_once(rng, splits):
     window = _window(rng)
     parts = sub_windows(window, splits)
-    assert len(parts) == splits
-    assert parts[0]["t_start"] == window["t_start"] and parts[-1]["t_end"] == window["t_end"]
-    lengths = [part["t_end"] - part["t_start"] for part in parts]
+    assert len(parts) == splits and all(isinstance(part, Window) for part in parts)
+    assert parts[0].t_start == window.t_start and parts[-1].t_end == window.t_end
+    lengths = [part.t_end - part.t_start for part in parts]
     assert max(lengths) - min(lengths) <= 1
     for a, b in zip(parts[:-1], parts[1:]):
-        assert a["t_end"] == b["t_start"]
+        assert a.t_end == b.t_start
     for part in parts:
-        assert np.all((part["t"] >= part["t_start"]) & (part["t"] < part["t_end"]))
+        assert np.all((part.events.t >= part.t_start) & (part.events.t < part.t_end))
     for key in ("x", "y", "t", "p"):
-        assert np.array_equal(np.concatenate([part[key] for part in parts]), window[key])
+        assert np.array_equal(np.concatenate([getattr(part.events, key) for part in parts]), getattr(window.events, key))
     with pytest.raises(ValueError, match="splits"):
         sub_windows(window, 0)
 

@@ -11,6 +11,7 @@ from agents.policy import RecurrentPolicy
 from agents.registry import make_model
 from agents.wrappers import CoarsePolicy, CombinedPolicy, GainPolicy, RefinedPolicy, SubWindowPolicy
 from envs.env import EventFlowEnv
+from envs.windows import Window
 from losses import EventBatch, window_loss
 from tests.recordings import translating_dots, write_translating_recording
 
@@ -34,7 +35,7 @@ class _Constant:
 def _window(rng, size=(21, 31), velocity=(120.0, -90.0)):
     events, (t0, t1) = translating_dots(rng, sensor_size=size, velocity=velocity, duration_us=33_333,
                                         num_dots=60, events_per_s=200_000)
-    return {**events.as_dict(), "t_start": t0, "t_end": t1}
+    return Window.of(events, t0, t1)
 
 
 def test_coarse_bins_the_events_and_scales_the_flow_back(rng):
@@ -44,7 +45,7 @@ def test_coarse_bins_the_events_and_scales_the_flow_back(rng):
     flow = CoarsePolicy(inner, factor=2).act(obs, window)
     assert flow.shape == (2, 21, 31) and np.allclose(flow, 2 * inner.vector[:, None, None])  # coarse pixels x 2
     image = inner.inputs[-1]
-    assert image.shape == (2, 11, 16) and image.sum() == pytest.approx(len(window["t"]) / 4)  # each count / F^2
+    assert image.shape == (2, 11, 16) and image.sum() == pytest.approx(len(window.events) / 4)  # each count / F^2
     CoarsePolicy(inner, factor=2, splits=3).act(obs, window)
     assert len(inner.inputs) == 4  # one step per sub-window
     with pytest.raises(ValueError, match="window"):

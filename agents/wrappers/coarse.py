@@ -8,13 +8,12 @@ times the output range in sensor pixels (``tools/cheap_modes.py``, ``coarse:F``)
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from envs.representations import EventView, image_input
+from envs.representations import image_input
+from envs.windows import Window
 
 from .subwindows import SubWindowPolicy, compose_flows, sub_windows
 
@@ -34,7 +33,7 @@ class CoarsePolicy(SubWindowPolicy):
             raise ValueError(f"factor must be >= 1, got {factor}")
         self.factor = int(factor)
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs, window: Window | None = None) -> np.ndarray:
         """The window's flow (``agents.policy.FlowPolicy``), from its events binned coarser."""
         if window is None:
             raise ValueError("CoarsePolicy bins the window's events: call act(obs, window)")
@@ -43,11 +42,10 @@ class CoarsePolicy(SubWindowPolicy):
         size = (-(-height // f), -(-width // f))
         flows = []
         for part in sub_windows(window, self.splits):
-            binned = {"x": np.asarray(part["x"]) // f, "y": np.asarray(part["y"]) // f, "t": part["t"], "p": part["p"]}
-            image = image_input(self.input_key, EventView(binned), part["t_start"], part["t_end"], size,
+            binned = part.bin(f)
+            image = image_input(self.input_key, binned.events, binned.t_start, binned.t_end, size,
                                 self.voxel_bins) / float(f * f)
-            flows.append(self.policy.act({self.input_key: image}, {**binned, "t_start": part["t_start"],
-                                                                   "t_end": part["t_end"]}))
+            flows.append(self.policy.act({self.input_key: image}, binned))
         flow = torch.as_tensor(compose_flows(flows))[None]
         up = F.interpolate(flow, size=(size[0] * f, size[1] * f), mode="bilinear", align_corners=False)
         return (up[0, :, :height, :width] * f).numpy()

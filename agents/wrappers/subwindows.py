@@ -19,32 +19,22 @@ ground-truth interval). Cost: N network steps per window.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from envs.representations import EventView, image_input
+from envs.representations import image_input
+from envs.windows import Window
 
 from ..policy import as_flow_policy
 
 __all__ = ["SubWindowPolicy", "compose_flows", "sub_windows"]
 
 
-def sub_windows(window: Mapping, splits: int) -> list[dict]:
-    """``window`` (``info["window"]``, or a dict of numpy x, y, t, p sorted by t and int t_start,
-    t_end) cut into ``splits`` windows of equal length (integer µs bounds), each ``[t_k, t_k+1)``
-    with its own events."""
-    if int(splits) < 1:
-        raise ValueError(f"splits must be >= 1, got {splits}")
-    t0, t1 = int(window["t_start"]), int(window["t_end"])
-    bounds = [t0 + (t1 - t0) * k // splits for k in range(splits)] + [t1]
-    t = np.asarray(window["t"])
-    cuts = np.searchsorted(t, bounds[1:-1], side="left")
-    edges = [0, *cuts.tolist(), len(t)]
-    return [{**{key: np.asarray(window[key])[edges[k]:edges[k + 1]] for key in ("x", "y", "t", "p")},
-             "t_start": bounds[k], "t_end": bounds[k + 1]} for k in range(splits)]
+def sub_windows(window: Window, splits: int) -> list[Window]:
+    """``window`` (``info["window"]``) cut into ``splits`` windows of equal length (integer µs
+    bounds), each ``[t_k, t_k+1)`` with its own events: :meth:`envs.windows.Window.split`."""
+    return window.split(splits)
 
 
 def compose_flows(flows) -> np.ndarray:
@@ -76,7 +66,7 @@ class SubWindowPolicy:
     """A recurrent policy stepped through ``splits`` equal sub-windows of every window, its flows
     composed (:func:`compose_flows`) into the window's. The wrapped policy's state carries across
     sub-windows and windows alike; ``reset`` resets it. It acts on each sub-window's
-    observation, given that sub-window (a window dict) as its window."""
+    observation, given that sub-window (a :class:`~envs.windows.Window`) as its window."""
 
     def __init__(self, policy, splits: int) -> None:
         if int(splits) < 1:
@@ -90,12 +80,12 @@ class SubWindowPolicy:
     def reset(self, mask=None) -> None:
         self.policy.reset(mask)
 
-    def observation(self, window: dict, size: tuple[int, int]) -> dict:
+    def observation(self, window: Window, size: tuple[int, int]) -> dict:
         """The wrapped policy's input for one (sub-)window, as the env builds it."""
-        return {self.input_key: image_input(self.input_key, EventView(window), window["t_start"], window["t_end"],
+        return {self.input_key: image_input(self.input_key, window.events, window.t_start, window.t_end,
                                             size, self.voxel_bins)}
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs, window: Window | None = None) -> np.ndarray:
         """The window's flow (``agents.policy.FlowPolicy``); with ``splits > 1`` it needs the
         window (its events)."""
         if self.splits == 1:
