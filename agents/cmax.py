@@ -18,14 +18,13 @@ events; coarse to fine in flow cells and in sensor pixels.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
 
-from envs.windows import FALLBACK_INTERVAL_US
-from losses import CMAX_WEIGHTS, EventBatch, LossSpec, contrast_maximisation_flow
+from envs.windows import FALLBACK_INTERVAL_US, Window
+from losses import CMAX_WEIGHTS, LossSpec, contrast_maximisation_flow
 
 __all__ = ["CMaxSettings", "ContrastMaximisationPolicy", "EVIDENCE_PRIOR", "FRAME_US"]
 
@@ -111,22 +110,19 @@ class CMaxSettings:
         if self.max_events < 1:
             raise ValueError(f"CMaxSettings: max_events must be >= 1, got {self.max_events}")
 
-    def solve(self, window: Mapping, size: tuple[int, int], base: np.ndarray | None = None,
+    def solve(self, window: Window, size: tuple[int, int], base: np.ndarray | None = None,
               device: str | torch.device = "cpu") -> np.ndarray:
-        """(2, H, W) float32 flow in pixels over ``window`` (the env's ``info["window"]``, or a
-        dict of x, y, t, p, t_start, t_end).
+        """(2, H, W) float32 flow in pixels over ``window`` (the env's ``info["window"]``, a
+        :class:`~envs.windows.Window`).
         ``base``: optional (2, H, W) flow that the solve corrects (default: solve from zero)."""
         height, width = size
-        n = len(window["t"])
+        n = len(window.events)
         if n == 0:
             return np.zeros((2, height, width), np.float32) if base is None else np.asarray(base, np.float32)
         prior = (self.prior_weight if base is not None else 0.0) + self.evidence_prior / n
-        if n > self.max_events:
-            pick = np.linspace(0, n - 1, self.max_events).astype(np.int64)
-            window = {**{k: np.asarray(window[k])[pick] for k in ("x", "y", "t", "p")},
-                      "t_start": window["t_start"], "t_end": window["t_end"]}
-        batch = EventBatch.from_windows([window], device=device)
-        frames = max(1.0, (int(window["t_end"]) - int(window["t_start"])) / FRAME_US)
+        window = window.subsample(self.max_events, rounding="floor")
+        batch = window.batch(device=device)
+        frames = max(1.0, window.duration_us / FRAME_US)
         offset = None if base is None else torch.as_tensor(np.asarray(base, np.float32), device=device)[None]
         flow = contrast_maximisation_flow(
             batch, height, width, grids=self.grids, steps=self.steps, lr=self.lr_per_frame * frames,
@@ -155,7 +151,7 @@ class ContrastMaximisationPolicy:
     def reset(self, mask=None) -> None:
         """Nothing to reset: every window is solved on its own."""
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs, window: Window | None = None) -> np.ndarray:
         """The window's flow solved from its events (``agents.policy.FlowPolicy``)."""
         if window is None:
             raise ValueError("ContrastMaximisationPolicy solves the window's events: call act(obs, window)")

@@ -15,6 +15,8 @@ from agents.policy import RecurrentPolicy
 from agents.registry import make_model
 from agents.wrappers import RefinedPolicy
 from envs.env import EventFlowEnv
+from envs.events import Events
+from envs.windows import Window
 from evflow_cli.commands import evaluate as evaluate_script  # noqa: E402
 from losses import EventBatch, contrast_maximisation_flow, hmc_loss, window_loss
 from tests.recordings import translating_dots, write_translating_recording
@@ -75,7 +77,7 @@ def test_a_recording_without_ground_truth_gives_one_table_and_runs_in_the_env(tm
 def _translation_window(rng, velocity=(150.0, -60.0), size=(48, 64)):
     events, (t0, t1) = translating_dots(rng, sensor_size=size, velocity=velocity, duration_us=33_333,
                                         num_dots=150, events_per_s=300_000)
-    window = {**events.as_dict(), "t_start": t0, "t_end": t1}
+    window = Window.of(events, t0, t1)
     truth = np.array(velocity) * (t1 - t0) / 1e6
     return window, truth
 
@@ -232,8 +234,9 @@ def test_the_time_per_window_leaves_out_each_sequences_warm_up_window(tmp_path, 
 def _noise_window(rng, n=600, size=(48, 64)):
     """A still scene seen only through background activity: uniform events, true flow zero."""
     t = np.sort(rng.integers(0, 33_333, n))
-    return {"x": rng.integers(0, size[1], n).astype(np.float32), "y": rng.integers(0, size[0], n).astype(np.float32),
-            "t": t.astype(np.int64), "p": rng.choice(np.array([-1, 1], np.int8), n), "t_start": 0, "t_end": 33_333}
+    events = Events(rng.integers(0, size[1], n).astype(np.float32), rng.integers(0, size[0], n).astype(np.float32),
+                    t.astype(np.int64), rng.choice(np.array([-1, 1], np.int8), n), size)
+    return Window.of(events, 0, 33_333)
 
 
 def test_the_evidence_prior_keeps_a_sparse_still_window_still_and_finds_a_dense_translation(rng):

@@ -12,6 +12,7 @@ import pytest
 import agents.pretrained as pretrained
 from agents.cmax import FRAME_US
 from agents.wrappers.refine import Finish, FinishedPolicy, RefinedPolicy
+from envs.windows import Window
 from evflow_cli.commands import evaluate as evaluate_script
 from evflow_cli.commands import predict as predict_command
 from tests.recordings import translating_dots, write_translating_recording
@@ -32,7 +33,7 @@ class _Constant:
 def _window(rng, frames: float):
     events, (t0, t1) = translating_dots(rng, sensor_size=(21, 31), velocity=(120.0, -90.0),
                                         duration_us=int(frames * FRAME_US), num_dots=60, events_per_s=100_000)
-    return {**events.as_dict(), "t_start": t0, "t_end": t1}
+    return Window.of(events, t0, t1)
 
 
 def test_the_window_length_picks_the_finish_and_each_is_the_plain_refinement(rng):

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from losses import EventBatch, unrolled_finish, window_loss, zero_flow_loss
+from envs.windows import Window
+from losses import unrolled_finish, window_loss, zero_flow_loss
 
 from ..cmax import FRAME_US, CMaxSettings
 from ..policy import as_flow_policy
@@ -30,20 +31,17 @@ GRADIENT = "gd"
 GRADIENT_LR = 0.3
 
 
-def gradient_finish(flow: np.ndarray, window: Mapping, finish: "Finish", device="cpu") -> np.ndarray:
+def gradient_finish(flow: np.ndarray, window: Window, finish: "Finish", device="cpu") -> np.ndarray:
     """``flow`` finished by ``finish.steps`` unrolled gradient steps as training takes them
     (``losses.unrolled_finish``, a 16-cell grid, step ``GRADIENT_LR * lr_scale`` x the window's
     frames), no graph; at most ``finish.max_events`` events (even subsample)."""
-    n = len(window["t"])
-    if n == 0:
+    if len(window.events) == 0:
         return flow
-    if finish.max_events and n > finish.max_events:
-        pick = np.linspace(0, n - 1, finish.max_events).astype(np.int64)
-        window = {**{k: np.asarray(window[k])[pick] for k in ("x", "y", "t", "p")},
-                  "t_start": window["t_start"], "t_end": window["t_end"]}
-    frames = max(1.0, (int(window["t_end"]) - int(window["t_start"])) / FRAME_US)
+    if finish.max_events:
+        window = window.subsample(finish.max_events, rounding="floor")
+    frames = max(1.0, window.duration_us / FRAME_US)
     proposal = torch.as_tensor(np.asarray(flow, np.float32), device=device)[None]
-    batch = EventBatch.from_windows([window], device=device)
+    batch = window.batch(device=device)
     finished = unrolled_finish(proposal, batch, steps=finish.steps, lr=GRADIENT_LR * finish.lr_scale * frames,
                                create_graph=False)
     return finished[0].cpu().numpy()
@@ -126,7 +124,7 @@ class RefinedPolicy:
     def reset(self, mask=None) -> None:
         self.policy.reset(mask)
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs, window: Window | None = None) -> np.ndarray:
         """The wrapped policy's flow, refined on the window's events (``agents.policy.FlowPolicy``)."""
         if window is None:
             raise ValueError("RefinedPolicy solves the window's events: call act(obs, window)")
@@ -135,9 +133,9 @@ class RefinedPolicy:
             return flow
         size = tuple(flow.shape[-2:])
         refined = self.settings.solve(window, size, base=flow, device=self.policy.device)
-        if self.accept is None or len(window["t"]) == 0:
+        if self.accept is None or len(window.events) == 0:
             return refined
-        batch = EventBatch.from_windows([window], device=self.policy.device)
+        batch = window.batch(device=self.policy.device)
         flows = [torch.as_tensor(f, device=self.policy.device)[None] for f in (flow, refined)]
         scale = float(max(size))
         zero = zero_flow_loss(flows[0], batch, flow_scaling=scale).per_sample  # the border rule's, once for both
@@ -199,15 +197,15 @@ class FinishedPolicy:
     def reset(self, mask=None) -> None:
         self.policy.reset(mask)
 
-    def finish_for(self, window: Mapping) -> int | None:
+    def finish_for(self, window: Window) -> int | None:
         """The index of the finish a window of this length gets (None: none)."""
-        frames = (int(window["t_end"]) - int(window["t_start"])) / FRAME_US
+        frames = window.duration_us / FRAME_US
         for i, finish in enumerate(self.finishes):
             if finish.up_to_frames is None or frames <= finish.up_to_frames:
                 return i
         return None
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs, window: Window | None = None) -> np.ndarray:
         """The proposal, finished on the window's events (``agents.policy.FlowPolicy``)."""
         if window is None:
             raise ValueError("FinishedPolicy solves the window's events: call act(obs, window)")
