@@ -8,7 +8,6 @@ One class per objective, each with one job: turn the L windows of a rollout into
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -153,15 +152,6 @@ def windows_from_info(info: dict, num_envs: int) -> list[Window]:
     return [info["window"][i] for i in range(num_envs)]
 
 
-def _subsample_window(window: Mapping, max_events: int) -> Mapping:
-    """The window with at most ``max_events`` events, taken evenly along the (time-ordered) stream."""
-    n = len(window["t"])
-    if n <= max_events:
-        return window
-    keep = np.linspace(0, n - 1, max_events).round().astype(np.int64)
-    return {key: (value[keep] if key in ("x", "y", "t", "p") else value) for key, value in window.items()}
-
-
 class TeacherLoss:
     """Mean endpoint error, on pixels holding events (or all pixels), between every scale of the
     network's flows and the per-window contrast-maximisation flow of L_HMC: all L x B windows of
@@ -174,10 +164,10 @@ class TeacherLoss:
         self.height, self.width, self.teacher = height, width, teacher
         self.spec = dataclasses.replace(cfg.loss_spec, lambda_2=cfg.teacher_lambda_2)  # the solve's loss
 
-    def _targets(self, windows: list[Mapping]) -> torch.Tensor:
+    def _targets(self, windows: list[Window]) -> torch.Tensor:
         cfg = self.cfg
-        if cfg.teacher_max_events:
-            windows = [_subsample_window(w, cfg.teacher_max_events) for w in windows]
+        if cfg.teacher_max_events:  # an even subsample along each window's stream
+            windows = [w.subsample(cfg.teacher_max_events) for w in windows]
         return contrast_maximisation_flow(
             EventBatch.from_windows(windows, device=self.device), self.height, self.width, grids=cfg.teacher_grids,
             steps=cfg.teacher_steps, lr=cfg.teacher_lr, flow_scaling=self.flow_scaling,
