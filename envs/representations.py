@@ -34,21 +34,11 @@ __all__ = [
     "count_image_torch",
     "voxel_grid_torch",
     "event_mask_torch",
-    "EventView",
     "MAX_COUNT",
     "Observation",
     "OBSERVATIONS",
     "image_input",
 ]
-
-
-class EventView:
-    """Attribute access (``x``, ``y``, ``t``, ``p``) over a window's events held as a dict of
-    numpy arrays (a window dict, e.g. a sub-window): what the functions here read. An
-    :class:`~envs.events.Events` (``window.events``) needs none."""
-
-    def __init__(self, events) -> None:
-        self.x, self.y, self.t, self.p = events["x"], events["y"], events["t"], events["p"]
 
 
 def _pixel_index(x: np.ndarray, y: np.ndarray, width: int) -> np.ndarray:
@@ -173,7 +163,7 @@ OBSERVATIONS: dict[str, Observation] = {obs.name: obs for obs in (
 
 def image_input(kind: str, events, t_start: int, t_end: int, size: tuple[int, int], voxel_bins: int = 5) -> np.ndarray:
     """The network input ``kind`` (one of :data:`OBSERVATIONS`) of the window ``[t_start, t_end)``
-    holding ``events`` (x, y, t, p attributes, e.g. an :class:`EventView`), on an ``size`` (H, W) frame."""
+    holding ``events`` (an :class:`~envs.events.Events`, ``window.events``), on an ``size`` (H, W) frame."""
     if kind not in OBSERVATIONS:
         raise ValueError(f"no image input named {kind!r}; one of {tuple(OBSERVATIONS)}")
     return OBSERVATIONS[kind].build(events, t_start, t_end, size, voxel_bins)

@@ -41,7 +41,7 @@ import torch  # noqa: E402
 
 from agents.evaluation import evaluate  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
-from envs.representations import EventView, event_mask  # noqa: E402
+from envs.representations import event_mask  # noqa: E402
 from losses import flow_error  # noqa: E402
 
 SPEED_EDGES = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, np.inf)
@@ -69,7 +69,7 @@ def make_scorer(records: list, dt: int, cap: float):
         records.append(windows)
 
         def score(flow, info, win, size, dt_ratio):
-            events = event_mask(EventView(win), size)
+            events = event_mask(win.events, size)
             err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], events, dt_ratio=dt_ratio)
             gt = info["flow_gt"]
             mask = events & info["flow_gt_valid"] & np.isfinite(gt).all(0)

@@ -38,7 +38,7 @@ from agents.cmax import ContrastMaximisationPolicy  # noqa: E402
 from agents.evaluation import evaluate  # noqa: E402
 from agents.policy import RecurrentPolicy  # noqa: E402
 from envs.atomic import temporary_path  # noqa: E402
-from envs.representations import EventView, event_mask  # noqa: E402
+from envs.representations import event_mask  # noqa: E402
 from envs.simulator.scene import Scene  # noqa: E402
 from losses import flow_error  # noqa: E402
 
@@ -66,7 +66,7 @@ def make_scorer(rows: list, probes: int):
         scene, name = Scene(config), Path(str(getattr(reader, "path", "?"))).stem
 
         def score(flow, info, win, size, dt_ratio):
-            events = event_mask(EventView(win), size)
+            events = event_mask(win.events, size)
             err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], events, dt_ratio=dt_ratio)
             gt = info["flow_gt"]
             mask = events & info["flow_gt_valid"] & np.isfinite(gt).all(0)
