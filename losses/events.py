@@ -6,12 +6,30 @@ Every field is a ``(B, N)`` tensor; windows shorter than the longest one are pad
 
 from __future__ import annotations
 
-from typing import Any, Mapping, NamedTuple, Sequence
+from collections.abc import Mapping
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 import torch
 
 __all__ = ["EventBatch"]
+
+
+def _window_fields(w, b: int):
+    """x, y, t, p (flat numpy arrays) and int t_start, t_end of window ``b``: a Window's
+    attributes (``w.events.x``, ``w.t_start``, ...), or a dict's keys."""
+    events = getattr(w, "events", None)
+    if events is not None:
+        x, y, t, p = (np.asarray(getattr(events, k)).reshape(-1) for k in ("x", "y", "t", "p"))
+        return x, y, t, p, int(w.t_start), int(w.t_end)
+    if not isinstance(w, Mapping):
+        raise ValueError(f"window {b}: expected a Window (or a dict of x, y, t, p, t_start, t_end), "
+                         f"got {type(w).__name__}")
+    try:
+        x, y, t, p = (np.asarray(w[k]).reshape(-1) for k in ("x", "y", "t", "p"))
+        return x, y, t, p, int(w["t_start"]), int(w["t_end"])
+    except KeyError as e:
+        raise ValueError(f"window {b}: missing field {e.args[0]!r}") from None
 
 
 class EventBatch(NamedTuple):
@@ -56,15 +74,17 @@ class EventBatch(NamedTuple):
     @classmethod
     def from_windows(
         cls,
-        windows: Sequence[Mapping[str, Any]],
+        windows: Sequence[Any],
         device=None,
         dtype: torch.dtype = torch.float32,
     ) -> "EventBatch":
         """Pad a list of windows into one batch.
 
-        windows: list of B dicts, each with numpy ``x``, ``y`` (N_b,) pixels, ``t`` (N_b,) int64
-            microseconds, ``p`` (N_b,) polarity ({-1,+1}, {0,1} or bool; ``p > 0`` is ON) and
-            ints ``t_start``, ``t_end`` (microseconds, ``t_end > t_start``). N_b may be 0.
+        windows: list of B windows (:class:`envs.windows.Window`: ``window.events`` with ``x``,
+            ``y`` (N_b,) pixels, ``t`` (N_b,) int64 microseconds, ``p`` (N_b,) polarity ({-1,+1},
+            {0,1} or bool; ``p > 0`` is ON) and ints ``window.t_start``, ``window.t_end``
+            (microseconds, ``t_end > t_start``)); a plain dict with those six keys is taken too
+            (events built by hand, no ``Events`` behind them). N_b may be 0.
         Returns a batch padded to N = max N_b (N = 0 if every window is empty).
 
         Every t must lie in the closed interval [t_start, t_end]: the window is half-open, but an
@@ -76,11 +96,7 @@ class EventBatch(NamedTuple):
             raise ValueError("EventBatch.from_windows: empty batch (no windows given)")
         cols = []
         for b, w in enumerate(windows):
-            try:
-                x, y, t, p = (np.asarray(w[k]).reshape(-1) for k in ("x", "y", "t", "p"))
-                t_start, t_end = int(w["t_start"]), int(w["t_end"])
-            except KeyError as e:
-                raise ValueError(f"window {b}: missing field {e.args[0]!r}") from None
+            x, y, t, p, t_start, t_end = _window_fields(w, b)
             n = x.shape[0]
             if not (y.shape[0] == t.shape[0] == p.shape[0] == n):
                 raise ValueError(
