@@ -28,7 +28,6 @@ and the state carried between windows stay float32 (:func:`autocast_dtype` reads
 from __future__ import annotations
 
 import inspect
-from collections.abc import Mapping
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -36,6 +35,7 @@ import torch
 from torch import Tensor, nn
 
 from envs.representations import OBSERVATIONS
+from envs.windows import Window
 
 State = dict[str, Tensor]
 
@@ -75,8 +75,8 @@ class FlowPolicy(Protocol):
     ``reset(mask=None)``: start new sequences (all, or where the (B,) bool ``mask`` is True).
     ``act(obs, window=None)``: the flow for one window, (2, H, W) float32 pixels of displacement
     over the window; ``obs`` is the env's observation dict, ``window`` the env's
-    ``info["window"]`` (an ``envs.windows.Window``, or any dict of numpy ``x, y, t, p`` and int
-    ``t_start, t_end``). A policy that does not need the window ignores it; one that does
+    ``info["window"]`` (an ``envs.windows.Window``: its events ``window.events`` and bounds
+    ``window.t_start``, ``window.t_end``). A policy that does not need the window ignores it; one that does
     raises ValueError without it.
 
     Optional attributes, read with these defaults: ``input_key`` ("count_image"), the
@@ -85,7 +85,7 @@ class FlowPolicy(Protocol):
 
     def reset(self, mask=None) -> None: ...
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray: ...
+    def act(self, obs, window: Window | None = None) -> np.ndarray: ...
 
 
 class ZeroFlowPolicy:
@@ -97,7 +97,7 @@ class ZeroFlowPolicy:
     def reset(self, mask=None) -> None:
         """Nothing to reset."""
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs, window: Window | None = None) -> np.ndarray:
         return np.zeros((2, *np.shape(obs[self.input_key])[-2:]), np.float32)
 
 
@@ -114,7 +114,7 @@ class ObservationOnlyPolicy:
         else:
             self.policy.reset(mask)
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs, window: Window | None = None) -> np.ndarray:
         return self.policy.act(obs)
 
     def __getattr__(self, name: str):
@@ -237,7 +237,7 @@ class RecurrentPolicy(nn.Module):
         return [flow.float() for flow in flows]
 
     @torch.no_grad()
-    def act(self, obs: dict | np.ndarray | Tensor, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs: dict | np.ndarray | Tensor, window: Window | None = None) -> np.ndarray:
         """Rollout step without gradients (:class:`FlowPolicy`).
 
         obs: an env observation dict with ``input_key`` ("count_image" (2, H, W) by default)

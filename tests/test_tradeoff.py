@@ -11,9 +11,10 @@ import torch
 
 from agents.cmax import ContrastMaximisationPolicy
 from agents.wrappers import RefinedPolicy, StillGuard, SubWindowPolicy
+from envs.windows import Window
 from evflow_cli import tradeoff
 from evflow_cli.commands.tradeoff import main as tradeoff_main
-from losses import EventBatch, window_loss, zero_flow_loss
+from losses import window_loss, zero_flow_loss
 from tests.recordings import translating_dots, write_translating_recording
 
 
@@ -33,7 +34,7 @@ class _Constant:
 def _window(rng, velocity):
     events, (t0, t1) = translating_dots(rng, sensor_size=(21, 31), velocity=velocity, duration_us=33_333,
                                         num_dots=60, events_per_s=200_000)
-    return {**events.as_dict(), "t_start": t0, "t_end": t1}
+    return Window.of(events, t0, t1)
 
 
 def test_still_guard_keeps_still_windows_still_and_real_motion_moving(rng):
@@ -41,14 +42,14 @@ def test_still_guard_keeps_still_windows_still_and_real_motion_moving(rng):
     still = _window(rng, (0.0, 0.0))  # dots that do not move: any flow smears them
     invented = StillGuard(_Constant((1.5, -1.0)))
     assert not invented.act(obs, still).any() and (invented.kept, invented.windows) == (0, 1)
-    loss = window_loss(torch.full((1, 2, 21, 31), 1.0), EventBatch.from_windows([still]), flow_scaling=31.0).loss
-    assert float(loss) > float(zero_flow_loss(torch.zeros(1, 2, 21, 31), EventBatch.from_windows([still]),
+    loss = window_loss(torch.full((1, 2, 21, 31), 1.0), still.batch(), flow_scaling=31.0).loss
+    assert float(loss) > float(zero_flow_loss(torch.zeros(1, 2, 21, 31), still.batch(),
                                               flow_scaling=31.0).loss)  # why it was refused
     moving = _window(rng, (120.0, -90.0))
     truth = np.array([120.0, -90.0]) * 33_333 / 1e6
     right = StillGuard(_Constant(truth))
     assert np.allclose(right.act(obs, moving), truth[:, None, None]) and right.kept == 1
-    empty = {**{k: v[:0] for k, v in moving.items() if k in ("x", "y", "t", "p")}, "t_start": 0, "t_end": 33_333}
+    empty = Window.of(moving.events[:0], 0, 33_333)
     assert not right.act(obs, empty).any()  # no events: nothing supports motion
     with pytest.raises(ValueError, match="window"):
         right.act(obs)

@@ -4,13 +4,13 @@ prefer (the lowest L_HMC as the env scores it) (``tools/cheap_modes.py``, ``avg:
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import Literal, get_args
 
 import numpy as np
 import torch
 
-from losses import EventBatch, window_loss
+from envs.windows import Window
+from losses import window_loss
 
 from ..policy import ZeroFlowPolicy, as_flow_policy
 
@@ -40,17 +40,17 @@ class CombinedPolicy:
         for policy in self.policies:
             policy.reset()
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs, window: Window | None = None) -> np.ndarray:
         """The combined flow (``agents.policy.FlowPolicy``); "pick" needs the window."""
         if self.how == "pick" and window is None:
             raise ValueError("CombinedPolicy('pick') scores the flows on the window's events: call act(obs, window)")
         flows = [policy.act(obs, window) for policy in self.policies]
         if self.how == "avg":
             return np.mean(flows, axis=0).astype(np.float32)
-        if len(window["t"]) == 0:
+        if len(window.events) == 0:
             return flows[0]
         size = flows[0].shape[-2:]
-        batch = EventBatch.from_windows([window])
+        batch = window.batch()
         with torch.no_grad():
             losses = [float(window_loss(torch.as_tensor(f)[None], batch, flow_scaling=float(max(size))).loss)
                       for f in flows]

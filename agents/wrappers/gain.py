@@ -3,9 +3,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import numpy as np
+
+from envs.windows import Window
 
 from ..policy import as_flow_policy
 
@@ -24,6 +24,6 @@ class GainPolicy:
     def reset(self, mask=None) -> None:
         self.policy.reset(mask)
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs, window: Window | None = None) -> np.ndarray:
         """``gain`` times the wrapped policy's flow (``agents.policy.FlowPolicy``)."""
         return self.policy.act(obs, window) * self.gain

@@ -18,9 +18,9 @@ Half the cost: ``MirrorPolicy(policy, ROTATION)``, the input and its rotation by
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import numpy as np
+
+from envs.windows import Window
 
 __all__ = ["MirrorPolicy", "MIRRORS", "ROTATION", "MIRROR_SETS"]
 
@@ -60,7 +60,7 @@ class MirrorPolicy:
             raise ValueError("MirrorPolicy runs one sequence at a time: reset() without a mask")
         self._states = [None] * len(self.mirrors)
 
-    def act(self, obs, window: Mapping | None = None) -> np.ndarray:
+    def act(self, obs, window: Window | None = None) -> np.ndarray:
         """The mean flow of the mirrored copies (``agents.policy.FlowPolicy``); the window is not
         read (the wrapped network sees the mirrored observations only)."""
         part = np.asarray(obs[self.input_key] if isinstance(obs, dict) else obs)
