@@ -19,7 +19,6 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Callable, Literal
 
 import numpy as np
@@ -27,6 +26,7 @@ import numpy as np
 from envs.readers.dsec import encode_flow_png, read_test_timestamps
 from envs.readers.mvsec import MVSEC_CROP, MVSEC_GT_MODES, mvsec_eval_windows, mvsec_hood_row
 from envs.representations import event_mask
+from envs.windows import Window
 from losses.metrics import dense_flow_error, flow_error
 
 __all__ = ["DSECProtocol", "DSECSubmissionWriter", "DSEC_METRICS", "HotPixelFilter", "MVSECProtocol", "dsec_table"]
@@ -42,9 +42,8 @@ def _check_choice(name: str, value, allowed) -> None:
         raise ValueError(f"{name} must be one of {tuple(allowed)}, got {value!r}")
 
 
-def _window_mask(window: dict, size: tuple[int, int]) -> np.ndarray:
-    events = SimpleNamespace(x=np.asarray(window["x"]), y=np.asarray(window["y"]))
-    return event_mask(events, size)
+def _window_mask(window: Window, size: tuple[int, int]) -> np.ndarray:
+    return event_mask(window.events, size)
 
 
 class HotPixelFilter:
@@ -63,11 +62,11 @@ class HotPixelFilter:
         self.counts = np.zeros(self.size[0] * self.size[1], np.float64)
         self.windows = 0
 
-    def __call__(self, window: dict) -> np.ndarray:
-        """Add a window's events (x, y arrays) and return the (H, W) bool hot-pixel mask."""
+    def __call__(self, window: Window) -> np.ndarray:
+        """Add a window's events (``window.events``) and return the (H, W) bool hot-pixel mask."""
         h, w = self.size
-        x = np.clip(np.floor(np.asarray(window["x"], np.float64) + 0.5).astype(np.int64), 0, w - 1)
-        y = np.clip(np.floor(np.asarray(window["y"], np.float64) + 0.5).astype(np.int64), 0, h - 1)
+        x = np.clip(np.floor(np.asarray(window.events.x, np.float64) + 0.5).astype(np.int64), 0, w - 1)
+        y = np.clip(np.floor(np.asarray(window.events.y, np.float64) + 0.5).astype(np.int64), 0, h - 1)
         self.counts += np.bincount(y * w + x, minlength=h * w)
         self.windows += 1
         active = self.counts[self.counts > 0]
@@ -219,12 +218,12 @@ class DSECSubmissionWriter:
         self.written: list[Path] = []
         self.clipped = 0
 
-    def __call__(self, reader, window: dict, flow: np.ndarray) -> None:
+    def __call__(self, reader, window: Window, flow: np.ndarray) -> None:
         name = reader.name
         if name not in self._index:
             rows = self.protocol.timestamps(reader)
             self._index[name] = {(int(a), int(b)): int(k) for a, b, k in rows}
-        key = (int(window["t_start"]), int(window["t_end"]))
+        key = (int(window.t_start), int(window.t_end))
         if key not in self._index[name]:
             raise ValueError(f"{name}: window {key} is not one of the test timestamps")
         flow = np.asarray(flow, np.float64)

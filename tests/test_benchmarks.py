@@ -11,9 +11,11 @@ import pytest
 
 from agents.benchmarks import DSECProtocol, DSECSubmissionWriter, HotPixelFilter, MVSECProtocol, dsec_table
 from agents.evaluation import evaluate, results_table
+from envs.events import Events
 from envs.readers import FormatError
 from envs.readers.dsec import decode_flow_png, encode_flow_png, read_test_timestamps
 from envs.readers.mvsec import MVSECReader, mvsec_eval_windows, mvsec_hood_row, mvsec_scored_span
+from envs.windows import Window
 from losses.metrics import dense_flow_error
 from tests.test_readers import T_OFFSET, write_dsec, write_mvsec
 
@@ -119,7 +121,7 @@ def test_hood_rows_are_left_out_of_outdoor_scores(tmp_path, rng):
 
     def flow_fn(window):  # Zhu ground truth over the window, plus 10 px on the hood rows
         flow = np.zeros((2, 256, 256))
-        share = (window["t_end"] - window["t_start"]) / GT_DT
+        share = window.duration_us / GT_DT
         flow[0], flow[1] = 1.5 * share, -0.5 * share
         flow[0, 190:] += 10.0
         return flow
@@ -151,10 +153,15 @@ def test_hot_pixel_filter_drops_a_stuck_pixel_from_the_event_mask(rng):
     for _ in range(5):
         x, y = rng.integers(0, 30, 300), rng.integers(0, 20, 300)
         x, y = np.concatenate([x, np.full(200, 7)]), np.concatenate([y, np.full(200, 3)])  # pixel (3, 7) stuck
-        mask = hot({"x": x, "y": y})
+        mask = hot(_xy_window(x, y, size))
     assert mask[3, 7] and mask.sum() == 1
     with pytest.raises(ValueError, match="sigma"):
         HotPixelFilter(size, sigma=0)
+
+
+def _xy_window(x, y, size):
+    """A window of events at pixels (x, y), all at t = 0."""
+    return Window.of(Events.create(x, y, np.zeros(len(x), np.int64), np.ones(len(x)), size), 0, 1)
 
 
 def test_mvsec_scorer_leaves_hot_pixels_out_of_the_event_mask(rng):
@@ -170,7 +177,7 @@ def test_mvsec_scorer_leaves_hot_pixels_out_of_the_event_mask(rng):
         score = MVSECProtocol(hot_pixel_sigma=sigma).scorer(reader)
         for _ in range(4):
             x, y = rng.integers(0, 30, 300), rng.integers(0, 20, 300)
-            window = {"x": np.concatenate([x, np.full(200, 7)]), "y": np.concatenate([y, np.full(200, 3)])}
+            window = _xy_window(np.concatenate([x, np.full(200, 7)]), np.concatenate([y, np.full(200, 3)]), size)
             err, mask = score(flow, info, window, size, 1.0)
         aee[sigma] = err["aee"]
         assert mask[3, 7] == (sigma is None)
@@ -276,7 +283,7 @@ def test_submission_pngs_in_the_benchmark_layout_decode_back_to_the_flows(tmp_pa
     flows = {row[0]: rng.uniform(-60, 60, (2,) + size) for row in rows}
     protocol = DSECProtocol(test_timestamps=stamps)
     writer = DSECSubmissionWriter(tmp_path / "submission", protocol)
-    (result,) = evaluate(FixedFlow(lambda w: flows[w["t_start"]]), str(path), data_format="dsec",
+    (result,) = evaluate(FixedFlow(lambda w: flows[w.t_start]), str(path), data_format="dsec",
                          data_options={"sensor_size": size, "rectify": False}, windows_fn=protocol.windows,
                          scorer_fn=protocol.scorer, flow_sink=writer, progress=False)
     assert result.windows == 2 and writer.clipped == 0
@@ -287,7 +294,7 @@ def test_submission_pngs_in_the_benchmark_layout_decode_back_to_the_flows(tmp_pa
         assert valid.all() and decoded.shape == (2,) + size
         assert np.abs(decoded - flows[a].astype(np.float32)).max() <= 1 / 256 + 1e-6  # nearest 1/128 px
     with pytest.raises(ValueError, match="not one of the test timestamps"):
-        writer(types.SimpleNamespace(name="interlaken_00_b"), {"t_start": 0, "t_end": 1}, np.zeros((2,) + size))
+        writer(types.SimpleNamespace(name="interlaken_00_b"), _xy_window([0], [0], size), np.zeros((2,) + size))
     with pytest.raises(ValueError, match="test timestamps"):
         DSECSubmissionWriter(tmp_path / "x", DSECProtocol())
 
