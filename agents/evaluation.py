@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -77,7 +76,7 @@ class SequenceResult:
                 **{k: self.mean(k) for k in self.keys()}}
 
 
-def _iwe_picture(flow: np.ndarray, window: Mapping, size) -> np.ndarray:
+def _iwe_picture(flow: np.ndarray, window: Window, size) -> np.ndarray:
     """Image of warped events at s = 1 (both polarities), as RGB."""
     b = EventBatch.from_windows([window])
     with torch.no_grad():
@@ -267,7 +266,7 @@ def env_loss(env: EventFlowEnv, flow: np.ndarray, window: Window) -> dict[str, f
     return {"hmc": float(loss.loss), "hmc_zero": float(zero[0])}
 
 
-def window_panel(count: np.ndarray, flow: np.ndarray, window: Mapping, flow_gt: np.ndarray | None = None,
+def window_panel(count: np.ndarray, flow: np.ndarray, window: Window, flow_gt: np.ndarray | None = None,
                  aee: float | None = None) -> np.ndarray:
     """One labelled picture of a window: count image, predicted flow, ground truth (if any),
     warped events with zero and with the predicted flow, a colour-wheel legend; the caption
@@ -282,7 +281,7 @@ def window_panel(count: np.ndarray, flow: np.ndarray, window: Mapping, flow_gt: 
     tiles += [("warped, zero flow", _iwe_picture(np.zeros_like(flow), window, size)),
               ("warped, predicted", _iwe_picture(flow, window, size)),
               (f"colours: rim {scale:.1f} px", flow_legend(min(64, max(size))))]
-    caption = f"{window['t_start']}-{window['t_end']} us   FWL {fwl(flow, window, size):.3f}"
+    caption = f"{window.t_start}-{window.t_end} us   FWL {fwl(flow, window, size):.3f}"
     if aee is not None:
         caption += f"   AEE {aee:.3f} px"
     return panel(tiles, caption)

@@ -6,7 +6,7 @@ versions (``*_torch``, batched, usable on CUDA during training, no gradients nee
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -15,6 +15,9 @@ from ._validation import check_events, check_flow
 from .events import EventBatch
 from .sampling import sample_flow
 from .warp import warp_events
+
+if TYPE_CHECKING:  # envs imports losses: the type only
+    from envs.windows import Window
 
 __all__ = ["dense_flow_error", "dense_flow_error_torch", "flow_error", "flow_error_torch", "fwl", "fwl_torch",
            "rsat", "rsat_torch"]
@@ -211,34 +214,30 @@ def rsat_torch(flow: torch.Tensor, events: EventBatch) -> torch.Tensor:
     return _ratio(sat(flow), sat(torch.zeros_like(flow)))
 
 
-def _one_window(flow: np.ndarray, events: Mapping[str, Any], sensor_size) -> tuple:
-    H, W = (int(s) for s in sensor_size)
+def _one_window(flow: np.ndarray, window: "Window", sensor_size) -> tuple:
+    if not hasattr(window, "events"):
+        raise TypeError(f"expected a Window (envs.windows.Window; Window.of(events, t_start, t_end) "
+                        f"builds one from Events), got {type(window).__name__}")
+    H, W = (int(s) for s in (window.sensor_size if sensor_size is None else sensor_size))
     flow = np.asarray(flow)
     if flow.shape != (2, H, W):
         raise ValueError(f"flow has shape {flow.shape}, expected (2, {H}, {W}) from sensor_size")
-    t = np.asarray(events["t"]).astype(np.int64)
-    if "t_start" in events and "t_end" in events:
-        t0, t1 = int(events["t_start"]), int(events["t_end"])
-    else:  # count window: first/last event time
-        t0 = int(t.min()) if t.size else 0
-        t1 = max(int(t.max()) if t.size else 1, t0 + 1)
-    win = dict(x=events["x"], y=events["y"], t=t, p=events["p"], t_start=t0, t_end=t1)
-    ev = EventBatch.from_windows([win], dtype=torch.float64)
+    ev = EventBatch.from_windows([window], dtype=torch.float64)
     return torch.as_tensor(flow, dtype=torch.float64).unsqueeze(0), ev
 
 
-def fwl(flow: np.ndarray, events: Mapping[str, Any], sensor_size: tuple[int, int]) -> float:
+def fwl(flow: np.ndarray, window: "Window", sensor_size: tuple[int, int] | None = None) -> float:
     """FWL of one window (see ``fwl_torch``).
 
-    flow: (2, H, W) float pixels per window. events: dict of numpy ``x``, ``y`` (pixels),
-    ``t`` (int64 us), ``p``; optional ``t_start``, ``t_end`` (default: first/last event time).
-    sensor_size: (H, W). Returns a float (NaN for an empty window).
+    flow: (2, H, W) float pixels per window. window: a :class:`~envs.windows.Window` (its events
+    and ``[t_start, t_end)``). sensor_size: (H, W), the window's own where None. Returns a float
+    (NaN for an empty window).
     """
-    f, ev = _one_window(flow, events, sensor_size)
+    f, ev = _one_window(flow, window, sensor_size)
     return float(fwl_torch(f, ev)[0])
 
 
-def rsat(flow: np.ndarray, events: Mapping[str, Any], sensor_size: tuple[int, int]) -> float:
+def rsat(flow: np.ndarray, window: "Window", sensor_size: tuple[int, int] | None = None) -> float:
     """RSAT of one window (see ``rsat_torch``); arguments as ``fwl``. NaN for an empty window."""
-    f, ev = _one_window(flow, events, sensor_size)
+    f, ev = _one_window(flow, window, sensor_size)
     return float(rsat_torch(f, ev)[0])

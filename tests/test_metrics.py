@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from envs.events import Events
+from envs.windows import Window
 from losses import EventBatch, flow_error, flow_error_torch, fwl, fwl_torch, rsat, rsat_torch
 
 
@@ -95,7 +97,7 @@ def dots(v=(10.0, 5.0), H=48, W=48, seed=0, dur=10_000):
         ps.append(np.full(50, 1 if d % 2 else -1))
     o = np.argsort(np.concatenate(ts), kind="stable")
     c = lambda a: np.concatenate(a)[o]  # noqa: E731
-    return dict(x=c(xs), y=c(ys), t=c(ts), p=c(ps), t_start=0, t_end=dur), (H, W)
+    return Window.of(Events.create(c(xs), c(ys), c(ts), c(ps), (H, W)), 0, dur), (H, W)
 
 
 def test_fwl_and_rsat_zero_flow_is_one_and_true_flow_improves():
@@ -108,16 +110,14 @@ def test_fwl_and_rsat_zero_flow_is_one_and_true_flow_improves():
     true[0], true[1] = v
     assert fwl(true, ev, (H, W)) > 1.5  # sharper
     assert rsat(true, ev, (H, W)) < 1.0
-    # without t_start/t_end the first/last event times define the window
-    no_bounds = {k: ev[k] for k in "xytp"}
-    assert fwl(zero, no_bounds, (H, W)) == pytest.approx(1.0, abs=1e-12)
+    # the sensor size defaults to the window's own
+    assert fwl(true, ev) == fwl(true, ev, (H, W)) and rsat(true, ev) == rsat(true, ev, (H, W))
 
 
 def test_fwl_rsat_by_hand_and_empty_window():
     H, W = 4, 6
     # two ON events at pixel (row 1, col 1) at tau 0 and 0.5: flow (2, 0) warps to s = 1
-    ev = dict(x=np.array([1, 1]), y=np.array([1, 1]), t=np.array([0, 50]), p=np.array([1, 1]),
-              t_start=0, t_end=100)
+    ev = Window.of(Events.create([1, 1], [1, 1], [0, 50], [1, 1], (H, W)), 0, 100)
     flow = np.zeros((2, H, W))
     flow[0] = 2.0  # event 0 -> col 3, event 1 -> col 2
     zero_img = np.zeros(H * W); zero_img[W + 1] = 2  # noqa: E702
@@ -126,10 +126,12 @@ def test_fwl_rsat_by_hand_and_empty_window():
     sat_zero = (0.5 / (2 + 1e-9)) ** 2 / (1 + 1e-9)  # A = 0 + 0.5, C = 2
     sat_flow = ((0.0 / (1 + 1e-9)) ** 2 + (0.5 / (1 + 1e-9)) ** 2) / (2 + 1e-9)
     assert rsat(flow, ev, (H, W)) == pytest.approx(sat_flow / sat_zero)
-    empty = dict(x=np.zeros(0), y=np.zeros(0), t=np.zeros(0, np.int64), p=np.zeros(0))
+    empty = Window.of(Events.create([], [], [], [], (H, W)), 0, 100)
     assert math.isnan(fwl(flow, empty, (H, W))) and math.isnan(rsat(flow, empty, (H, W)))
     with pytest.raises(ValueError, match="expected"):
         fwl(np.zeros((2, 3, 3)), ev, (H, W))
+    with pytest.raises(TypeError, match="Window.of"):  # a window dict is no longer taken
+        fwl(flow, {"x": [1], "y": [1], "t": [0], "p": [1], "t_start": 0, "t_end": 100}, (H, W))
 
 
 def test_fwl_rsat_torch_batched():
