@@ -50,7 +50,7 @@ def predict_flow(events, sensor_size=None, *, window_us: int = FALLBACK_INTERVAL
             window = info["window"]
             flow = actor.act(obs, window)
             flows.append(np.asarray(flow, np.float32))
-            bounds.append((int(window["t_start"]), int(window["t_end"])))
+            bounds.append((int(window.t_start), int(window.t_end)))
             if max_windows is not None and len(flows) >= max_windows:
                 break
             obs, _, terminated, truncated, info = env.step(flow)

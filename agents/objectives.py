@@ -94,7 +94,7 @@ def _finished(cfg: TrainConfig, window: RolloutWindow, flow_scaling: float) -> l
         return window.flows
     full = window.flows[-1]  # the finest scale: full sensor resolution (losses.to_full_resolution)
     windows = windows_from_info(window.info, full.shape[0])
-    frames = torch.tensor([max(1.0, (int(w["t_end"]) - int(w["t_start"])) / FRAME_US) for w in windows],
+    frames = torch.tensor([max(1.0, w.duration_us / FRAME_US) for w in windows],
                           dtype=full.dtype, device=full.device)
     finished = unrolled_finish(full, window.batch, steps=cfg.finish_steps, lr=cfg.finish_lr * frames,
                                grid=cfg.finish_grid, weights=_hmc_spec(cfg), flow_scaling=flow_scaling)

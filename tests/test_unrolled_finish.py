@@ -9,7 +9,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from losses import EventBatch, cpu_kernels, unrolled_finish, window_loss
+from envs.windows import Window
+from losses import cpu_kernels, unrolled_finish, window_loss
 from tests.recordings import translating_dots
 
 H, W, GRID = 6, 8, 2
@@ -18,7 +19,7 @@ H, W, GRID = 6, 8, 2
 def _batch(rng):
     events, (t0, t1) = translating_dots(rng, sensor_size=(H, W), velocity=(60.0, -30.0), duration_us=33_333,
                                         num_dots=8, events_per_s=2_000)
-    return EventBatch.from_windows([{**events.as_dict(), "t_start": t0, "t_end": t1}])
+    return Window.of(events, t0, t1).batch()
 
 
 def _loss(flow, batch):
@@ -86,8 +87,8 @@ def test_training_takes_its_loss_after_the_finish(rng):
 
     events, (t0, t1) = translating_dots(rng, sensor_size=(H, W), velocity=(60.0, -30.0), duration_us=66_666,
                                         num_dots=8, events_per_s=2_000)
-    window = {**events.as_dict(), "t_start": t0, "t_end": t1}  # two frames: the step doubles
-    batch = EventBatch.from_windows([window])
+    window = Window.of(events, t0, t1)  # two frames: the step doubles
+    batch = window.batch()
     flow = torch.full((1, 2, H, W), 0.8, requires_grad=True)
     cfg = TrainConfig(num_envs=1, finish_steps=2, finish_lr=0.3, finish_grid=GRID, loss_scales="finest")
     zero = zero_flow_loss(flow.detach(), batch, cfg.weights, flow_scaling=float(W))

@@ -78,7 +78,7 @@ def make_scorer(records: list, dt: int, cap: float):
                 which = np.digitize(np.hypot(*truth) / dt, SPEED_EDGES[1:-1])
                 sums = np.stack([pixel_stats(pred[:, which == b], truth[:, which == b], cap)
                                  for b in range(len(SPEED_EDGES) - 1)])
-                n_events = len(win["t"])
+                n_events = len(win.events)
                 windows.append((n_events / (size[0] * size[1]), n_events / events.sum(),
                                 np.vstack([sums, sums.sum(0)]), float(np.abs(pred).max())))
             return err, mask

@@ -70,7 +70,7 @@ def make_scorer(rows: list, probes: int):
             err = flow_error(flow, info["flow_gt"], info["flow_gt_valid"], events, dt_ratio=dt_ratio)
             gt = info["flow_gt"]
             mask = events & info["flow_gt_valid"] & np.isfinite(gt).all(0)
-            changed = layer_changes(scene, int(win["t_start"]), int(win["t_end"]), probes)
+            changed = layer_changes(scene, int(win.t_start), int(win.t_end), probes)
             e = np.hypot(*(flow * dt_ratio - gt))
             g = np.hypot(*gt)
             rows.append((name, *(v for part in (mask & ~changed, mask & changed)

@@ -40,7 +40,7 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
     from envs.dataset import resolve_data
     from envs.env import EventFlowEnv
     from envs.representations import event_mask
-    from losses import EventBatch, flow_error, hmc_loss, window_loss
+    from losses import flow_error, hmc_loss, window_loss
 
     network = RecurrentPolicy.from_pretrained(pretrained)
     if spec.count(":") != 2:
@@ -56,10 +56,10 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
             # the network's own flow drives its state, as in evaluation
             for step in rollout(network, env, options={"sequence": 0}, max_windows=max_windows):
                 window, info, flow, w = step.window, step.info, step.flow, step.index
-                if len(window["t"]) and "flow_gt" in info:
+                if len(window.events) and "flow_gt" in info:
                     refined = refine.settings.solve(window, size, base=flow, device="cpu")
                     flows = (flow, refined, np.zeros_like(flow))
-                    batch = EventBatch.from_windows([window])
+                    batch = window.batch()
                     scale = float(max(size))
                     with torch.no_grad():
                         plain = [float(hmc_loss(torch.from_numpy(f)[None], batch, flow_scaling=scale).loss) for f in flows]
@@ -69,7 +69,7 @@ def score_windows(data: str, pretrained: str, max_windows: int, dts: list[int], 
                     errors = [flow_error(f, info["flow_gt"], info["flow_gt_valid"], scored) for f in flows]
                     if errors[0]["n_pixels"] > 0:  # no valid truth under the events: not scored (as in evaluation)
                         rows.append({"dt": dt, "sequence": index, "window": w, "env_loss": env_loss, "loss": plain,
-                                     "aee": [e["aee"] for e in errors], "events": len(window["t"])})
+                                     "aee": [e["aee"] for e in errors], "events": len(window.events)})
                         if out is not None:
                             with out.open("a") as f:
                                 f.write(json.dumps(rows[-1]) + "\n")
