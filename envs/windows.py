@@ -51,11 +51,12 @@ class Window(Mapping):
     are in); ``flow_gt`` (2, H, W) float32 pixels over the window and ``flow_gt_valid`` (H, W)
     bool: the ground truth, where the recording has it (else None).
 
-    :meth:`batch` gives what the losses consume (``losses.window_loss(flow, window)``). As a
-    read-only mapping it holds ``x``, ``y``, ``t``, ``p`` (the event arrays) and ``t_start``,
-    ``t_end``: the window dict that ``losses.EventBatch.from_windows``, the metrics and the
-    policies that solve a window from its events (``act(obs, window)``) read (``len(window)`` counts those keys; ``len(window.events)``
-    the events).
+    :meth:`batch` gives what the losses consume (``losses.window_loss(flow, window)``);
+    :meth:`cut`, :meth:`split`, :meth:`subsample` and :meth:`bin` give new windows. The package
+    reads a window by its attributes (``window.events.x``, ``window.t_start``). It is still a
+    read-only mapping of ``x``, ``y``, ``t``, ``p`` and ``t_start``, ``t_end`` for code written
+    against the earlier window dict (``len(window)`` counts those keys; ``len(window.events)``
+    the events); new code should not rely on it.
     """
 
     index: int

@@ -6,8 +6,6 @@ versions (``*_torch``, batched, usable on CUDA during training, no gradients nee
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import torch
 
@@ -15,9 +13,6 @@ from ._validation import check_events, check_flow
 from .events import EventBatch
 from .sampling import sample_flow
 from .warp import warp_events
-
-if TYPE_CHECKING:  # envs imports losses: the type only
-    from envs.windows import Window
 
 __all__ = ["dense_flow_error", "dense_flow_error_torch", "flow_error", "flow_error_torch", "fwl", "fwl_torch",
            "rsat", "rsat_torch"]
@@ -214,7 +209,7 @@ def rsat_torch(flow: torch.Tensor, events: EventBatch) -> torch.Tensor:
     return _ratio(sat(flow), sat(torch.zeros_like(flow)))
 
 
-def _one_window(flow: np.ndarray, window: "Window", sensor_size) -> tuple:
+def _one_window(flow: np.ndarray, window, sensor_size) -> tuple:
     if not hasattr(window, "events"):
         raise TypeError(f"expected a Window (envs.windows.Window; Window.of(events, t_start, t_end) "
                         f"builds one from Events), got {type(window).__name__}")
@@ -226,7 +221,7 @@ def _one_window(flow: np.ndarray, window: "Window", sensor_size) -> tuple:
     return torch.as_tensor(flow, dtype=torch.float64).unsqueeze(0), ev
 
 
-def fwl(flow: np.ndarray, window: "Window", sensor_size: tuple[int, int] | None = None) -> float:
+def fwl(flow: np.ndarray, window, sensor_size: tuple[int, int] | None = None) -> float:
     """FWL of one window (see ``fwl_torch``).
 
     flow: (2, H, W) float pixels per window. window: a :class:`~envs.windows.Window` (its events
@@ -237,7 +232,7 @@ def fwl(flow: np.ndarray, window: "Window", sensor_size: tuple[int, int] | None 
     return float(fwl_torch(f, ev)[0])
 
 
-def rsat(flow: np.ndarray, window: "Window", sensor_size: tuple[int, int] | None = None) -> float:
+def rsat(flow: np.ndarray, window, sensor_size: tuple[int, int] | None = None) -> float:
     """RSAT of one window (see ``rsat_torch``); arguments as ``fwl``. NaN for an empty window."""
     f, ev = _one_window(flow, window, sensor_size)
     return float(rsat_torch(f, ev)[0])
