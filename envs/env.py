@@ -102,10 +102,9 @@ class EventFlowEnv(gym.Env):
     - ``"window"``: the window (:class:`envs.windows.Window`): its events (``window.events``:
       numpy ``x``, ``y`` pixels, ``t`` int64 µs, ``p`` +-1, in the env's frame), its bounds
       ``window.t_start``, ``window.t_end`` (int µs, ``[t_start, t_end)``), its ground truth
-      where present, and ``window.batch()``, what the loss takes (it still reads as the earlier
-      window dict, ``window["x"]``, for old code). Not being a dict, a vector env hands it over
-      as one object per env (windows differ in length, which Gymnasium's stacking of info
-      arrays cannot hold): ``info["window"][i]``;
+      where present, and ``window.batch()``, what the loss takes. Not being a dict, a vector env
+      hands it over as one object per env (windows differ in length, which Gymnasium's stacking
+      of info arrays cannot hold): ``info["window"][i]``;
     - ``"sequence"`` (name), ``"sequence_index"``, ``"step"`` (window index in the episode);
     - ``"windowing"``: how this episode's windows are cut: ``"ground truth"``, ``"frames"``
       (APS frame times) or ``"time"`` (fixed 30 Hz) in ``frames`` mode, else ``"time"`` /

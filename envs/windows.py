@@ -19,7 +19,6 @@ order. The iterator reads window by window through the reader, never the whole r
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -40,7 +39,7 @@ DEFAULT_WINDOW_SIZES = {"frames": 1, "time": 10_000, "count": 15_000}
 
 
 @dataclass(frozen=True, eq=False)
-class Window(Mapping):
+class Window:
     """One event window, from the reader to the loss: what :func:`iter_windows` yields and the
     env carries in ``info["window"]``.
 
@@ -52,11 +51,9 @@ class Window(Mapping):
     bool: the ground truth, where the recording has it (else None).
 
     :meth:`batch` gives what the losses consume (``losses.window_loss(flow, window)``);
-    :meth:`cut`, :meth:`split`, :meth:`subsample` and :meth:`bin` give new windows. The package
-    reads a window by its attributes (``window.events.x``, ``window.t_start``). It is still a
-    read-only mapping of ``x``, ``y``, ``t``, ``p`` and ``t_start``, ``t_end`` for code written
-    against the earlier window dict (``len(window)`` counts those keys; ``len(window.events)``
-    the events); new code should not rely on it.
+    :meth:`cut`, :meth:`split`, :meth:`subsample` and :meth:`bin` give new windows. A window is
+    read by its attributes (``window.events.x``, ``window.t_start``); it is not a dict (the
+    earlier window dict's ``window["x"]`` raises a TypeError that says what to read instead).
     """
 
     index: int
@@ -137,21 +134,10 @@ class Window(Mapping):
         events = Events(np.asarray(ev.x) // f, np.asarray(ev.y) // f, ev.t, ev.p, (-(-height // f), -(-width // f)))
         return dataclasses.replace(self, events=events, flow_gt=None, flow_gt_valid=None)
 
-    # the window dict (x, y, t, p, t_start, t_end) as a read-only mapping
-    _KEYS = ("x", "y", "t", "p", "t_start", "t_end")
-
-    def __getitem__(self, key: str):
-        if key in ("x", "y", "t", "p"):
-            return getattr(self.events, key)
-        if key in ("t_start", "t_end"):
-            return getattr(self, key)
-        raise KeyError(key)
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self._KEYS)
-
-    def __len__(self) -> int:
-        return len(self._KEYS)
+    def __getitem__(self, key):
+        """No longer a dict: a clear error for code written against the earlier window dict."""
+        where = f"window.events.{key}" if key in ("x", "y", "t", "p") else f"window.{key}"
+        raise TypeError(f"a Window is not a dict: read {where} (window[{key!r}] was the earlier window dict)")
 
     def __eq__(self, other) -> bool:
         if not isinstance(other, Window):

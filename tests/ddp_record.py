@@ -18,8 +18,8 @@ from agents.objectives import windows_from_info  # noqa: E402
 from evflow_cli.commands import train  # noqa: E402
 
 
-def _digest(events) -> str:
-    data = b"".join(np.ascontiguousarray(events[key]).tobytes() for key in ("x", "y", "t", "p"))
+def _digest(window) -> str:
+    data = b"".join(np.ascontiguousarray(getattr(window.events, key)).tobytes() for key in ("x", "y", "t", "p"))
     return hashlib.sha1(data).hexdigest()[:16]
 
 

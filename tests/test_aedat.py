@@ -274,7 +274,7 @@ def test_the_env_reads_aedat4_windows(tmp_path, rng):
     env = gymnasium.make("EventFlow-v0", data=str(path), window="time", window_size=10_000,
                          data_options={"cache_dir": str(cache)})
     _, info = env.reset(seed=0)
-    window_t = np.asarray(info["window"]["t"])
+    window_t = np.asarray(info["window"].events.t)
     assert len(window_t) > 0
     first = np.searchsorted(t, window_t[0])
     np.testing.assert_array_equal(window_t, t[first : first + len(window_t)])

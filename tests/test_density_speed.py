@@ -25,8 +25,8 @@ def test_speed_and_density_of_a_known_translation(density_speed, tmp_path, dt):
     counts, firing, truncated = [], [], False
     while not truncated:
         window = info["window"]
-        counts.append(len(window["t"]))
-        firing.append(len({(int(x), int(y)) for x, y in zip(window["x"], window["y"])}) / (24 * 32))
+        counts.append(len(window.events.t))
+        firing.append(len({(int(x), int(y)) for x, y in zip(window.events.x, window.events.y)}) / (24 * 32))
         _, _, _, truncated, info = env.step(np.zeros(env.action_space.shape, np.float32))
     np.testing.assert_allclose(rows[:, 1], np.array(counts) / (24 * 32 * dt))
     np.testing.assert_allclose(rows[:, 2], firing)

@@ -28,12 +28,12 @@ def test_check_env_on_h5_file(recording):
 def test_episode_delivers_every_event_once_in_order(recording):
     env = EventFlowEnv(recording, window="time", window_size=7_000)
     obs, info = env.reset(seed=0)
-    ts, bounds, truncated = [info["window"]["t"]], [(info["window"].t_start, info["window"].t_end)], False
+    ts, bounds, truncated = [info["window"].events.t], [(info["window"].t_start, info["window"].t_end)], False
     while not truncated:
         obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
         assert not terminated
         if not truncated:
-            ts.append(info["window"]["t"])
+            ts.append(info["window"].events.t)
             bounds.append((info["window"].t_start, info["window"].t_end))
     with H5Reader(recording) as reader:
         np.testing.assert_array_equal(np.concatenate(ts), reader.events_range(0, reader.num_events).t)
@@ -169,9 +169,9 @@ def test_flips_transform_events_and_ground_truth(recording):
     assert all(flipped._flips.values())
     w = plain.width
     h = plain.height
-    np.testing.assert_array_equal(b["window"]["x"], w - 1 - a["window"]["x"])
-    np.testing.assert_array_equal(b["window"]["y"], h - 1 - a["window"]["y"])
-    np.testing.assert_array_equal(b["window"]["p"], -a["window"]["p"])
+    np.testing.assert_array_equal(b["window"].events.x, w - 1 - a["window"].events.x)
+    np.testing.assert_array_equal(b["window"].events.y, h - 1 - a["window"].events.y)
+    np.testing.assert_array_equal(b["window"].events.p, -a["window"].events.p)
     np.testing.assert_array_equal(b["flow_gt"][:, ::-1, ::-1], -a["flow_gt"])
 
 
@@ -180,8 +180,8 @@ def test_crop_shifts_events_and_ground_truth(recording):
     cropped = EventFlowEnv(recording, crop=(5, 7, 20, 30))
     _, a = full.reset(options={"sequence": 0})
     _, b = cropped.reset(options={"sequence": 0})
-    keep = (a["window"]["x"] >= 7) & (a["window"]["x"] < 37) & (a["window"]["y"] >= 5) & (a["window"]["y"] < 25)
-    np.testing.assert_array_equal(b["window"]["x"], a["window"]["x"][keep] - 7)
+    keep = (a["window"].events.x >= 7) & (a["window"].events.x < 37) & (a["window"].events.y >= 5) & (a["window"].events.y < 25)
+    np.testing.assert_array_equal(b["window"].events.x, a["window"].events.x[keep] - 7)
     np.testing.assert_array_equal(b["flow_gt"], a["flow_gt"][:, 5:25, 7:37])
     assert cropped.action_space.shape == (2, 20, 30)
 
@@ -199,7 +199,7 @@ def test_random_crop_moves_per_episode_and_matches_a_fixed_crop(recording):
         fixed = EventFlowEnv(recording, crop=(top, left, 20, 30))
         _, c = fixed.reset(options={"sequence": 0})
         for key in ("x", "y", "t", "p"):
-            np.testing.assert_array_equal(b["window"][key], c["window"][key])
+            np.testing.assert_array_equal(getattr(b["window"].events, key), getattr(c["window"].events, key))
         np.testing.assert_array_equal(b["flow_gt"], a["flow_gt"][:, top : top + 20, left : left + 30])
         # a checkpointed episode continues with the same crop
         env.step(np.zeros(env.action_space.shape, np.float32))
@@ -208,7 +208,7 @@ def test_random_crop_moves_per_episode_and_matches_a_fixed_crop(recording):
         other.restore_episode_state(state)
         _, _, _, _, i1 = env.step(np.zeros(env.action_space.shape, np.float32))
         _, _, _, _, i2 = other.step(np.zeros(env.action_space.shape, np.float32))
-        np.testing.assert_array_equal(i1["window"]["x"], i2["window"]["x"])
+        np.testing.assert_array_equal(i1["window"].events.x, i2["window"].events.x)
     assert len(origins) > 3
     with pytest.raises(ValueError, match="random_crop"):
         EventFlowEnv(recording, random_crop=True)
@@ -227,11 +227,11 @@ def test_event_keep_thins_each_episode_at_its_own_rate_and_keeps_the_motion(reco
         keep = env._keep[0]
         assert 0.1 <= keep <= 0.8
         rates.append(keep)
-        original = Counter(zip(*(a["window"][k].tolist() for k in "xytp")))
-        thinned = Counter(zip(*(b["window"][k].tolist() for k in "xytp")))
+        original = Counter(zip(*(getattr(a["window"].events, k).tolist() for k in "xytp")))
+        thinned = Counter(zip(*(getattr(b["window"].events, k).tolist() for k in "xytp")))
         assert not thinned - original  # a sub-multiset: nothing added, nothing moved
-        assert np.all(np.diff(b["window"]["t"]) >= 0)
-        n = len(a["window"]["t"])
+        assert np.all(np.diff(b["window"].events.t) >= 0)
+        n = len(a["window"].events.t)
         assert abs(thinned.total() - keep * n) < 5 * np.sqrt(n * keep * (1 - keep)) + 1  # binomial(n, keep)
         np.testing.assert_array_equal(b["flow_gt"], a["flow_gt"])
     # log-uniform: about half of the draws below the geometric mean of the range
@@ -241,10 +241,10 @@ def test_event_keep_thins_each_episode_at_its_own_rate_and_keeps_the_motion(reco
     other = EventFlowEnv(recording, window="time", window_size=10_000, event_keep=(0.1, 0.8))
     other.restore_episode_state(state)
     assert other.current_window is not None
-    np.testing.assert_array_equal(other.current_window["t"], env.current_window["t"])
+    np.testing.assert_array_equal(other.current_window.events.t, env.current_window.events.t)
     _, _, _, _, i1 = env.step(np.zeros(env.action_space.shape, np.float32))
     _, _, _, _, i2 = other.step(np.zeros(env.action_space.shape, np.float32))
-    np.testing.assert_array_equal(i1["window"]["x"], i2["window"]["x"])
+    np.testing.assert_array_equal(i1["window"].events.x, i2["window"].events.x)
     # 1 keeps everything and draws nothing: the episodes of a plain env, random crops and flips too
     plain = EventFlowEnv(recording, window="time", window_size=10_000, crop=(20, 30), random_crop=True, flips=True)
     same = EventFlowEnv(recording, window="time", window_size=10_000, crop=(20, 30), random_crop=True, flips=True,
@@ -253,7 +253,7 @@ def test_event_keep_thins_each_episode_at_its_own_rate_and_keeps_the_motion(reco
         _, c = same.reset(seed=seed)
         _, d = plain.reset(seed=seed)
         for _ in range(3):
-            np.testing.assert_array_equal(c["window"]["x"], d["window"]["x"])
+            np.testing.assert_array_equal(c["window"].events.x, d["window"].events.x)
             np.testing.assert_array_equal(c["crop"], d["crop"])
             _, _, _, _, c = same.step(np.zeros(same.action_space.shape, np.float32))
             _, _, _, _, d = plain.step(np.zeros(plain.action_space.shape, np.float32))

@@ -34,7 +34,7 @@ def test_env_and_evaluate_take_every_format(tmp_path, fmt):
         kwargs = {}
     env = gymnasium.make("EventFlow-v0", data=str(path), window="time", window_size=10_000, **kwargs)
     obs, info = env.reset(seed=0)
-    assert obs["count_image"].shape[0] == 2 and len(info["window"]["t"]) > 0
+    assert obs["count_image"].shape[0] == 2 and len(info["window"].events.t) > 0
     _, reward, *_ = env.step(np.zeros(env.action_space.shape, np.float32))
     assert np.isfinite(reward) and reward < 0
     env.close()

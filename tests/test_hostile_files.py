@@ -285,7 +285,7 @@ def test_env_refuses_unknown_reset_options_copies_and_windows_longer_than_the_re
         too_long.reset()
     whole = EventFlowEnv(str(path), window="time", window_size=200_000)  # exactly the recording: one window
     _, info = whole.reset()
-    assert (info["window"]["t_start"], info["window"]["t_end"]) == (0, 200_000)
+    assert (info["window"].t_start, info["window"].t_end) == (0, 200_000)
 
 
 @pytest.mark.parametrize("argv, message", [

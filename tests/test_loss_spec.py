@@ -99,7 +99,7 @@ def test_env_training_solver_and_teacher_score_with_one_spec_built_from_the_same
     rollout = [RolloutWindow(flows, batch, zero_flow_loss(flows[-1], batch, cfg.loss_spec), {"window": [window]})]
     make_objective(cfg, 32.0)(rollout)
     CMaxSettings(**OPTIONS).solve(window, (H, W))
-    teacher_module._solve_coarse(batch, H, W, TeacherSettings(**OPTIONS), lr=0.05, counts=[len(window["t"])])
+    teacher_module._solve_coarse(batch, H, W, TeacherSettings(**OPTIONS), lr=0.05, counts=[len(window.events.t)])
     teacher = dataclasses.replace(cfg, loss="teacher")
     make_objective(teacher, 32.0, device=torch.device("cpu"), height=H, width=W)(rollout)
     assert {part: specs for part, specs in seen.items()} == {part: [expected] for part in seen}

@@ -33,10 +33,10 @@ def dots(rng):
 def _observations(data, **kwargs):
     env = gym.make("EventFlow-v0", data=data, window="time", window_size=20_000, **kwargs)
     obs, info = env.reset(options={"sequence": 0})
-    out = [(obs["count_image"], info["window"]["t_start"], info["window"]["t_end"])]
+    out = [(obs["count_image"], info["window"].t_start, info["window"].t_end)]
     for _ in range(3):
         obs, _, _, _, info = env.step(np.zeros((2, *SIZE), np.float32))
-        out.append((obs["count_image"], info["window"]["t_start"], info["window"]["t_end"]))
+        out.append((obs["count_image"], info["window"].t_start, info["window"].t_end))
     env.close()
     return out
 

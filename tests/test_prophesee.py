@@ -296,11 +296,11 @@ def test_open_recording_env_and_convert_read_prophesee_files(tmp_path, rng):
             assert_events(h.events_range(0, h.num_events), x, y, t, p)
     env = EventFlowEnv(str(raw), window="time", window_size=20_000, compute_reward=False, data_options={"index_dir": tmp_path / "index"})
     obs, info = env.reset(options={"sequence": 0})
-    seen = len(info["window"]["t"])
+    seen = len(info["window"].events.t)
     truncated = False
     while not truncated:
         obs, _, _, truncated, info = env.step(np.zeros((2,) + sensor, np.float32))
-        seen += len(info["window"]["t"]) if not truncated else 0
+        seen += len(info["window"].events.t) if not truncated else 0
     assert seen == len(t) and obs["count_image"].shape == (2,) + sensor
 
 

@@ -259,7 +259,7 @@ def test_hagenaars_start_attributes_deliver_the_first_window(tmp_path, rng):
     _, info = env.reset(options={"sequence": 0})
     seen, gts, truncated = [], [], False
     while not truncated:
-        seen.append(np.asarray(info["window"]["t"]))
+        seen.append(np.asarray(info["window"].events.t))
         gts.append(float(info["flow_gt"][0, 0, 0]))
         _, _, _, truncated, info = env.step(np.zeros((2, 20, 30), np.float32))
     inside = t[(t >= starts[0]) & (t < starts[-1] + 60_000)]

@@ -105,7 +105,7 @@ def test_env_serves_the_count_time_image():
         obs, info = env.reset(seed=0)
         for _ in range(2):
             assert env.observation_space["count_time_image"].contains(obs["count_time_image"])
-            events = Events.create(*(info["window"][k] for k in ("x", "y", "t", "p")), (env.height, env.width))
+            events = Events.create(*(getattr(info["window"].events, k) for k in ("x", "y", "t", "p")), (env.height, env.width))
             want = count_time_image_loop(events, info["window"].t_start, info["window"].t_end)
             np.testing.assert_allclose(obs["count_time_image"], want, rtol=1e-6)
             np.testing.assert_array_equal(obs["count_time_image"][:2], obs["count_image"])

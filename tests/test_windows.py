@@ -106,15 +106,17 @@ def test_a_window_is_the_window_dict_and_gives_the_losses_batch(rng):
     (window,) = iter_windows(ArrayReader(ev, t_range=(1_000, 21_000)), "time", 20_000)
     assert window.sensor_size == (20, 30) and window.flow_gt is None and len(window.events) == 500
     as_dict = {**ev.as_dict(), "t_start": 1_000, "t_end": 21_000}
-    assert list(window) == ["x", "y", "t", "p", "t_start", "t_end"]
-    for key, value in as_dict.items():
-        np.testing.assert_array_equal(window[key], value)
-    batch, expected = window.batch(), EventBatch.from_windows([as_dict])
+    for key in ("x", "y", "t", "p"):
+        np.testing.assert_array_equal(getattr(window.events, key), as_dict[key])
+    assert (window.t_start, window.t_end) == (1_000, 21_000)
+    batch, expected = window.batch(), EventBatch.from_windows([as_dict])  # the same batch as the dict gives
     for got, want in zip(batch, expected):
         torch.testing.assert_close(got, want)
     assert window == list(iter_windows(ArrayReader(ev, t_range=(1_000, 21_000)), "time", 20_000))[0]
-    with pytest.raises(KeyError):
-        window["flow_gt"]  # the mapping is the window dict; the ground truth is an attribute
+    with pytest.raises(TypeError, match=r"a Window is not a dict: read window.events.x"):
+        window["x"]  # the earlier window dict's reading says what to read instead
+    with pytest.raises(TypeError, match=r"read window.t_start"):
+        window["t_start"]
 
 
 def _one_window(rng, n=500, size=(20, 30), t_start=1_000, t_end=101_001):
