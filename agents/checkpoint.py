@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from envs.atomic import write_atomic
+from envs.windows import Window
 
 from .registry import MODELS, make_model
 
@@ -93,7 +94,8 @@ def set_rng_state(state: dict[str, Any], device: str | torch.device | None = Non
 
 def to_safe(value: Any, where: str = "checkpoint") -> Any:
     """``value`` in the safe schema (module docstring): numpy arrays become tagged tensors (object
-    arrays: their elements), numpy scalars Python numbers, mappings dicts. Raises TypeError naming
+    arrays: their elements), numpy scalars Python numbers, mappings dicts, an env's ``Window`` the
+    dict of its events and bounds. Raises TypeError naming
     the entry (``where``) for anything else."""
     if value is None or isinstance(value, (bool, int, float, str, torch.Tensor)):
         return value
@@ -104,6 +106,10 @@ def to_safe(value: Any, where: str = "checkpoint") -> Any:
             return {_NDARRAY: torch.from_numpy(np.array(value, value.dtype.newbyteorder("="))), "dtype": value.dtype.str.lstrip("<>=|")}
         return {_OBJECTS: [to_safe(v, f"{where}[{i}]") for i, v in enumerate(value.ravel().tolist())],
                 "shape": list(value.shape)}
+    if isinstance(value, Window):  # a window in the env's info: its events and bounds, as the window dict was
+        events = value.events
+        return to_safe({"x": events.x, "y": events.y, "t": events.t, "p": events.p, "t_start": value.t_start,
+                        "t_end": value.t_end}, where)
     if isinstance(value, Mapping):
         out = {}
         for key, item in value.items():

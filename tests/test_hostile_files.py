@@ -402,3 +402,24 @@ def test_a_full_disk_ends_training_in_one_line_and_keeps_the_checkpoint(tmp_path
     assert (out / "checkpoint.pt").read_bytes() == before and not list(out.glob("*.tmp-*"))
     monkeypatch.setattr(agents.checkpoint.torch, "save", real)
     assert run(train.main, [*argv, "--steps", "2", "--resume"]) in (0, None)
+
+
+def test_an_envs_window_in_a_checkpoint_is_saved_as_its_events_and_bounds(tmp_path):
+    """The learner's checkpoint holds the env's last info, whose "window" is a Window (not a dict
+    since the window became a type): the safe schema stores its events and bounds, as it stored
+    the window dict before, and loads them back equal."""
+    import numpy as np
+
+    from agents.checkpoint import load_checkpoint
+    from envs.events import Events
+    from envs.windows import Window
+
+    events = Events.create(np.array([1, 2, 3]), np.array([0, 1, 2]), np.array([10, 20, 30]), np.array([1, -1, 1]),
+                           (4, 5))
+    window = Window.of(events, 5, 35)
+    path = save_checkpoint(tmp_path / "c.pt", {"model_name": "ev-flownet", "model_config": {}, "model": {},
+                                               "info": {"final_info": {"window": [window, None]}}})
+    saved = load_checkpoint(path)["info"]["final_info"]["window"][0]
+    assert (saved["t_start"], saved["t_end"]) == (5, 35)
+    for key in ("x", "y", "t", "p"):
+        np.testing.assert_array_equal(saved[key], getattr(events, key))
