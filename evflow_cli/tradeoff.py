@@ -9,7 +9,10 @@ Modes (one point each; ``K`` and ``N`` are solver steps):
   proposal and the finish chosen by window length, docs/finish.md).
 - ``zero``: zero flow (its AEE is the scale: a mode above it invents motion).
 - ``net``: the network, one pass per window.
-- ``split``: the network stepped once per ground-truth interval (``--split dt``, the default's mode).
+- ``split``: the network stepped once per ground-truth interval (``--split dt``, the default's mode
+  before 2026-12-05).
+- ``coarseF``: the network on the window's events binned F x F pixels to one, its flow upsampled
+  (agents/wrappers/coarse.py); ``coarse2+cmax:K/E`` finishes that proposal.
 - ``split+fine:K`` / ``split+cmax:K``: ``split`` finished by K steps of the refinement solver
   'fine' (one 16-cell level on sensor pixels) or 'cmax' (the coarse-to-fine solve started from
   the network's flow; agents/wrappers/refine.py). ``net+...`` starts from one pass instead.
@@ -42,6 +45,7 @@ import numpy as np
 from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
 from agents.evaluation import evaluate
 from agents.policy import RecurrentPolicy
+from agents.wrappers.coarse import CoarsePolicy
 from agents.wrappers.refine import GRADIENT, Finish, FinishedPolicy, RefinedPolicy
 from agents.wrappers.still import StillGuard
 from agents.wrappers.subwindows import SubWindowPolicy
@@ -83,11 +87,15 @@ def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu"):
             raise ValueError(f"mode {mode!r}: cmax takes a number of steps, e.g. cmax:30")
         return ContrastMaximisationPolicy(cmax_settings(int(rest)), device=device)
     start, plus, finish = mode.partition("+")
-    if start not in ("net", "split"):
-        raise ValueError(f"unknown mode {mode!r}; forms: zero, net, split, net+fine:K, split+cmax:K[@P], cmax:N")
+    factor = start[len("coarse"):] if start.startswith("coarse") else ""
+    if start not in ("net", "split") and not (factor.isdigit() and 1 <= int(factor) <= 16):
+        raise ValueError(f"unknown mode {mode!r}; forms: zero, net, split, coarseF, net+fine:K, split+cmax:K[@P], "
+                         "coarse2+cmax:K, cmax:N")
     policy = _network(model, device)
     if start == "split":
         policy = SubWindowPolicy(policy, splits=dt)
+    elif factor:
+        policy = CoarsePolicy(policy, int(factor))
     if not plus:
         return policy
     solver, _, steps = finish.partition(":")
@@ -210,7 +218,7 @@ def family(mode: str) -> str | None:
         return "the default's mode"
     if mode.startswith("cmax:"):
         return "cmax alone"
-    if mode in ("net", "split"):
+    if mode in ("net", "split") or (mode.startswith("coarse") and "+" not in mode):
         return "network alone"
     if "+still" not in mode:
         for solver in ("fine", "mid", "cmax"):
@@ -240,7 +248,7 @@ def plot(points: list[Point], path: Path, reference: str = "cmax:100") -> Path |
             ax.plot([p.ms for p in members], [p.mean_aee for p in members], marker + ("-" if name != "other" else ""),
                     label=name, ms=9 if marker == "*" else 5)
             for p in members:
-                ax.annotate(p.mode.split("+", 1)[-1] if "+" in p.mode else p.mode, (p.ms, p.mean_aee), fontsize=6,
+                ax.annotate(p.mode.split("+", 1)[-1] if "+" in p.mode and not p.mode.startswith("coarse") else p.mode, (p.ms, p.mean_aee), fontsize=6,
                             xytext=(3, 3), textcoords="offset points")
         shown = [p.mean_aee for p in rows if p.mode != "zero"]
         zero = next((p for p in rows if p.mode == "zero"), None)

@@ -95,3 +95,54 @@ def test_predict_finishes_the_default_and_says_so(tmp_path, monkeypatch):
     assert "finish" not in provenance["default"] and not np.allclose(finished, alone)
     named, _ = run("named", "--model", name)
     np.testing.assert_array_equal(named, alone)  # a model named explicitly runs as asked: no finish
+
+
+def _tiny_network():
+    import torch
+
+    from agents.policy import RecurrentPolicy
+    from agents.registry import make_model
+
+    torch.manual_seed(0)
+    return RecurrentPolicy(make_model("ev-mgrflownet", base_width=4).eval(), device="cpu")
+
+
+def test_a_coarse_finish_finishes_the_network_on_the_coarser_grid(rng):
+    from agents.wrappers.coarse import CoarsePolicy
+
+    obs = {"count_image": np.zeros((2, 21, 31), np.float32)}
+    long = _window(rng, 4.0)
+    finish = Finish("cmax", 5, 300, None, coarse=2)
+    assert finish.label() == "coarse2+cmax:5/300" and Finish.from_dict({**FINISH[1], "coarse": 2}) == finish
+    policy = FinishedPolicy(_tiny_network(), [finish])
+    reference = RefinedPolicy(CoarsePolicy(_tiny_network(), 2), solver="cmax", steps=5, max_events=300)
+    np.testing.assert_allclose(policy.act(obs, long), reference.act(obs, long), atol=1e-6)
+    with pytest.raises(ValueError, match="coarse must be an integer"):
+        Finish("cmax", 5, coarse=0)
+
+
+def test_each_grid_keeps_its_own_recurrent_state_when_window_lengths_change(rng):
+    """Windows of one length, then of another, then of the first: the sensor-grid proposals are
+    those of a network that saw only the short windows, the coarse ones those of a coarse
+    network that saw only the long ones (no state crosses between grids)."""
+    from agents.wrappers.coarse import CoarsePolicy
+
+    image = {"count_image": np.zeros((2, 21, 31), np.float32)}
+    short, long = [_window(rng, 1.0) for _ in range(3)], [_window(rng, 4.0) for _ in range(2)]
+    steps = [0, 1]  # no finish: the proposals themselves
+    policy = FinishedPolicy(_tiny_network(), [Finish("fine", 0, None, 1.5), Finish("cmax", 0, coarse=2)])
+    from envs.representations import image_input
+
+    def obs(w):
+        return {"count_image": image_input("count_image", w.events, w.t_start, w.t_end, (21, 31), 5)}
+
+    order = [short[0], long[0], short[1], long[1], short[2]]
+    flows = [policy.act(obs(w), w) for w in order]
+    fine, coarse = _tiny_network(), CoarsePolicy(_tiny_network(), 2)
+    expected_short = [fine.act(obs(w), w) for w in short]
+    expected_long = [coarse.act(image, w) for w in long]
+    for got, want in zip([flows[0], flows[2], flows[4]], expected_short):
+        np.testing.assert_allclose(got, want, atol=1e-6)
+    for got, want in zip([flows[1], flows[3]], expected_long):
+        np.testing.assert_allclose(got, want, atol=1e-6)
+    assert steps and not np.allclose(flows[0], flows[2])  # the state carried: a later window differs
