@@ -146,3 +146,25 @@ def test_each_grid_keeps_its_own_recurrent_state_when_window_lengths_change(rng)
     for got, want in zip([flows[1], flows[3]], expected_long):
         np.testing.assert_allclose(got, want, atol=1e-6)
     assert steps and not np.allclose(flows[0], flows[2])  # the state carried: a later window differs
+
+
+def test_predict_coarse_runs_the_network_on_the_coarser_grid_and_records_it(tmp_path, monkeypatch):
+    from agents.policy import RecurrentPolicy
+    from agents.wrappers.coarse import CoarsePolicy
+    from evflow_cli.predict import predict
+
+    name = pretrained.DEFAULT_PRETRAINED
+    monkeypatch.setattr(pretrained, "default_choice", lambda directory=None: {
+        "model": name, "mode": "propose and finish", "chosen_on": "devval", "finish": FINISH})
+    common = ["synthetic-mini", "--end", "0.15", "--no-video", "--no-progress", "--coarse", "2"]
+    summary = tmp_path / "coarse.json"
+    assert predict_command.main([*common, "--out", str(tmp_path / "c.h5"), "--json", str(summary)]) == 0
+    provenance = json.loads(summary.read_text())["model"]
+    assert provenance["coarse"] == 2
+    assert provenance["default"]["finish"] == ["coarse2+fine:2 up to 1.5 frames", "coarse2+cmax:5/300"]
+    assert predict_command.main([*common, "--no-finish", "--out", str(tmp_path / "alone.h5")]) == 0
+    reference = predict(CoarsePolicy(RecurrentPolicy.from_pretrained(name), 2), "synthetic-mini", tmp_path / "ref.h5",
+                        end_s=0.15, progress=False)
+    with h5py.File(tmp_path / "alone.h5", "r") as a, h5py.File(reference.path, "r") as b:
+        np.testing.assert_array_equal(np.asarray(a["flow"]), np.asarray(b["flow"]))
+        assert np.abs(np.asarray(a["flow"])).max() > 0

@@ -9,6 +9,7 @@ Examples:
   python scripts/predict.py rec.h5 --model runs/mgr/checkpoint.pt --per-event --device cuda
   python scripts/predict.py rec.h5 --model mypkg.models:build          # an (untrained) plug-in
   python scripts/predict.py old_camera.dat --sensor-size 480 640         # a header without geometry
+  python scripts/predict.py hd_camera.raw --coarse 2                     # 1280x720: the network on a 2x coarser grid
 
 --model: a shipped model name (agents/weights/, default the project's default model), a
 checkpoint file, or a registry name / package.module:factory. Recordings in any supported
@@ -29,7 +30,7 @@ import argparse
 import contextlib
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from agents.options import (
@@ -48,7 +49,8 @@ from agents.options import (
     positive_int,
 )
 from agents.pretrained import default_finish, default_steps
-from agents.wrappers.refine import FinishedPolicy
+from agents.wrappers.coarse import CoarsePolicy
+from agents.wrappers.refine import Finish, FinishedPolicy
 from envs.outputs import Output
 from envs.windows import FALLBACK_INTERVAL_US
 from evflow_cli.predict import load_policy, predict, summary_dict, summary_table
@@ -95,6 +97,8 @@ class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progr
     """which recording of a folder / split (index or name)"""
     no_finish: bool = False
     """the default model's proposal alone: skip the short solve on each window's events that its mode finishes the flow with (faster; docs/finish.md)"""
+    coarse: int = option(1, type=positive_int, metavar="F")
+    """the network on each window's events binned F x F pixels to one, its flow upsampled to the sensor (F^2 times fewer pixels: about 4x faster at F = 2 on a 1280x720 sensor, at a cost in accuracy: docs/performance.md); the finish still solves on the sensor's pixels"""
     split: int | None = option(None, type=positive_int, metavar="N")
     """step the network through N equal sub-windows of each window and compose their flows (long windows of fast motion; N network steps per window); default: the default model's mode (agents/weights/default.json's split: one pass, or one step per ground-truth interval), 1 for any other model"""
     per_event: bool = False
@@ -138,9 +142,14 @@ def main(argv=None) -> int:  # opens as the other commands do: parse, then set t
         policy, provenance = load_policy(args.model, device=args.device, width=args.width, plugin=args.plugin)
         finish = default_finish() if args.model is None and args.split is None and not args.no_finish else []
         if finish:  # the default's mode: the network's flow finished by a short solve on each window
-            policy = FinishedPolicy(policy, finish)
+            finishes = [Finish.from_dict(f) for f in finish]
+            policy = FinishedPolicy(policy, [replace(f, coarse=max(f.coarse, args.coarse)) for f in finishes])
             provenance["default"]["finish"] = [f.label() + (f" up to {f.up_to_frames:g} frames" if f.up_to_frames else "")
                                                for f in policy.finishes]
+        elif args.coarse > 1:
+            policy = CoarsePolicy(policy, args.coarse)
+        if args.coarse > 1:
+            provenance["coarse"] = args.coarse
         split = args.split
         if split is None:
             split = default_steps(args.window, args.window_size, args.no_gt_window) if args.model is None else 1
