@@ -28,7 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -146,19 +146,67 @@ def bench_reading(report, num_events: int, rate: float, max_windows: int, workdi
 
 
 def bench_predict(report, workdir: str | None, windows_full: int = 10, tiny: bool = False) -> None:
-    """tiny: a fifth of synthetic-mini and 2 windows of a small RAW file (checks the section runs)."""
+    """tiny: a fifth of synthetic-mini and 2 windows of a small RAW file (checks the section runs).
+
+    At 1280x720 the levers of docs/performance.md, interleaved (each mode once per round, two
+    rounds, the faster kept): the default's mode (network + finish), ``--coarse 2`` (the network on
+    a 2x coarser grid), ``--no-finish`` and both; then the network alone in torch and, where
+    onnxruntime is installed (not a dependency), the same network exported to ONNX and run by it."""
+    from agents.pretrained import default_finish
+    from agents.wrappers.coarse import CoarsePolicy
+    from agents.wrappers.refine import Finish, FinishedPolicy
     from evflow_cli.predict import load_policy, predict
 
     policy, _ = load_policy(None, device="cpu")
+    finishes = [Finish.from_dict(f) for f in default_finish()]
+    modes = {
+        "the default's mode": lambda: FinishedPolicy(policy, finishes),
+        "--coarse 2": lambda: FinishedPolicy(policy, [replace(f, coarse=max(2, f.coarse)) for f in finishes]),
+        "--no-finish": lambda: policy,
+        "--coarse 2 --no-finish": lambda: CoarsePolicy(policy, 2),
+    }
     with tempfile.TemporaryDirectory(dir=workdir, prefix="bench_predict-") as tmp:
         predict(policy, "synthetic-mini", Path(tmp) / "warm.h5", end_s=0.2, progress=False)  # compile kernels
         res = predict(policy, "synthetic-mini", Path(tmp) / "mini.h5", progress=False, end_s=0.2 if tiny else None)
         report("predict", f"synthetic-mini 64x64, {res.windows} GT windows (CPU)", res.windows_per_second, "windows/s")
         windows_full = 2 if tiny else windows_full
         raw = write_raw(Path(tmp) / "cam.raw", "EVT3", 100_000 if tiny else 1_000_000, DEFAULT_RATE)
-        res = predict(policy, raw, Path(tmp) / "cam.h5", end_s=windows_full * 0.033334, progress=False,
-                      data_options={"index_dir": tmp})
-        report("predict", f"EVT3 1280x720, {res.windows} windows of 33 ms (CPU)", res.windows_per_second, "windows/s")
+        options = dict(end_s=windows_full * 0.033334, progress=False, data_options={"index_dir": tmp}, overwrite=True,
+                       score_windows=0)
+        best: dict[str, float] = {}
+        for _ in range(1 if tiny else 2):
+            for mode, make in modes.items():
+                res = predict(make(), raw, Path(tmp) / "cam.h5", **options)
+                best[mode] = max(best.get(mode, 0.0), res.windows_per_second)
+        for mode, rate in best.items():
+            report("predict", f"EVT3 1280x720, {res.windows} windows of 33 ms, {mode}", rate, "windows/s")
+        bench_network_runtimes(report, policy, (90, 160) if tiny else (720, 1280), rounds=1 if tiny else 3)
+
+
+def bench_network_runtimes(report, policy, size: tuple[int, int], rounds: int = 3) -> None:
+    """The default network's step on one ``size`` input (a second step: the recurrent state and
+    the prior flow in use), torch against onnxruntime where installed, interleaved, the fastest
+    of ``rounds`` each (evflow_cli/commands/bench_onnx.py exports the step)."""
+    import torch
+
+    from evflow_cli.commands.bench_onnx import NetworkStep
+
+    step = NetworkStep(policy.model, size)
+    timings: dict[str, float] = {}
+    runners = {"torch": step.run_torch}
+    try:
+        runners["onnxruntime"] = step.onnxruntime_runner(threads=torch.get_num_threads())
+    except ImportError:
+        report("predict", "network at 1280x720, onnxruntime: not installed (pip install onnxruntime)", 0.0, "ms")
+    for _ in range(rounds):
+        for name, run in runners.items():
+            began = time.perf_counter()
+            run()
+            timings[name] = min(timings.get(name, float("inf")), 1e3 * (time.perf_counter() - began))
+    for name, ms in timings.items():
+        report("predict", f"network step at {size[1]}x{size[0]}, {name}", ms, "ms")
+    if "onnxruntime" in runners:
+        report("predict", "  onnxruntime / torch flow, max abs difference", step.parity(), "px")
 
 
 def run(report, num_events: int = DEFAULT_EVENTS, rate: float = DEFAULT_RATE, max_windows: int = 2000,
