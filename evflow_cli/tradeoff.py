@@ -12,7 +12,8 @@ Modes (one point each; ``K`` and ``N`` are solver steps):
 - ``split``: the network stepped once per ground-truth interval (``--split dt``, the default's mode
   before 2026-12-05).
 - ``coarseF``: the network on the window's events binned F x F pixels to one, its flow upsampled
-  (agents/wrappers/coarse.py); ``coarse2+cmax:K/E`` finishes that proposal.
+  (agents/wrappers/coarse.py); ``coarseF:S``: stepped through S equal sub-windows, their flows
+  composed; ``coarse3:2+cmax:K/E`` finishes that proposal.
 - ``split+fine:K`` / ``split+cmax:K``: ``split`` finished by K steps of the refinement solver
   'fine' (one 16-cell level on sensor pixels) or 'cmax' (the coarse-to-fine solve started from
   the network's flow; agents/wrappers/refine.py). ``net+...`` starts from one pass instead.
@@ -87,15 +88,17 @@ def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu"):
             raise ValueError(f"mode {mode!r}: cmax takes a number of steps, e.g. cmax:30")
         return ContrastMaximisationPolicy(cmax_settings(int(rest)), device=device)
     start, plus, finish = mode.partition("+")
-    factor = start[len("coarse"):] if start.startswith("coarse") else ""
-    if start not in ("net", "split") and not (factor.isdigit() and 1 <= int(factor) <= 16):
-        raise ValueError(f"unknown mode {mode!r}; forms: zero, net, split, coarseF, net+fine:K, split+cmax:K[@P], "
-                         "coarse2+cmax:K, cmax:N")
+    factor, _, splits = (start[len("coarse"):] if start.startswith("coarse") else "").partition(":")
+    splits = splits or "1"
+    if start not in ("net", "split") and not (factor.isdigit() and 1 <= int(factor) <= 16 and splits.isdigit()
+                                              and int(splits) >= 1):
+        raise ValueError(f"unknown mode {mode!r}; forms: zero, net, split, coarseF[:S], net+fine:K, split+cmax:K[@P], "
+                         "coarse3:2+cmax:K, cmax:N")
     policy = _network(model, device)
     if start == "split":
         policy = SubWindowPolicy(policy, splits=dt)
     elif factor:
-        policy = CoarsePolicy(policy, int(factor))
+        policy = CoarsePolicy(policy, int(factor), int(splits))
     if not plus:
         return policy
     solver, _, steps = finish.partition(":")

@@ -155,8 +155,9 @@ class Finish:
     ``max_events`` of the window's events (None: the solver's bound), for windows of at most
     ``up_to_frames`` 30 Hz frames (None: any length). ``coarse``: the proposal it finishes comes
     from the network on the window's events binned ``coarse`` x ``coarse`` pixels to one
-    (:class:`~agents.wrappers.coarse.CoarsePolicy`; 1: on sensor pixels), which halves (at 2) the
-    displacements the network sees on long windows of fast motion."""
+    (:class:`~agents.wrappers.coarse.CoarsePolicy`; 1: on sensor pixels), which divides the
+    displacements the network sees on long windows of fast motion by ``coarse``; ``splits``: that
+    coarse network steps through this many equal sub-windows of the window, their flows composed."""
 
     solver: str
     steps: int
@@ -164,25 +165,33 @@ class Finish:
     up_to_frames: float | None = None
     lr_scale: float = 1.0
     coarse: int = 1
+    splits: int = 1
 
     def __post_init__(self) -> None:
-        if not isinstance(self.coarse, int) or isinstance(self.coarse, bool) or not 1 <= self.coarse <= 16:
-            raise ValueError(f"finish {self.label()}: coarse must be an integer in [1, 16], got {self.coarse!r}")
+        for key, top in (("coarse", 16), ("splits", 64)):
+            value = getattr(self, key)
+            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= top:
+                raise ValueError(f"finish {self.solver}:{self.steps}: {key} must be an integer in [1, {top}], "
+                                 f"got {value!r}")
+        if self.splits > 1 and self.coarse == 1:
+            raise ValueError(f"finish {self.solver}:{self.steps}: splits applies to a coarse proposal (coarse >= 2)")
 
     @classmethod
     def from_dict(cls, data: Mapping) -> "Finish":
         """From ``default.json``'s ``finish`` entries (ValueError naming an unknown key)."""
-        unknown = set(data) - {"solver", "steps", "max_events", "up_to_frames", "lr_scale", "coarse"}
+        unknown = set(data) - {"solver", "steps", "max_events", "up_to_frames", "lr_scale", "coarse", "splits"}
         if unknown:
             raise ValueError(f"finish {dict(data)}: unknown keys {sorted(unknown)}")
-        coarse = data.get("coarse", 1)
+        grid = [data.get(key, 1) for key in ("coarse", "splits")]
+        grid = [v if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) else int(v) for v in grid]
         return cls(str(data["solver"]), int(data["steps"]), data.get("max_events"), data.get("up_to_frames"),
-                   float(data.get("lr_scale", 1.0)), coarse if isinstance(coarse, bool) else int(coarse))
+                   float(data.get("lr_scale", 1.0)), *grid)
 
     def label(self) -> str:
-        """``fine:3``, ``cmax:20/16000``, ``coarse2+cmax:20/16000``: the form scripts/tradeoff.py's modes use
-        after ``net+`` (a coarse proposal: ``coarse2+...`` instead of ``net+...``)."""
-        return ((f"coarse{self.coarse}+" if self.coarse != 1 else "") + f"{self.solver}:{self.steps}"
+        """``fine:3``, ``cmax:20/16000``, ``coarse3:2+cmax:20/16000``: the form scripts/tradeoff.py's modes
+        use after ``net+`` (a coarse proposal: ``coarseF+...`` or ``coarseF:S+...`` instead of ``net+...``)."""
+        grid = f"coarse{self.coarse}" + (f":{self.splits}" if self.splits != 1 else "") + "+"
+        return ((grid if self.coarse != 1 else "") + f"{self.solver}:{self.steps}"
                 + (f"/{self.max_events}" if self.max_events else "") + (f"x{self.lr_scale:g}" if self.lr_scale != 1.0 else ""))
 
 
@@ -203,20 +212,21 @@ class FinishedPolicy:
         self.input_key = policy.input_key
         self.voxel_bins = policy.voxel_bins
         self.device = getattr(policy, "device", "cpu")
-        self._proposers: dict[int, object] = {1: self.policy}
-        self._last_coarse: int | None = None
+        self._proposers: dict[tuple[int, int], object] = {(1, 1): self.policy}
+        self._last_grid: tuple[int, int] | None = None
 
     def reset(self, mask=None) -> None:
         for proposer in self._proposers.values():
             proposer.reset(mask)
 
-    def proposer(self, coarse: int):
-        """The policy that proposes at grid ``coarse``: the wrapped policy at 1; at a coarser grid a
-        :class:`~agents.wrappers.coarse.CoarsePolicy` over a twin of it, which shares the network and
-        keeps its own recurrent state (each state sees the windows of its own grid, so a run whose
-        windows change length keeps both). A policy that cannot be twinned (not a
-        :class:`~agents.policy.RecurrentPolicy`) is shared, and reset where the grid changes."""
-        if coarse not in self._proposers:
+    def proposer(self, coarse: int, splits: int = 1):
+        """The policy that proposes at grid ``coarse`` (stepping ``splits`` sub-windows): the wrapped
+        policy at 1; at a coarser grid a :class:`~agents.wrappers.coarse.CoarsePolicy` over a twin of
+        it, which shares the network and keeps its own recurrent state (each state sees the windows
+        of its own grid, so a run whose windows change length keeps both). A policy that cannot be
+        twinned (not a :class:`~agents.policy.RecurrentPolicy`) is shared, and reset where the grid
+        changes."""
+        if (coarse, splits) not in self._proposers:
             from ..policy import RecurrentPolicy
             from .coarse import CoarsePolicy
 
@@ -224,19 +234,20 @@ class FinishedPolicy:
             if isinstance(inner, RecurrentPolicy):
                 inner = RecurrentPolicy(inner.model, inner.device, input_key=inner.input_key,
                                         voxel_bins=inner.voxel_bins, autocast=inner.autocast)
-            self._proposers[coarse] = CoarsePolicy(inner, coarse)
-        return self._proposers[coarse]
+            self._proposers[(coarse, splits)] = CoarsePolicy(inner, coarse, splits)
+        return self._proposers[(coarse, splits)]
 
-    def propose(self, obs, window: Window, coarse: int) -> np.ndarray:
-        """The proposal at grid ``coarse`` (:meth:`proposer`)."""
-        proposer = self.proposer(coarse)
-        last, self._last_coarse = self._last_coarse, coarse
-        if last not in (None, coarse) and self._shares(coarse) and self._shares(last):
+    def propose(self, obs, window: Window, coarse: int, splits: int = 1) -> np.ndarray:
+        """The proposal at grid ``coarse``, ``splits`` sub-windows (:meth:`proposer`)."""
+        proposer = self.proposer(coarse, splits)
+        grid = (coarse, splits)
+        last, self._last_grid = self._last_grid, grid
+        if last not in (None, grid) and self._shares(grid) and self._shares(last):
             self.policy.reset()  # one state cannot carry over between grids of different sizes
         return proposer.act(obs, window)
 
-    def _shares(self, coarse: int) -> bool:
-        proposer = self._proposers[coarse]
+    def _shares(self, grid: tuple[int, int]) -> bool:
+        proposer = self._proposers[grid]
         return proposer is self.policy or getattr(proposer, "policy", None) is self.policy
 
     def finish_for(self, window: Window) -> int | None:
@@ -252,7 +263,8 @@ class FinishedPolicy:
         if window is None:
             raise ValueError("FinishedPolicy solves the window's events: call act(obs, window)")
         index = self.finish_for(window)
-        flow = self.propose(obs, window, 1 if index is None else self.finishes[index].coarse)
+        grid = (1, 1) if index is None else (self.finishes[index].coarse, self.finishes[index].splits)
+        flow = self.propose(obs, window, *grid)
         if index is None or self.finishes[index].steps == 0:
             return flow
         if self.settings[index] is None:  # the training's unrolled finish, without its graph
