@@ -262,7 +262,11 @@ def test_a_shipped_model_is_scored_in_the_mode_too(recording, tmp_path, mode):
     row = campaign_script.validate(campaign, spec, ["--pretrained", "ev-mgrflownet-cpu-synthetic"], "init", "cpu",
                                    print, {**os.environ, "OMP_NUM_THREADS": "1"})
     results = json.loads((runs / "c" / "val" / "init" / "results.json").read_text())
-    label = {"dt": " + split dt", "finish": " + finish fine:3 / cmax:20/16000"}[mode]
+    from agents.pretrained import default_finish
+    from agents.wrappers.refine import Finish
+
+    finishes = " / ".join(Finish.from_dict(f).label() for f in default_finish())  # e.g. fine:3 / coarse3:2+cmax:20/16000
+    label = {"dt": " + split dt", "finish": f" + finish {finishes}"}[mode]
     stepped = results["baselines"][f"ev-mgrflownet-cpu-synthetic (pretrained){label}"]["overall"]["dt2"]["aee"]
     assert row["mode"] == {"dt": "split dt", "finish": "finish"}[mode] and row["aee"]["dt2"] == stepped
     assert row["aee_one_pass"]["dt2"] == results["overall"]["dt2"]["aee"] != stepped
