@@ -162,6 +162,9 @@ def test_predict_coarse_runs_the_network_on_the_coarser_grid_and_records_it(tmp_
     provenance = json.loads(summary.read_text())["model"]
     assert provenance["coarse"] == 2
     assert provenance["default"]["finish"] == ["coarse2+fine:2 up to 1.5 frames", "coarse2+cmax:5/300"]
+    with pytest.raises(ValueError, match="--coarse takes a factor from 1 to 16"):
+        predict_command.main([*common[:-1], "17", "--out", str(tmp_path / "never.h5")])
+    assert not (tmp_path / "never.h5").exists()
     assert predict_command.main([*common, "--no-finish", "--out", str(tmp_path / "alone.h5")]) == 0
     reference = predict(CoarsePolicy(RecurrentPolicy.from_pretrained(name), 2), "synthetic-mini", tmp_path / "ref.h5",
                         end_s=0.15, progress=False)

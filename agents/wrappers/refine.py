@@ -21,7 +21,7 @@ from losses import unrolled_finish, window_loss, zero_flow_loss
 from ..cmax import FRAME_US, CMaxSettings
 from ..policy import as_flow_policy
 
-__all__ = ["SOLVERS", "Finish", "FinishedPolicy", "RefinedPolicy", "finish_settings"]
+__all__ = ["SOLVERS", "Finish", "FinishedPolicy", "RefinedPolicy", "finish_settings", "with_coarse"]
 
 #: the refinement solvers (RefinedPolicy's docstring)
 SOLVERS = ("fine", "cmax", "mid")
@@ -182,10 +182,8 @@ class Finish:
         unknown = set(data) - {"solver", "steps", "max_events", "up_to_frames", "lr_scale", "coarse", "splits"}
         if unknown:
             raise ValueError(f"finish {dict(data)}: unknown keys {sorted(unknown)}")
-        grid = [data.get(key, 1) for key in ("coarse", "splits")]
-        grid = [v if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) else int(v) for v in grid]
         return cls(str(data["solver"]), int(data["steps"]), data.get("max_events"), data.get("up_to_frames"),
-                   float(data.get("lr_scale", 1.0)), *grid)
+                   float(data.get("lr_scale", 1.0)), _whole(data.get("coarse", 1)), _whole(data.get("splits", 1)))
 
     def label(self) -> str:
         """``fine:3``, ``cmax:20/16000``, ``coarse3:2+cmax:20/16000``: the form scripts/tradeoff.py's modes
@@ -193,6 +191,21 @@ class Finish:
         grid = f"coarse{self.coarse}" + (f":{self.splits}" if self.splits != 1 else "") + "+"
         return ((grid if self.coarse != 1 else "") + f"{self.solver}:{self.steps}"
                 + (f"/{self.max_events}" if self.max_events else "") + (f"x{self.lr_scale:g}" if self.lr_scale != 1.0 else ""))
+
+
+def _whole(value):
+    """A JSON number that is a whole number (3 or 3.0) as an int; anything else unchanged, for
+    :class:`Finish` to refuse by name."""
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
+def with_coarse(finishes, factor: int) -> list[Finish]:
+    """``finishes`` (Finish or default.json entries) with every proposal on a grid at least
+    ``factor`` times coarser than the sensor's (``predict --coarse``)."""
+    finishes = [f if isinstance(f, Finish) else Finish.from_dict(f) for f in finishes]
+    return [dataclasses.replace(f, coarse=max(f.coarse, int(factor))) for f in finishes]
 
 
 class FinishedPolicy:

@@ -28,7 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -154,14 +154,14 @@ def bench_predict(report, workdir: str | None, windows_full: int = 10, tiny: boo
     onnxruntime is installed (not a dependency), the same network exported to ONNX and run by it."""
     from agents.pretrained import default_finish
     from agents.wrappers.coarse import CoarsePolicy
-    from agents.wrappers.refine import Finish, FinishedPolicy
+    from agents.wrappers.refine import FinishedPolicy, with_coarse
     from evflow_cli.predict import load_policy, predict
 
     policy, _ = load_policy(None, device="cpu")
-    finishes = [Finish.from_dict(f) for f in default_finish()]
+    finishes = with_coarse(default_finish(), 1)
     modes = {
         "the default's mode": lambda: FinishedPolicy(policy, finishes),
-        "--coarse 2": lambda: FinishedPolicy(policy, [replace(f, coarse=max(2, f.coarse)) for f in finishes]),
+        "--coarse 2": lambda: FinishedPolicy(policy, with_coarse(finishes, 2)),
         "--no-finish": lambda: policy,
         "--coarse 2 --no-finish": lambda: CoarsePolicy(policy, 2),
     }

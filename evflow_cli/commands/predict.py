@@ -30,7 +30,7 @@ import argparse
 import contextlib
 import json
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 from agents.options import (
@@ -50,7 +50,7 @@ from agents.options import (
 )
 from agents.pretrained import default_finish, default_steps
 from agents.wrappers.coarse import CoarsePolicy
-from agents.wrappers.refine import Finish, FinishedPolicy
+from agents.wrappers.refine import FinishedPolicy, with_coarse
 from envs.outputs import Output
 from envs.windows import FALLBACK_INTERVAL_US
 from evflow_cli.predict import load_policy, predict, summary_dict, summary_table
@@ -98,7 +98,7 @@ class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progr
     no_finish: bool = False
     """the default model's proposal alone: skip the short solve on each window's events that its mode finishes the flow with (faster; docs/finish.md)"""
     coarse: int = option(1, type=positive_int, metavar="F")
-    """the network on each window's events binned F x F pixels to one, its flow upsampled to the sensor (F^2 times fewer pixels: about 4x faster at F = 2 on a 1280x720 sensor, at a cost in accuracy: docs/performance.md); the finish still solves on the sensor's pixels"""
+    """the network on each window's events binned F x F pixels to one, its flow upsampled to the sensor (F^2 times fewer pixels; at F = 2 on a 1280x720 sensor 2.3x the windows/s, 4.7x with --no-finish, at a cost in accuracy: docs/performance.md; 1-16); the finish still solves on the sensor's pixels"""
     split: int | None = option(None, type=positive_int, metavar="N")
     """step the network through N equal sub-windows of each window and compose their flows (long windows of fast motion; N network steps per window); default: the default model's mode (agents/weights/default.json's split: one pass, or one step per ground-truth interval), 1 for any other model"""
     per_event: bool = False
@@ -110,6 +110,8 @@ class PredictOptions(ModelWidth, Windows, RecordingOptions, DeviceOptions, Progr
 
     def __post_init__(self) -> None:
         check_choices(self)
+        if self.coarse > 16:
+            raise ValueError(f"--coarse takes a factor from 1 to 16, got {self.coarse}")
         if self.score != "all" and not self.score.isdigit():
             raise ValueError(f"--score takes a number of windows or 'all', got {self.score!r}")
 
@@ -142,8 +144,7 @@ def main(argv=None) -> int:  # opens as the other commands do: parse, then set t
         policy, provenance = load_policy(args.model, device=args.device, width=args.width, plugin=args.plugin)
         finish = default_finish() if args.model is None and args.split is None and not args.no_finish else []
         if finish:  # the default's mode: the network's flow finished by a short solve on each window
-            finishes = [Finish.from_dict(f) for f in finish]
-            policy = FinishedPolicy(policy, [replace(f, coarse=max(f.coarse, args.coarse)) for f in finishes])
+            policy = FinishedPolicy(policy, with_coarse(finish, args.coarse))
             provenance["default"]["finish"] = [f.label() + (f" up to {f.up_to_frames:g} frames" if f.up_to_frames else "")
                                                for f in policy.finishes]
         elif args.coarse > 1:
