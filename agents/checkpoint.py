@@ -153,8 +153,10 @@ def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
     return write_atomic(path, buffer.getvalue())
 
 
-def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu",
+                    required: tuple[str, ...] = ("model_name", "model_config", "model")) -> dict[str, Any]:
     """Load a checkpoint with ``torch.load(weights_only=True)`` (no code from the file runs).
+    ``required``: the entries it must hold (a network's, by default).
 
     Raises CheckpointError naming the file for a missing, truncated or foreign file, and for a
     checkpoint in the old pickled format (with the command that converts it)."""
@@ -175,7 +177,7 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
         raise CheckpointError(f"{path}: not a readable checkpoint ({type(err).__name__}: {err})") from err
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not an evflow checkpoint (missing 'format': {FORMAT!r})")
-    for key in ("model_name", "model_config", "model"):
+    for key in required:
         if key not in payload:
             raise CheckpointError(f"{path}: checkpoint lacks {key!r}")
     return from_safe(payload)

@@ -24,6 +24,10 @@ Modes (one point each; ``K`` and ``N`` are solver steps):
   proposal with prior weight P (``split+cmax:20/8000@1``).
 - a suffix ``+still`` on any network mode (``split+fine:3+still``): zero flow wherever the mode's
   flow does not lower the window's loss below zero flow's (agents/wrappers/still.py).
+- ``net+block:K`` (any proposal before ``+``): the proposal finished by K iterations of the
+  learned update block of ``--block`` (agents/update_block.py, scripts/train_block.py);
+  ``default+block:K``: the default's proposals (by window length) finished by it instead of the
+  default's solves.
 - ``cmax:N``: per-window contrast maximisation from zero flow with N steps shared 40/30/30 over
   its three levels (``cmax:100`` is the ``--cmax`` row, agents/cmax.py).
 
@@ -35,6 +39,7 @@ included in a finished mode's time.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -47,7 +52,7 @@ from agents.cmax import CMaxSettings, ContrastMaximisationPolicy
 from agents.evaluation import evaluate
 from agents.policy import RecurrentPolicy
 from agents.wrappers.coarse import CoarsePolicy
-from agents.wrappers.refine import GRADIENT, Finish, FinishedPolicy, RefinedPolicy
+from agents.wrappers.refine import BLOCK, GRADIENT, Finish, FinishedPolicy, RefinedPolicy
 from agents.wrappers.still import StillGuard
 from agents.wrappers.subwindows import SubWindowPolicy
 from envs.atomic import temporary_path
@@ -65,12 +70,24 @@ def cmax_settings(steps: int) -> CMaxSettings:
     return CMaxSettings(steps=(first, second, max(1, steps - first - second)))
 
 
-def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu"):
+def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu", block=None):
     """The policy of ``mode`` (module docstring) for windows of ``dt`` ground-truth intervals;
-    None for zero flow. ValueError naming the mode when it is not one of the forms above."""
+    None for zero flow. ``block``: the learned update block of the ``+block:K`` modes. ValueError
+    naming the mode when it is not one of the forms above."""
     kind, _, rest = mode.partition(":")
     if mode == "zero":
         return None
+    if "+block:" in mode and block is None:
+        raise ValueError(f"mode {mode!r}: a learned finish needs the block (--block FILE of scripts/train_block.py)")
+    if mode.startswith("default+block:"):  # the default's proposals, finished by the block
+        from agents.pretrained import default_finish
+
+        steps = mode[len("default+block:"):]
+        if not steps.isdigit():
+            raise ValueError(f"mode {mode!r}: default+block:K takes a number of iterations")
+        finishes = [dataclasses.replace(Finish.from_dict(f) if not isinstance(f, Finish) else f, solver=BLOCK,
+                                        steps=int(steps)) for f in default_finish()]
+        return FinishedPolicy(_network(model, device), finishes, block=block)
     if mode == "default":  # the shipped default's mode (agents/weights/default.json: split and finish)
         from agents.pretrained import default_finish, default_split
 
@@ -111,6 +128,8 @@ def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu"):
         lr_scale = -1.0
     if solver == GRADIENT and steps.isdigit() and (events.isdigit() or not events) and lr_scale > 0 and not prior:
         return FinishedPolicy(policy, [Finish(GRADIENT, int(steps), int(events) if events else None, None, lr_scale)])
+    if solver == BLOCK and steps.isdigit() and (events.isdigit() or not events) and not scale and not prior:
+        return FinishedPolicy(policy, [Finish(BLOCK, int(steps), int(events) if events else None)], block=block)
     if (solver not in RefinedPolicy.SOLVERS or not steps.isdigit() or not (events.isdigit() or not events)
             or not lr_scale > 0):
         raise ValueError(f"mode {mode!r}: the finish is fine:K, mid:K or cmax:K (K steps), optionally /E (events "
@@ -162,19 +181,20 @@ class Point:
 
 
 def measure(data: str, label: str, modes, dts, *, model: str | None = None, max_windows: int | None = None,
-            device: str = "cpu", progress: bool = True, echo=print, sequences: int | None = None) -> list[Point]:
+            device: str = "cpu", progress: bool = True, echo=print, sequences: int | None = None,
+            block=None) -> list[Point]:
     """Every mode at every dt on every sequence of ``data`` (interleaved by sequence; the first
     ``sequences`` only, when given)."""
     total = len(resolve_data(data))
     points = {(dt, mode): Point(label, dt, mode) for dt in dts for mode in modes}
     for dt in dts:  # warm-up, not counted: kernels compiled and caches filled for every mode alike
         for mode in modes:
-            evaluate(build_mode(mode, model, dt, device), data, window="frames", window_size=dt, max_windows=2,
+            evaluate(build_mode(mode, model, dt, device, block), data, window="frames", window_size=dt, max_windows=2,
                      progress=False, shard=(0, total))
     for index in range(total if sequences is None else min(sequences, total)):
         for dt in dts:
             for mode in modes:
-                policy = build_mode(mode, model, dt, device)
+                policy = build_mode(mode, model, dt, device, block)
                 [row] = evaluate(policy, data, window="frames", window_size=dt, max_windows=max_windows,
                                  progress=progress, shard=(index, total))
                 point = points[(dt, mode)]

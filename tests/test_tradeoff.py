@@ -69,6 +69,28 @@ def test_modes_build_the_policies_they_name():
             tradeoff.build_mode(bad, None, 1)
 
 
+def test_block_modes_finish_with_the_learned_block_and_need_one():
+    from agents.pretrained import default_finish
+    from agents.update_block import UpdateBlock
+    from agents.wrappers.refine import BLOCK, FinishedPolicy
+
+    block = UpdateBlock(hidden=4)
+    with pytest.raises(ValueError, match="--block"):
+        tradeoff.build_mode("net+block:4", None, 1)
+    one = tradeoff.build_mode("coarse3:2+block:4/8000", None, 4, block=block)
+    assert isinstance(one, FinishedPolicy) and one.block is block
+    assert [(f.solver, f.steps, f.max_events) for f in one.finishes] == [(BLOCK, 4, 8000)]
+    default = tradeoff.build_mode("default+block:3", None, 4, block=block)
+    shipped = FinishedPolicy(default.policy, default_finish()).finishes
+    # the default's proposals (grids and window lengths) and event bounds, each finished by the block
+    assert [(f.solver, f.steps) for f in default.finishes] == [(BLOCK, 3)] * len(shipped)
+    assert [(f.coarse, f.splits, f.up_to_frames, f.max_events) for f in default.finishes] == \
+        [(f.coarse, f.splits, f.up_to_frames, f.max_events) for f in shipped]
+    for bad in ("default+block:x", "net+block:4x2"):
+        with pytest.raises(ValueError, match="mode"):
+            tradeoff.build_mode(bad, None, 1, block=block)
+
+
 def test_measure_scores_every_mode_on_the_same_windows(tmp_path, rng):
     paths = [write_translating_recording(tmp_path / f"dots{i}.h5", rng, duration_us=200_000) for i in range(2)]
     points = tradeoff.measure([str(p) for p in paths], "dots", ["zero", "split", "cmax:6"], [1, 2], max_windows=3,

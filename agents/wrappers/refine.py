@@ -29,6 +29,8 @@ SOLVERS = ("fine", "cmax", "mid")
 GRADIENT = "gd"
 #: its step at lr_scale 1: TrainConfig.finish_lr's default (pixels per step per 30 Hz frame)
 GRADIENT_LR = 0.3
+#: the learned finish (agents/update_block.py): a Finish's solver, its steps the block's iterations
+BLOCK = "block"
 
 
 def gradient_finish(flow: np.ndarray, window: Window, finish: "Finish", device="cpu") -> np.ndarray:
@@ -44,6 +46,23 @@ def gradient_finish(flow: np.ndarray, window: Window, finish: "Finish", device="
     batch = window.batch(device=device)
     finished = unrolled_finish(proposal, batch, steps=finish.steps, lr=GRADIENT_LR * finish.lr_scale * frames,
                                create_graph=False)
+    return finished[0].cpu().numpy()
+
+
+def block_finish(flow: np.ndarray, window: Window, finish: "Finish", block, device="cpu") -> np.ndarray:
+    """``flow`` finished by ``finish.steps`` iterations of the learned update ``block``
+    (``agents.update_block.learned_finish``) on at most ``finish.max_events`` events (even
+    subsample), no graph."""
+    from ..update_block import frames_of, learned_finish
+
+    if len(window.events) == 0 or finish.steps == 0:
+        return flow
+    if finish.max_events:
+        window = window.subsample(finish.max_events, rounding="floor")
+    proposal = torch.as_tensor(np.asarray(flow, np.float32), device=device)[None]
+    with torch.no_grad():
+        finished = learned_finish(block, proposal, window.batch(device=device), steps=finish.steps,
+                                  frames=frames_of(window.duration_us))
     return finished[0].cpu().numpy()
 
 
@@ -211,15 +230,19 @@ def with_coarse(finishes, factor: int) -> list[Finish]:
 class FinishedPolicy:
     """A policy's flow (the proposal) finished by a short solve on the window's own events, the
     solve chosen by the window's length: the first of ``finishes`` whose ``up_to_frames`` the
-    window does not exceed (none: the proposal unchanged). The shipped default's mode
+    window does not exceed (none: the proposal unchanged). ``block``: the learned update
+    (agents/update_block.py) that finishes of solver :data:`BLOCK` run. The shipped default's mode
     (``agents/weights/default.json``: ``finish``; chosen on devval, docs/finish.md): a few local
     steps on one-frame windows, where the network is near the truth and a long solve invents
     motion; the coarse-to-fine solve on longer windows, where the proposal is far off."""
 
-    def __init__(self, policy, finishes) -> None:
+    def __init__(self, policy, finishes, block=None) -> None:
         self.policy = as_flow_policy(policy)
         self.finishes = [f if isinstance(f, Finish) else Finish.from_dict(f) for f in finishes]
-        self.settings = [None if f.solver == GRADIENT else
+        if block is None and any(f.solver == BLOCK for f in self.finishes):
+            raise ValueError(f"finish {BLOCK}:K runs a learned update block: FinishedPolicy(..., block=...)")
+        self.block = block
+        self.settings = [None if f.solver in (GRADIENT, BLOCK) else
                          finish_settings(f.solver, f.steps, max_events=f.max_events, lr_scale=f.lr_scale)
                          for f in self.finishes]
         self.input_key = policy.input_key
@@ -280,6 +303,8 @@ class FinishedPolicy:
         flow = self.propose(obs, window, *grid)
         if index is None or self.finishes[index].steps == 0:
             return flow
+        if self.finishes[index].solver == BLOCK:
+            return block_finish(flow, window, self.finishes[index], self.block, self.device)
         if self.settings[index] is None:  # the training's unrolled finish, without its graph
             return gradient_finish(flow, window, self.finishes[index], self.device)
         return self.settings[index].solve(window, tuple(flow.shape[-2:]), base=flow, device=self.device)

@@ -37,6 +37,8 @@ class TradeoffOptions(DeviceOptions, Progress):
     """window lengths in ground-truth intervals"""
     max_windows: int | None = option(5, type=positive_int)
     """windows per sequence (from its start)"""
+    block: str | None = None
+    """the learned update block of the +block:K modes (a file of scripts/train_block.py)"""
     reference: str = "cmax:100"
     """the mode the ratios are taken to (one of --modes)"""
     out: str = "runs/tradeoff"
@@ -80,8 +82,13 @@ def main(argv=None) -> int:
         picture = tradeoff.plot(points, out / "tradeoff.png", reference=args.reference)
         print(f"\nwrote {out / 'tradeoff.md'}" + (f", {picture}" if picture else " (no picture: pip install matplotlib)"))
         return 0
+    block = None
+    if args.block:
+        from agents.update_block import load_block
+
+        block, _ = load_block(args.block, device=args.device)
     for mode in args.modes:  # a typo fails here, not after an hour
-        tradeoff.build_mode(mode, args.model, 1, args.device)
+        tradeoff.build_mode(mode, args.model, 1, args.device, block)
     if args.reference not in args.modes:
         raise ValueError(f"--reference {args.reference}: not one of --modes ({' '.join(args.modes)})")
     sets = [_data(item) for item in args.data]
@@ -90,7 +97,7 @@ def main(argv=None) -> int:
             Output(out / "tradeoff.md", overwrite=args.overwrite, option="--out") as md_out:
         for data, label in sets:
             points += tradeoff.measure(data, label, args.modes, args.dt, model=args.model, max_windows=args.max_windows,
-                                       device=args.device, progress=not args.no_progress)
+                                       device=args.device, progress=not args.no_progress, block=block)
             tradeoff.write_json(points, out / "tradeoff.partial.json")  # survives an interruption
         md = tradeoff.table(points, reference=args.reference)
         md_out.write_text(md + "\n")

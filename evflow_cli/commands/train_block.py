@@ -1,0 +1,192 @@
+"""Train the learned finish (agents/update_block.py): a small update block that finishes the
+shipped network's proposals in K iterations, trained to lower the window's loss (the env's
+reward, L_HMC) after them. The network is frozen; its proposals (the default's: sensor pixels up
+to 3 frames, a 3x coarser grid beyond, docs/finish.md) are computed once on the simulator's
+training split, then the block trains on them for a wall-clock budget. Unsupervised: the loss
+sees only events; no ground truth, no devval (choose the iterations on devval afterwards with
+``scripts/tradeoff.py --block OUT/block.pt``).
+
+  python scripts/train_block.py --minutes 45 --threads 1 --out runs/block
+  python scripts/train_block.py --minutes 45 --out runs/block --resume        # goes on from runs/block/block.pt
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import random
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from agents.checkpoint import save_checkpoint
+from agents.options import DeviceOptions, Progress, command_parser, option, options_from_args, positive_int
+from agents.update_block import BLOCK_KIND, UpdateBlock, frames_of, learned_finish, load_block
+from envs.atomic import write_atomic
+from losses import LossSpec, window_loss, zero_flow_loss
+
+#: the checkpoint's kind (agents.update_block.load_block refuses any other)
+KIND = BLOCK_KIND
+
+
+@dataclass(kw_only=True)
+class TrainBlockOptions(DeviceOptions, Progress):
+    """What scripts/train_block.py trains on, for how long, and where it writes."""
+
+    data: str = "synthetic-train"
+    """the simulator split the proposals are taken on (never devval)"""
+    dt: list[int] = option(default_factory=lambda: [1, 2, 4, 8], type=positive_int)
+    """window lengths in frames"""
+    windows: int = option(12, type=positive_int)
+    """windows per sequence and length (from each sequence's start)"""
+    iterations: int = option(4, type=positive_int)
+    """the block's iterations per finish (K)"""
+    gamma: float = 0.8
+    """the loss after iteration k weighs gamma^(K - k) (the last weighs 1)"""
+    max_events: int = option(16000, type=positive_int)
+    """an even subsample of at most this many events per window (the finish's bound)"""
+    batch: int = option(4, type=positive_int)
+    """windows per update (their gradients summed)"""
+    lr: float = 5e-4
+    """Adam's step size"""
+    hidden: int = option(32, type=positive_int)
+    """the block's channels"""
+    minutes: float = 30.0
+    """wall-clock budget of the training (the proposals' collection not counted)"""
+    seed: int = 0
+    """the order of the windows and the block's initial weights"""
+    out: str = "runs/block"
+    """output folder: block.pt (the block, its optimizer and its curve) and curve.json"""
+    resume: bool = False
+    """go on from OUT/block.pt"""
+
+
+def collect(options: TrainBlockOptions, echo=print) -> list[tuple]:
+    """(window, proposal (2, H, W) float32) pairs: the default's proposal on every window of
+    ``options.windows`` per sequence at each length, events subsampled to ``max_events``."""
+    from agents.evaluation import evaluate
+    from agents.policy import RecurrentPolicy
+    from agents.pretrained import default_finish
+    from agents.wrappers.refine import FinishedPolicy
+
+    pairs = []
+
+    class Recorder:
+        def __init__(self, inner) -> None:
+            self.inner, self.input_key, self.voxel_bins = inner, inner.input_key, inner.voxel_bins
+
+        def reset(self, mask=None) -> None:
+            self.inner.reset(mask)
+
+        def act(self, obs, window=None):
+            flow = self.inner.act(obs, window)
+            if len(window.events):
+                pairs.append((window.subsample(options.max_events, rounding="floor"), np.asarray(flow, np.float32)))
+            return flow
+
+    network = RecurrentPolicy.from_pretrained(device=options.device)
+    proposer = FinishedPolicy(network, [dataclasses.replace(f, steps=0) for f in FinishedPolicy(network, default_finish()).finishes])
+    for dt in options.dt:
+        before = len(pairs)
+        evaluate(Recorder(proposer), options.data, window="frames", window_size=dt, max_windows=options.windows,
+                 progress=not options.no_progress, measures=())
+        echo(f"[train_block] dt = {dt}: {len(pairs) - before} windows")
+    return pairs
+
+
+def relative_losses(block: UpdateBlock, window, proposal: np.ndarray, options: TrainBlockOptions, device) -> list:
+    """The window's loss after each iteration over the proposal's (a graph to the block)."""
+    batch = window.batch(device=device)
+    flow = torch.as_tensor(proposal, device=device)[None]
+    scale = float(max(flow.shape[-2:]))
+    spec = LossSpec()
+    zero = zero_flow_loss(flow, batch, spec, flow_scaling=scale).per_sample
+    with torch.no_grad():
+        start = window_loss(flow, batch, spec, flow_scaling=scale, zero_flow=zero).per_sample.clamp_min(1e-6)
+    flows = learned_finish(block, flow, batch, steps=options.iterations, frames=frames_of(window.duration_us),
+                           return_all=True)
+    return [window_loss(f, batch, spec, flow_scaling=scale, zero_flow=zero).per_sample / start for f in flows]
+
+
+def build_parser():
+    return command_parser(TrainBlockOptions, __doc__)
+
+
+def main(argv=None) -> int:
+    args = options_from_args(TrainBlockOptions, build_parser().parse_args(argv))
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if not 0 < args.gamma <= 1:
+        raise ValueError(f"--gamma must be in (0, 1], got {args.gamma}")
+    if args.data.rstrip("/").endswith("devval"):
+        raise ValueError("--data: devval is for choosing, never for training")
+    out = Path(args.out)
+    path = out / "block.pt"
+    if path.exists() and not args.resume:
+        raise FileExistsError(f"{path} exists: --resume to go on from it, or another --out")
+    torch.manual_seed(args.seed)
+    block = UpdateBlock(hidden=args.hidden).to(args.device)
+    optimizer = torch.optim.Adam(block.parameters(), lr=args.lr)
+    curve, updates, seconds = [], 0, 0.0
+    if args.resume:
+        block, payload = load_block(path, device=args.device)
+        block.train()
+        optimizer = torch.optim.Adam(block.parameters(), lr=args.lr)
+        optimizer.load_state_dict(payload["optimizer"])
+        curve, updates, seconds = payload["curve"], int(payload["updates"]), float(payload["seconds"])
+    pairs = collect(args)
+    if not pairs:
+        raise ValueError(f"--data {args.data}: no window with events")
+    rng = random.Random(args.seed + updates)
+    order: list[int] = []
+    weights = [args.gamma ** (args.iterations - 1 - k) for k in range(args.iterations)]
+    start, last_save, window_losses = time.monotonic(), time.monotonic(), []
+    budget = args.minutes * 60.0
+    print(f"[train_block] {len(pairs)} windows, block of {sum(p.numel() for p in block.parameters())} parameters, "
+          f"{args.iterations} iterations, {args.minutes:g} min")
+    while time.monotonic() - start < budget:
+        optimizer.zero_grad(set_to_none=True)
+        finals = []
+        for _ in range(args.batch):
+            if not order:
+                order = list(range(len(pairs)))
+                rng.shuffle(order)
+            window, proposal = pairs[order.pop()]
+            losses = relative_losses(block, window, proposal, args, args.device)
+            total = sum(w * loss.sum() for w, loss in zip(weights, losses)) / (sum(weights) * args.batch)
+            total.backward()
+            finals.append(float(losses[-1].detach().sum()))
+        torch.nn.utils.clip_grad_norm_(block.parameters(), 1.0)
+        optimizer.step()
+        updates += 1
+        window_losses += finals
+        if len(window_losses) >= 200 or time.monotonic() - start >= budget:
+            elapsed = seconds + time.monotonic() - start
+            curve.append({"update": updates, "seconds": round(elapsed, 1),
+                          "loss_over_proposal": round(float(np.mean(window_losses)), 5)})
+            print(f"[train_block] update {updates} ({elapsed / 60:.1f} min): loss after the finish "
+                  f"{curve[-1]['loss_over_proposal']:.4f} of the proposal's (mean of {len(window_losses)} windows)",
+                  flush=True)
+            window_losses = []
+        if time.monotonic() - last_save > 300:
+            _save(path, block, optimizer, curve, updates, seconds + time.monotonic() - start, args)
+            last_save = time.monotonic()
+    _save(path, block, optimizer, curve, updates, seconds + time.monotonic() - start, args)
+    write_atomic(out / "curve.json", json.dumps(curve, indent=1) + "\n")
+    print(f"[train_block] wrote {path} ({updates} updates)")
+    return 0
+
+
+def _save(path: Path, block, optimizer, curve, updates: int, seconds: float, args) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    recipe = {k: v for k, v in dataclasses.asdict(args).items() if k not in ("no_progress",)}
+    save_checkpoint(path, {"kind": KIND, "block": block.state_dict(), "block_config": block.config(),
+                           "iterations": args.iterations, "optimizer": optimizer.state_dict(), "curve": curve,
+                           "updates": updates, "seconds": seconds, "recipe": json.dumps(recipe)})
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
