@@ -26,7 +26,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from losses import LossSpec, window_loss, zero_flow_loss
+from losses import CMAX_WEIGHTS, LossSpec, window_loss, zero_flow_loss
 from losses.events import EventBatch
 from losses.iwe import warped_event_images
 from losses.sampling import sample_flow
@@ -35,15 +35,19 @@ __all__ = ["UpdateBlock", "block_features", "learned_finish", "load_block", "FEA
 
 #: the input channels, in order
 FEATURES = ("flow_x", "flow_y", "grad_x", "grad_y", "log_count", "log_sharpness", "log_frames")
+#: the loss the block finishes on by default: the solve's (agents.cmax.CMaxSettings: the env's
+#: reward with the stronger smoothness term, flow scaling 32 pixels)
+SPEC, FLOW_SCALING = CMAX_WEIGHTS, 32.0
 _EPS = 1e-12
 
 
 def block_features(flow: torch.Tensor, events: EventBatch, frames: torch.Tensor, *, scale: int = 4,
-                   spec: LossSpec = LossSpec(), zero: torch.Tensor | None = None) -> torch.Tensor:
+                   spec: LossSpec = SPEC, flow_scaling: float | None = FLOW_SCALING,
+                   zero: torch.Tensor | None = None) -> torch.Tensor:
     """(B, 7, ceil(H / scale), ceil(W / scale)) detached inputs of :class:`UpdateBlock` for the
     flow (B, 2, H, W) in pixels per window on the B windows of ``events``: the flow in pixels per
     frame; the gradient of the windows' loss (``spec``, flow scaling max(H, W), border rule
-    against ``zero``) with respect to it, each window's divided by its mean magnitude; the log of
+    against ``zero``; ``flow_scaling`` None: max(H, W)) with respect to it, each window's divided by its mean magnitude; the log of
     the mean warped-event count (events warped to mid-window, both polarities) per coarse cell
     and of the mean squared count over the mean count (high where the events pile up sharply);
     the log of the window's length in frames."""
@@ -52,7 +56,8 @@ def block_features(flow: torch.Tensor, events: EventBatch, frames: torch.Tensor,
     frames = frames.reshape(B, 1, 1, 1).to(flow)
     with torch.enable_grad():
         current = flow.detach().requires_grad_()
-        loss = window_loss(current, events, spec, flow_scaling=float(max(height, width)), zero_flow=zero)
+        scaling = float(max(height, width)) if flow_scaling is None else float(flow_scaling)
+        loss = window_loss(current, events, spec, flow_scaling=scaling, zero_flow=zero)
         (gradient,) = torch.autograd.grad(loss.per_sample.sum(), current)
     with torch.no_grad():
         u = sample_flow(current.detach(), events.x, events.y, events.mask)
@@ -85,13 +90,15 @@ class UpdateBlock(nn.Module):
     convolutions, dilated 1-2-4, so one cell sees 15 coarse cells across), a convolutional GRU
     whose state carries over the K iterations of one finish, and a head that writes the
     correction in pixels per frame on the coarse grid. ``hidden`` channels; ``scale``: the
-    coarsening of the sensor grid it works on."""
+    coarsening of the sensor grid it works on; ``cells``: the correction is averaged onto a grid
+    of this many cells along the longer side before it is upsampled (the solve's finest grid, 16:
+    a correction as smooth as the solve's; 0: none, the block's own grid)."""
 
-    def __init__(self, hidden: int = 32, scale: int = 4) -> None:
+    def __init__(self, hidden: int = 32, scale: int = 4, cells: int = 16) -> None:
         super().__init__()
-        if int(hidden) < 1 or int(scale) < 1:
-            raise ValueError(f"UpdateBlock: hidden and scale must be >= 1, got {hidden}, {scale}")
-        self.hidden, self.scale = int(hidden), int(scale)
+        if int(hidden) < 1 or int(scale) < 1 or int(cells) < 0:
+            raise ValueError(f"UpdateBlock: hidden and scale must be >= 1 and cells >= 0, got {hidden}, {scale}, {cells}")
+        self.hidden, self.scale, self.cells = int(hidden), int(scale), int(cells)
         c = self.hidden
         self.encoder = nn.Sequential(
             nn.Conv2d(len(FEATURES), c, 3, padding=1), nn.ReLU(),
@@ -114,15 +121,26 @@ class UpdateBlock(nn.Module):
         return self.head(state), state
 
     def config(self) -> dict:
-        return {"hidden": self.hidden, "scale": self.scale}
+        return {"hidden": self.hidden, "scale": self.scale, "cells": self.cells}
+
+    def smooth(self, correction: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+        """The coarse correction upsampled bilinearly to ``size`` (H, W), through the ``cells`` grid."""
+        height, width = size
+        if self.cells:
+            grid = (max(1, round(self.cells * height / max(height, width))),
+                    max(1, round(self.cells * width / max(height, width))))
+            if grid[0] < correction.shape[-2] or grid[1] < correction.shape[-1]:
+                correction = F.adaptive_avg_pool2d(correction, grid)
+        return F.interpolate(correction, size=(height, width), mode="bilinear", align_corners=False)
 
 
 def learned_finish(block: UpdateBlock, proposal: torch.Tensor, events: EventBatch, *, steps: int,
-                   frames: float | torch.Tensor, spec: LossSpec = LossSpec(),
+                   frames: float | torch.Tensor, spec: LossSpec = SPEC, flow_scaling: float | None = FLOW_SCALING,
                    return_all: bool = False):
     """(B, 2, H, W) ``proposal`` (pixels per window) finished by ``steps`` iterations of
     ``block`` on the B windows of ``events`` (``frames``: each window's length in 30 Hz frames,
-    one number or (B,)). Differentiable in the block's weights (not in the proposal); under
+    one number or (B,)); ``spec`` and ``flow_scaling``: the loss whose gradient it reads (the
+    solve's by default; None: max(H, W)). Differentiable in the block's weights (not in the proposal); under
     ``torch.no_grad`` it is the test-time finish. ``return_all``: the list of the flows after
     each iteration instead (training takes its loss on each)."""
     if int(steps) < 0:
@@ -134,14 +152,16 @@ def learned_finish(block: UpdateBlock, proposal: torch.Tensor, events: EventBatc
     if frames_t.numel() != B or not bool(torch.isfinite(frames_t).all()) or bool((frames_t <= 0).any()):
         raise ValueError(f"learned_finish: frames must be one positive length or one per window ({B}), got {frames}")
     proposal = proposal.detach().float()
-    zero = zero_flow_loss(proposal, events, spec, flow_scaling=float(max(height, width))).per_sample
+    scaling = float(max(height, width)) if flow_scaling is None else float(flow_scaling)
+    zero = zero_flow_loss(proposal, events, spec, flow_scaling=scaling).per_sample
     flow, state, flows = proposal, None, []
     for _ in range(int(steps)):
-        features = block_features(flow, events, frames_t, scale=block.scale, spec=spec, zero=zero)
+        features = block_features(flow, events, frames_t, scale=block.scale, spec=spec, flow_scaling=scaling,
+                                  zero=zero)
         if state is None:
             state = block.initial_state(features)
         correction, state = block(features, state)
-        correction = F.interpolate(correction, size=(height, width), mode="bilinear", align_corners=False)
+        correction = block.smooth(correction, (height, width))
         flow = flow + correction * frames_t.reshape(B, 1, 1, 1)
         flows.append(flow)
     if return_all:

@@ -13,7 +13,7 @@ from agents.checkpoint import CheckpointError, save_checkpoint
 from agents.update_block import FEATURES, UpdateBlock, block_features, learned_finish, load_block
 from agents.wrappers.refine import BLOCK, Finish, FinishedPolicy
 from envs.windows import Window
-from losses import window_loss, zero_flow_loss
+from losses import LossSpec, window_loss, zero_flow_loss
 from losses.events import EventBatch
 from tests.recordings import translating_dots
 
@@ -30,7 +30,8 @@ def test_the_inputs_are_the_flow_per_frame_the_normalised_gradient_and_the_event
     H, W = 20, 28
     flow = torch.zeros(1, 2, H, W)
     flow[:, 0] = 1.5
-    features = block_features(flow, batch, torch.tensor([2.0]), scale=4)
+    plain = dict(spec=LossSpec(), flow_scaling=None)  # the env's reward, flow scaling max(H, W)
+    features = block_features(flow, batch, torch.tensor([2.0]), scale=4, **plain)
     assert features.shape == (1, len(FEATURES), 5, 7)
     assert torch.allclose(features[:, 0], torch.full((1, 5, 7), 0.75))  # pixels per frame
     assert torch.allclose(features[:, 1], torch.zeros(1, 5, 7))
@@ -41,7 +42,7 @@ def test_the_inputs_are_the_flow_per_frame_the_normalised_gradient_and_the_event
     window_loss(current, batch, flow_scaling=float(W), zero_flow=zero).per_sample.sum().backward()
     pooled = F.avg_pool2d(current.grad, 4)
     ref = pooled / pooled.abs().mean()
-    zero_features = block_features(flow, batch, torch.tensor([2.0]), scale=4, zero=zero)
+    zero_features = block_features(flow, batch, torch.tensor([2.0]), scale=4, zero=zero, **plain)
     assert torch.allclose(zero_features[:, 2:4], ref, atol=1e-5)
     assert float(zero_features[:, 2:4].abs().mean()) == pytest.approx(1.0, rel=1e-5)
     # under zero flow the events stay at their integer pixels: the warped image is their histogram
@@ -68,6 +69,12 @@ def test_an_untrained_block_returns_the_proposal_and_its_state_has_the_coarse_gr
     assert float(state.detach().abs().sum()) > 0  # the GRU's state moved: it carries over the iterations
     with pytest.raises(ValueError, match="frames"):
         learned_finish(block, proposal, batch, steps=1, frames=0.0)
+    # the correction goes through a grid of ``cells`` along the longer side: one cell, one vector
+    uniform = UpdateBlock(hidden=8, cells=1)
+    torch.nn.init.normal_(uniform.head[-1].weight, std=0.05)
+    moved = learned_finish(uniform, proposal, batch, steps=1, frames=1.0) - proposal
+    assert float(moved.abs().max()) > 0
+    assert torch.allclose(moved, moved[:, :, :1, :1].expand_as(moved), atol=1e-6)
 
 
 def test_a_batch_of_windows_is_finished_as_each_window_alone(rng):
@@ -178,6 +185,15 @@ def test_train_block_trains_writes_a_loadable_block_resumes_and_refuses_devval(t
     assert (out / "curve.json").exists()
     with pytest.raises(FileExistsError, match="--resume"):
         train_block.main(argv)
+    collected = train_block.collect(train_block.TrainBlockOptions(data=str(recording), dt=[1, 2], windows=2,
+                                                                  out=str(out), no_progress=True))
+    assert "from" in capsys.readouterr().out  # the proposals come back from OUT/proposals.npz
+    fresh = train_block.collect(train_block.TrainBlockOptions(data=str(recording), dt=[1, 2], windows=2,
+                                                              out=str(tmp_path / "fresh"), no_progress=True))
+    assert len(collected) == len(fresh) == 4
+    for (w1, p1), (w2, p2) in zip(collected, fresh):  # the cache round trip: the same windows and proposals
+        assert (w1.t_start, w1.t_end) == (w2.t_start, w2.t_end) and np.array_equal(p1, p2)
+        assert all(np.array_equal(getattr(w1.events, k), getattr(w2.events, k)) for k in "xytp")
     assert train_block.main(argv + ["--resume"]) == 0
     _, resumed = load_block(out / "block.pt")
     assert resumed["updates"] > payload["updates"]

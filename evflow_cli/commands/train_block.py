@@ -1,6 +1,6 @@
 """Train the learned finish (agents/update_block.py): a small update block that finishes the
-shipped network's proposals in K iterations, trained to lower the window's loss (the env's
-reward, L_HMC) after them. The network is frozen; its proposals (the default's: sensor pixels up
+shipped network's proposals in K iterations, trained to lower the window's loss after them (the
+solve's loss: the env's reward, L_HMC, with the solve's stronger smoothness term). The network is frozen; its proposals (the default's: sensor pixels up
 to 3 frames, a 3x coarser grid beyond, docs/finish.md) are computed once on the simulator's
 training split, then the block trains on them for a wall-clock budget. Unsupervised: the loss
 sees only events; no ground truth, no devval (choose the iterations on devval afterwards with
@@ -23,10 +23,18 @@ import numpy as np
 import torch
 
 from agents.checkpoint import save_checkpoint
-from agents.options import DeviceOptions, Progress, command_parser, option, options_from_args, positive_int
-from agents.update_block import BLOCK_KIND, UpdateBlock, frames_of, learned_finish, load_block
+from agents.options import (
+    DeviceOptions,
+    Progress,
+    command_parser,
+    non_negative_int,
+    option,
+    options_from_args,
+    positive_int,
+)
+from agents.update_block import BLOCK_KIND, FLOW_SCALING, SPEC, UpdateBlock, frames_of, learned_finish, load_block
 from envs.atomic import write_atomic
-from losses import LossSpec, window_loss, zero_flow_loss
+from losses import window_loss, zero_flow_loss
 
 #: the checkpoint's kind (agents.update_block.load_block refuses any other)
 KIND = BLOCK_KIND
@@ -54,6 +62,8 @@ class TrainBlockOptions(DeviceOptions, Progress):
     """Adam's step size"""
     hidden: int = option(32, type=positive_int)
     """the block's channels"""
+    cells: int = option(16, type=non_negative_int)
+    """the correction's grid: cells along the longer side (16: the solve's finest; 0: the block's own 4x coarser grid)"""
     minutes: float = 30.0
     """wall-clock budget of the training (the proposals' collection not counted)"""
     seed: int = 0
@@ -64,9 +74,56 @@ class TrainBlockOptions(DeviceOptions, Progress):
     """go on from OUT/block.pt"""
 
 
+def _cache_key(options: TrainBlockOptions) -> str:
+    from agents.pretrained import default_finish
+
+    return json.dumps({"data": options.data, "dt": list(options.dt), "windows": options.windows,
+                       "max_events": options.max_events, "finish": default_finish()}, sort_keys=True)
+
+
+def save_pairs(path: Path, pairs: list[tuple], key: str) -> None:
+    """The collected (window, proposal) pairs in one npz (atomically): events concatenated, one
+    row of bounds per window, proposals flattened with their shapes."""
+    import io
+
+    rows = np.array([(len(w.events), w.t_start, w.t_end, *w.events.sensor_size, *p.shape[1:]) for w, p in pairs],
+                    np.int64).reshape(-1, 7)
+    buffer = io.BytesIO()
+    np.savez(buffer, key=np.array(key), rows=rows,
+             x=np.concatenate([w.events.x for w, _ in pairs]), y=np.concatenate([w.events.y for w, _ in pairs]),
+             t=np.concatenate([w.events.t for w, _ in pairs]), p=np.concatenate([w.events.p for w, _ in pairs]),
+             flows=np.concatenate([p.reshape(-1) for _, p in pairs]).astype(np.float32))
+    write_atomic(path, buffer.getvalue())
+
+
+def load_pairs(path: Path, key: str) -> list[tuple] | None:
+    """The pairs :func:`save_pairs` wrote with the same ``key`` (None: no file, or another key)."""
+    from envs.events import Events
+    from envs.windows import Window
+
+    if not path.exists():
+        return None
+    with np.load(path, allow_pickle=False) as data:
+        if str(data["key"]) != key:
+            return None
+        rows, x, y, t, p, flows = (data[k] for k in ("rows", "x", "y", "t", "p", "flows"))
+    pairs, at, flow_at = [], 0, 0
+    for index, (n, t0, t1, height, width, fh, fw) in enumerate(rows.tolist()):
+        events = Events(x[at:at + n], y[at:at + n], t[at:at + n], p[at:at + n], (height, width))
+        pairs.append((Window(index, t0, t1, 0, n, events), flows[flow_at:flow_at + 2 * fh * fw].reshape(2, fh, fw)))
+        at, flow_at = at + n, flow_at + 2 * fh * fw
+    return pairs
+
+
 def collect(options: TrainBlockOptions, echo=print) -> list[tuple]:
     """(window, proposal (2, H, W) float32) pairs: the default's proposal on every window of
-    ``options.windows`` per sequence at each length, events subsampled to ``max_events``."""
+    ``options.windows`` per sequence at each length, events subsampled to ``max_events``
+    (kept in OUT/proposals.npz and taken from there when the same options ask again)."""
+    cache = Path(options.out) / "proposals.npz"
+    pairs = load_pairs(cache, _cache_key(options))
+    if pairs is not None:
+        echo(f"[train_block] {len(pairs)} windows from {cache}")
+        return pairs
     from agents.evaluation import evaluate
     from agents.policy import RecurrentPolicy
     from agents.pretrained import default_finish
@@ -94,15 +151,17 @@ def collect(options: TrainBlockOptions, echo=print) -> list[tuple]:
         evaluate(Recorder(proposer), options.data, window="frames", window_size=dt, max_windows=options.windows,
                  progress=not options.no_progress, measures=())
         echo(f"[train_block] dt = {dt}: {len(pairs) - before} windows")
+    if pairs:
+        save_pairs(cache, pairs, _cache_key(options))
     return pairs
 
 
 def relative_losses(block: UpdateBlock, window, proposal: np.ndarray, options: TrainBlockOptions, device) -> list:
-    """The window's loss after each iteration over the proposal's (a graph to the block)."""
+    """The window's loss (the solve's: agents.update_block.SPEC) after each iteration over the
+    proposal's (a graph to the block)."""
     batch = window.batch(device=device)
     flow = torch.as_tensor(proposal, device=device)[None]
-    scale = float(max(flow.shape[-2:]))
-    spec = LossSpec()
+    scale, spec = FLOW_SCALING, SPEC
     zero = zero_flow_loss(flow, batch, spec, flow_scaling=scale).per_sample
     with torch.no_grad():
         start = window_loss(flow, batch, spec, flow_scaling=scale, zero_flow=zero).per_sample.clamp_min(1e-6)
@@ -128,7 +187,7 @@ def main(argv=None) -> int:
     if path.exists() and not args.resume:
         raise FileExistsError(f"{path} exists: --resume to go on from it, or another --out")
     torch.manual_seed(args.seed)
-    block = UpdateBlock(hidden=args.hidden).to(args.device)
+    block = UpdateBlock(hidden=args.hidden, cells=args.cells).to(args.device)
     optimizer = torch.optim.Adam(block.parameters(), lr=args.lr)
     curve, updates, seconds = [], 0, 0.0
     if args.resume:
