@@ -199,3 +199,14 @@ def test_train_block_trains_writes_a_loadable_block_resumes_and_refuses_devval(t
     assert resumed["updates"] > payload["updates"]
     with pytest.raises(ValueError, match="devval"):
         train_block.main(["--data", "../shared/devval", "--out", str(tmp_path / "x")])
+    # the teacher's target: the --cmax solve from zero flow of each window, kept beside the proposals
+    taught = tmp_path / "taught"
+    assert train_block.main([*argv[:-3], "--out", str(taught), "--target", "teacher", "--no-progress"]) == 0
+    pairs = train_block.collect(train_block.TrainBlockOptions(data=str(recording), dt=[1, 2], windows=2,
+                                                              out=str(taught), no_progress=True))
+    flows = train_block.teacher_flows(pairs, train_block.TrainBlockOptions(data=str(recording), dt=[1, 2], windows=2,
+                                                                           out=str(taught), no_progress=True))
+    assert "teacher flows from" in capsys.readouterr().out
+    from agents.cmax import CMaxSettings
+
+    assert np.allclose(flows[-1], CMaxSettings().solve(pairs[-1][0], pairs[-1][1].shape[-2:]), atol=1e-5)

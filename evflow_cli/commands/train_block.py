@@ -18,6 +18,7 @@ import random
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -50,6 +51,10 @@ class TrainBlockOptions(DeviceOptions, Progress):
     """window lengths in frames"""
     windows: int = option(12, type=positive_int)
     """windows per sequence and length (from each sequence's start)"""
+    target: Literal["loss", "teacher"] = "loss"
+    """what the block learns: "loss", to lower the solve's loss after its iterations; "teacher", to
+    move the proposal onto the --cmax solve from zero flow (agents.cmax.CMaxSettings(), 100 steps,
+    solved once per window and kept in OUT/teacher.npz): unsupervised either way (events only)"""
     iterations: int = option(4, type=positive_int)
     """the block's iterations per finish (K)"""
     gamma: float = 0.8
@@ -156,6 +161,47 @@ def collect(options: TrainBlockOptions, echo=print) -> list[tuple]:
     return pairs
 
 
+def teacher_flows(pairs: list[tuple], options: TrainBlockOptions, echo=print) -> list[np.ndarray]:
+    """The --cmax solve from zero flow of every collected window (on the events kept for it), kept
+    in OUT/teacher.npz beside the proposals and taken from there when the same options ask again."""
+    from agents.cmax import CMaxSettings
+
+    cache = Path(options.out) / "teacher.npz"
+    key = _cache_key(options) + " teacher " + json.dumps(dataclasses.asdict(CMaxSettings()), sort_keys=True)
+    if cache.exists():
+        with np.load(cache, allow_pickle=False) as data:
+            if str(data["key"]) == key:
+                flat, at, flows = data["flows"], 0, []
+                for _, proposal in pairs:
+                    flows.append(flat[at:at + proposal.size].reshape(proposal.shape))
+                    at += proposal.size
+                echo(f"[train_block] teacher flows from {cache}")
+                return flows
+    import io
+
+    from tqdm import tqdm
+
+    settings = CMaxSettings()
+    flows = [settings.solve(window, proposal.shape[-2:], device=options.device)
+             for window, proposal in tqdm(pairs, desc="teacher (--cmax)", disable=options.no_progress)]
+    buffer = io.BytesIO()
+    np.savez(buffer, key=np.array(key), flows=np.concatenate([f.reshape(-1) for f in flows]).astype(np.float32))
+    write_atomic(cache, buffer.getvalue())
+    return flows
+
+
+def teacher_losses(block: UpdateBlock, window, proposal: np.ndarray, teacher: np.ndarray, options: TrainBlockOptions,
+                   device) -> list:
+    """The endpoint distance to the teacher's flow after each iteration, in pixels per frame (a
+    graph to the block)."""
+    batch = window.batch(device=device)
+    flow = torch.as_tensor(proposal, device=device)[None]
+    target = torch.as_tensor(teacher, device=device)[None]
+    frames = frames_of(window.duration_us)
+    flows = learned_finish(block, flow, batch, steps=options.iterations, frames=frames, return_all=True)
+    return [(f - target).pow(2).sum(1).add(1e-9).sqrt().mean(dim=(1, 2)) / frames for f in flows]
+
+
 def relative_losses(block: UpdateBlock, window, proposal: np.ndarray, options: TrainBlockOptions, device) -> list:
     """The window's loss (the solve's: agents.update_block.SPEC) after each iteration over the
     proposal's (a graph to the block)."""
@@ -199,6 +245,7 @@ def main(argv=None) -> int:
     pairs = collect(args)
     if not pairs:
         raise ValueError(f"--data {args.data}: no window with events")
+    teachers = teacher_flows(pairs, args) if args.target == "teacher" else None
     rng = random.Random(args.seed + updates)
     order: list[int] = []
     weights = [args.gamma ** (args.iterations - 1 - k) for k in range(args.iterations)]
@@ -213,8 +260,12 @@ def main(argv=None) -> int:
             if not order:
                 order = list(range(len(pairs)))
                 rng.shuffle(order)
-            window, proposal = pairs[order.pop()]
-            losses = relative_losses(block, window, proposal, args, args.device)
+            index = order.pop()
+            window, proposal = pairs[index]
+            if teachers is None:
+                losses = relative_losses(block, window, proposal, args, args.device)
+            else:
+                losses = teacher_losses(block, window, proposal, teachers[index], args, args.device)
             total = sum(w * loss.sum() for w, loss in zip(weights, losses)) / (sum(weights) * args.batch)
             total.backward()
             finals.append(float(losses[-1].detach().sum()))
@@ -225,9 +276,11 @@ def main(argv=None) -> int:
         if len(window_losses) >= 200 or time.monotonic() - start >= budget:
             elapsed = seconds + time.monotonic() - start
             curve.append({"update": updates, "seconds": round(elapsed, 1),
-                          "loss_over_proposal": round(float(np.mean(window_losses)), 5)})
-            print(f"[train_block] update {updates} ({elapsed / 60:.1f} min): loss after the finish "
-                  f"{curve[-1]['loss_over_proposal']:.4f} of the proposal's (mean of {len(window_losses)} windows)",
+                          "loss": round(float(np.mean(window_losses)), 5)})
+            what = ("loss after the finish over the proposal's" if teachers is None else
+                    "distance to the teacher after the finish, px per frame")
+            print(f"[train_block] update {updates} ({elapsed / 60:.1f} min): {what} "
+                  f"{curve[-1]['loss']:.4f} (mean of {len(window_losses)} windows)",
                   flush=True)
             window_losses = []
         if time.monotonic() - last_save > 300:
