@@ -27,7 +27,7 @@ Modes (one point each; ``K`` and ``N`` are solver steps):
 - ``net+block:K`` (any proposal before ``+``): the proposal finished by K iterations of the
   learned update block of ``--block`` (agents/update_block.py, scripts/train_block.py);
   ``default+block:K``: the default's proposals (by window length) finished by it instead of the
-  default's solves.
+  default's solves; ``default+block:K+solve``: K iterations of the block, then the default's solve.
 - ``cmax:N``: per-window contrast maximisation from zero flow with N steps shared 40/30/30 over
   its three levels (``cmax:100`` is the ``--cmax`` row, agents/cmax.py).
 
@@ -79,14 +79,15 @@ def build_mode(mode: str, model: str | None, dt: int, device: str = "cpu", block
         return None
     if "+block:" in mode and block is None:
         raise ValueError(f"mode {mode!r}: a learned finish needs the block (--block FILE of scripts/train_block.py)")
-    if mode.startswith("default+block:"):  # the default's proposals, finished by the block
+    if mode.startswith("default+block:"):  # the default's proposals, finished by the block (then its solve)
         from agents.pretrained import default_finish
 
-        steps = mode[len("default+block:"):]
-        if not steps.isdigit():
-            raise ValueError(f"mode {mode!r}: default+block:K takes a number of iterations")
-        finishes = [dataclasses.replace(Finish.from_dict(f) if not isinstance(f, Finish) else f, solver=BLOCK,
-                                        steps=int(steps)) for f in default_finish()]
+        steps, plus, then = mode[len("default+block:"):].partition("+")
+        if not steps.isdigit() or (plus and then != "solve"):
+            raise ValueError(f"mode {mode!r}: default+block:K[+solve] takes a number of iterations")
+        shipped = [Finish.from_dict(f) if not isinstance(f, Finish) else f for f in default_finish()]
+        finishes = [dataclasses.replace(f, block_steps=int(steps)) if plus else
+                    dataclasses.replace(f, solver=BLOCK, steps=int(steps)) for f in shipped]
         return FinishedPolicy(_network(model, device), finishes, block=block)
     if mode == "default":  # the shipped default's mode (agents/weights/default.json: split and finish)
         from agents.pretrained import default_finish, default_split

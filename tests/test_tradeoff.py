@@ -86,7 +86,10 @@ def test_block_modes_finish_with_the_learned_block_and_need_one():
     assert [(f.solver, f.steps) for f in default.finishes] == [(BLOCK, 3)] * len(shipped)
     assert [(f.coarse, f.splits, f.up_to_frames, f.max_events) for f in default.finishes] == \
         [(f.coarse, f.splits, f.up_to_frames, f.max_events) for f in shipped]
-    for bad in ("default+block:x", "net+block:4x2"):
+    then = tradeoff.build_mode("default+block:2+solve", None, 4, block=block)
+    assert [(f.solver, f.steps, f.block_steps) for f in then.finishes] == \
+        [(f.solver, f.steps, 2) for f in shipped]
+    for bad in ("default+block:x", "net+block:4x2", "default+block:2+cmax"):
         with pytest.raises(ValueError, match="mode"):
             tradeoff.build_mode(bad, None, 1, block=block)
 

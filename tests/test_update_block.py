@@ -210,3 +210,33 @@ def test_train_block_trains_writes_a_loadable_block_resumes_and_refuses_devval(t
     from agents.cmax import CMaxSettings
 
     assert np.allclose(flows[-1], CMaxSettings().solve(pairs[-1][0], pairs[-1][1].shape[-2:]), atol=1e-5)
+
+
+def test_block_steps_before_a_solve_are_the_block_then_that_solve(rng):
+    from agents.wrappers.refine import finish_settings
+
+    torch.manual_seed(3)
+    block = UpdateBlock(hidden=8).eval()
+    torch.nn.init.normal_(block.head[-1].weight, std=0.05)
+    window = _window(rng)
+    proposal = np.full((2, 20, 28), 0.4, np.float32)
+
+    class Fixed:
+        input_key, voxel_bins, device = "count_image", 5, "cpu"
+
+        def reset(self, mask=None):
+            pass
+
+        def act(self, obs, window=None):
+            return proposal.copy()
+
+    finish = Finish.from_dict({"solver": "fine", "steps": 3, "block_steps": 2})
+    with pytest.raises(ValueError, match="block"):
+        FinishedPolicy(Fixed(), [finish])
+    with pytest.raises(ValueError, match="block_steps"):
+        Finish("fine", 3, block_steps=-1)
+    policy = FinishedPolicy(Fixed(), [finish], block=block)
+    with torch.no_grad():
+        moved = learned_finish(block, torch.as_tensor(proposal)[None], window.batch(), steps=2, frames=2.0)[0].numpy()
+    expected = finish_settings("fine", 3).solve(window, (20, 28), base=moved)
+    assert np.allclose(policy.act(None, window), expected, atol=1e-5)

@@ -49,19 +49,21 @@ def gradient_finish(flow: np.ndarray, window: Window, finish: "Finish", device="
     return finished[0].cpu().numpy()
 
 
-def block_finish(flow: np.ndarray, window: Window, finish: "Finish", block, device="cpu") -> np.ndarray:
-    """``flow`` finished by ``finish.steps`` iterations of the learned update ``block``
-    (``agents.update_block.learned_finish``) on at most ``finish.max_events`` events (even
-    subsample), no graph."""
+def block_finish(flow: np.ndarray, window: Window, finish: "Finish", block, device="cpu",
+                 steps: int | None = None) -> np.ndarray:
+    """``flow`` finished by ``steps`` (default ``finish.steps``) iterations of the learned update
+    ``block`` (``agents.update_block.learned_finish``) on at most ``finish.max_events`` events
+    (even subsample), no graph."""
     from ..update_block import frames_of, learned_finish
 
-    if len(window.events) == 0 or finish.steps == 0:
+    steps = finish.steps if steps is None else int(steps)
+    if len(window.events) == 0 or steps == 0:
         return flow
     if finish.max_events:
         window = window.subsample(finish.max_events, rounding="floor")
     proposal = torch.as_tensor(np.asarray(flow, np.float32), device=device)[None]
     with torch.no_grad():
-        finished = learned_finish(block, proposal, window.batch(device=device), steps=finish.steps,
+        finished = learned_finish(block, proposal, window.batch(device=device), steps=steps,
                                   frames=frames_of(window.duration_us))
     return finished[0].cpu().numpy()
 
@@ -176,7 +178,9 @@ class Finish:
     from the network on the window's events binned ``coarse`` x ``coarse`` pixels to one
     (:class:`~agents.wrappers.coarse.CoarsePolicy`; 1: on sensor pixels), which divides the
     displacements the network sees on long windows of fast motion by ``coarse``; ``splits``: that
-    coarse network steps through this many equal sub-windows of the window, their flows composed."""
+    coarse network steps through this many equal sub-windows of the window, their flows composed.
+    ``block_steps``: iterations of the learned update block (agents/update_block.py) taken on the
+    proposal before the solve (0: none)."""
 
     solver: str
     steps: int
@@ -185,12 +189,13 @@ class Finish:
     lr_scale: float = 1.0
     coarse: int = 1
     splits: int = 1
+    block_steps: int = 0
 
     def __post_init__(self) -> None:
-        for key, top in (("coarse", 16), ("splits", 64)):
+        for key, low, top in (("coarse", 1, 16), ("splits", 1, 64), ("block_steps", 0, 64)):
             value = getattr(self, key)
-            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= top:
-                raise ValueError(f"finish {self.solver}:{self.steps}: {key} must be an integer in [1, {top}], "
+            if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= top:
+                raise ValueError(f"finish {self.solver}:{self.steps}: {key} must be an integer in [{low}, {top}], "
                                  f"got {value!r}")
         if self.splits > 1 and self.coarse == 1:
             raise ValueError(f"finish {self.solver}:{self.steps}: splits applies to a coarse proposal (coarse >= 2)")
@@ -198,11 +203,13 @@ class Finish:
     @classmethod
     def from_dict(cls, data: Mapping) -> "Finish":
         """From ``default.json``'s ``finish`` entries (ValueError naming an unknown key)."""
-        unknown = set(data) - {"solver", "steps", "max_events", "up_to_frames", "lr_scale", "coarse", "splits"}
+        unknown = set(data) - {"solver", "steps", "max_events", "up_to_frames", "lr_scale", "coarse", "splits",
+                               "block_steps"}
         if unknown:
             raise ValueError(f"finish {dict(data)}: unknown keys {sorted(unknown)}")
         return cls(str(data["solver"]), int(data["steps"]), data.get("max_events"), data.get("up_to_frames"),
-                   float(data.get("lr_scale", 1.0)), _whole(data.get("coarse", 1)), _whole(data.get("splits", 1)))
+                   float(data.get("lr_scale", 1.0)), _whole(data.get("coarse", 1)), _whole(data.get("splits", 1)),
+                   _whole(data.get("block_steps", 0)))
 
     def label(self) -> str:
         """``fine:3``, ``cmax:20/16000``, ``coarse3:2+cmax:20/16000``: the form scripts/tradeoff.py's modes
@@ -239,7 +246,7 @@ class FinishedPolicy:
     def __init__(self, policy, finishes, block=None) -> None:
         self.policy = as_flow_policy(policy)
         self.finishes = [f if isinstance(f, Finish) else Finish.from_dict(f) for f in finishes]
-        if block is None and any(f.solver == BLOCK for f in self.finishes):
+        if block is None and any(f.solver == BLOCK or f.block_steps for f in self.finishes):
             raise ValueError(f"finish {BLOCK}:K runs a learned update block: FinishedPolicy(..., block=...)")
         self.block = block
         self.settings = [None if f.solver in (GRADIENT, BLOCK) else
@@ -301,6 +308,9 @@ class FinishedPolicy:
         index = self.finish_for(window)
         grid = (1, 1) if index is None else (self.finishes[index].coarse, self.finishes[index].splits)
         flow = self.propose(obs, window, *grid)
+        if index is not None and self.finishes[index].block_steps:
+            flow = block_finish(flow, window, self.finishes[index], self.block, self.device,
+                                steps=self.finishes[index].block_steps)
         if index is None or self.finishes[index].steps == 0:
             return flow
         if self.finishes[index].solver == BLOCK:
