@@ -65,10 +65,12 @@ def test_the_defaults_flow_is_what_it_was(mode, flows_now):
     for got, want in zip(now, stored):
         assert got["abs_sum"] > 0
         if mode == "finished-4-frames":
-            # 20 solver steps amplify float rounding (another thread count moves pixels by tenths of a
-            # pixel while the flow stays as good): the mean difference is held, not each pixel
+            # 20 solver steps amplify float rounding (another thread count or another CPU's kernels move
+            # pixels by tenths of a pixel while the flow stays as good): the mean difference is held,
+            # not each pixel. Measured: another machine 2.5-5.4 % of the mean magnitude; a changed
+            # finish (15 or 30 steps, a 2x grid, one split) 16-80 %
             difference = np.abs(np.subtract(got["pixels"], want["pixels"])).mean()
-            assert difference < 0.05 * np.abs(want["pixels"]).mean()
+            assert difference < 0.10 * np.abs(want["pixels"]).mean()
             continue
         # the finish's compiled kernels add in parallel, in no fixed order: a run differs by ~1e-5 px
         atol = 1e-3 if mode == "finished" else 1e-5
