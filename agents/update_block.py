@@ -2,9 +2,10 @@
 solve step reads (the gradient of the window's loss with respect to the flow) and what the
 window's events look like under the current flow (their warped image: where they pile up and
 how sharply), and writes a correction to the flow. It is the amortised counterpart of the
-K-step solve of ``agents/wrappers/refine.py``: trained on the simulator's windows to lower the
-loss the env rewards after its K iterations, from the shipped network's proposals
-(``scripts/train_block.py``; docs/finish.md, "A learned finish")::
+K-step solve of ``agents/wrappers/refine.py``, trained on the simulator's windows from the shipped
+network's proposals, toward a lower loss after its K iterations or toward the ``--cmax`` solve
+from zero flow (``scripts/train_block.py``). Measured on devval it stays behind the default's
+20-step solve, so the default does not use it (docs/finish.md, "A learned finish")::
 
     block = UpdateBlock()
     finished = learned_finish(block, proposal, window.batch(), steps=4, frames=4.0)

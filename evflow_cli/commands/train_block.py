@@ -1,12 +1,15 @@
 """Train the learned finish (agents/update_block.py): a small update block that finishes the
-shipped network's proposals in K iterations, trained to lower the window's loss after them (the
-solve's loss: the env's reward, L_HMC, with the solve's stronger smoothness term). The network is frozen; its proposals (the default's: sensor pixels up
-to 3 frames, a 3x coarser grid beyond, docs/finish.md) are computed once on the simulator's
-training split, then the block trains on them for a wall-clock budget. Unsupervised: the loss
-sees only events; no ground truth, no devval (choose the iterations on devval afterwards with
-``scripts/tradeoff.py --block OUT/block.pt``).
+shipped network's proposals in K iterations. The network is frozen; its proposals (the
+default's: sensor pixels up to 3 frames, a 3x coarser grid beyond, docs/finish.md) are computed
+once on the simulator's training split, then the block trains on them for a wall-clock budget.
+Its target (--target): "loss", the solve's loss after the iterations (the env's reward with the
+solve's stronger smoothness term), or "teacher", the --cmax solve from zero flow of each window.
+Unsupervised either way: only events; no ground truth, no devval (choose on devval afterwards
+with ``scripts/tradeoff.py --block OUT/block.pt``). Measured so far (docs/finish.md, "A learned
+finish"): behind the default's 20-step solve on devval with either target, so not shipped.
 
-  python scripts/train_block.py --minutes 45 --threads 1 --out runs/block
+  python scripts/train_block.py --minutes 40 --windows 30 --threads 1 --out runs/block
+  python scripts/train_block.py --target teacher --dt 2 4 8 --minutes 25 --windows 30 --threads 1 --out runs/block-teacher
   python scripts/train_block.py --minutes 45 --out runs/block --resume        # goes on from runs/block/block.pt
 """
 
@@ -226,7 +229,7 @@ def main(argv=None) -> int:
         torch.set_num_threads(args.threads)
     if not 0 < args.gamma <= 1:
         raise ValueError(f"--gamma must be in (0, 1], got {args.gamma}")
-    if args.data.rstrip("/").endswith("devval"):
+    if "devval" in Path(args.data).resolve().parts or Path(args.data).stem == "devval":
         raise ValueError("--data: devval is for choosing, never for training")
     out = Path(args.out)
     path = out / "block.pt"
