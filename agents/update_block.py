@@ -21,8 +21,6 @@ which keeps an update's cost near that of K solve steps.
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -177,11 +175,6 @@ def frames_of(duration_us: float) -> float:
     return max(1.0, float(duration_us) / FRAME_US)
 
 
-def describe(block: UpdateBlock) -> str:
-    params = sum(p.numel() for p in block.parameters())
-    return f"UpdateBlock(hidden={block.hidden}, scale={block.scale}, {params} parameters, {math.ceil(params * 4 / 1024)} KiB)"
-
-
 #: the checkpoint kind of scripts/train_block.py
 BLOCK_KIND = "evflow-update-block"
 
@@ -200,6 +193,6 @@ def load_block(path, device: str | torch.device = "cpu") -> tuple[UpdateBlock, d
     try:
         block = UpdateBlock(**config)
         block.load_state_dict(payload["block"])
-    except (TypeError, KeyError, RuntimeError) as err:
+    except (TypeError, KeyError, RuntimeError, ValueError) as err:
         raise ValueError(f"{path}: the update block's weights do not load ({err})") from err
     return block.to(device).eval(), payload

@@ -24,6 +24,21 @@ def _window(rng, size=(20, 28), velocity=(90.0, -45.0), dots=10):
     return Window.of(events, t0, t1)
 
 
+class _Fixed:
+    """A policy that proposes one fixed flow."""
+
+    input_key, voxel_bins, device = "count_image", 5, "cpu"
+
+    def __init__(self, proposal) -> None:
+        self.proposal = proposal
+
+    def reset(self, mask=None):
+        pass
+
+    def act(self, obs, window=None):
+        return self.proposal.copy()
+
+
 def test_the_inputs_are_the_flow_per_frame_the_normalised_gradient_and_the_event_histogram(rng):
     window = _window(rng)
     batch = window.batch()
@@ -153,18 +168,9 @@ def test_a_block_finish_in_the_finished_policy_is_the_learned_finish(rng):
     window = _window(rng)
     proposal = np.full((2, 20, 28), 0.7, np.float32)
 
-    class Fixed:
-        input_key, voxel_bins, device = "count_image", 5, "cpu"
-
-        def reset(self, mask=None):
-            pass
-
-        def act(self, obs, window=None):
-            return proposal.copy()
-
     with pytest.raises(ValueError, match="block"):
-        FinishedPolicy(Fixed(), [Finish(BLOCK, 2)])
-    policy = FinishedPolicy(Fixed(), [Finish(BLOCK, 2)], block=block)
+        FinishedPolicy(_Fixed(proposal), [Finish(BLOCK, 2)])
+    policy = FinishedPolicy(_Fixed(proposal), [Finish(BLOCK, 2)], block=block)
     with torch.no_grad():
         ref = learned_finish(block, torch.as_tensor(proposal)[None], window.batch(), steps=2, frames=2.0)
     assert np.allclose(policy.act(None, window), ref[0].numpy(), atol=1e-6)
@@ -221,21 +227,12 @@ def test_block_steps_before_a_solve_are_the_block_then_that_solve(rng):
     window = _window(rng)
     proposal = np.full((2, 20, 28), 0.4, np.float32)
 
-    class Fixed:
-        input_key, voxel_bins, device = "count_image", 5, "cpu"
-
-        def reset(self, mask=None):
-            pass
-
-        def act(self, obs, window=None):
-            return proposal.copy()
-
     finish = Finish.from_dict({"solver": "fine", "steps": 3, "block_steps": 2})
     with pytest.raises(ValueError, match="block"):
-        FinishedPolicy(Fixed(), [finish])
+        FinishedPolicy(_Fixed(proposal), [finish])
     with pytest.raises(ValueError, match="block_steps"):
         Finish("fine", 3, block_steps=-1)
-    policy = FinishedPolicy(Fixed(), [finish], block=block)
+    policy = FinishedPolicy(_Fixed(proposal), [finish], block=block)
     with torch.no_grad():
         moved = learned_finish(block, torch.as_tensor(proposal)[None], window.batch(), steps=2, frames=2.0)[0].numpy()
     expected = finish_settings("fine", 3).solve(window, (20, 28), base=moved)

@@ -40,9 +40,6 @@ from agents.update_block import BLOCK_KIND, FLOW_SCALING, SPEC, UpdateBlock, fra
 from envs.atomic import write_atomic
 from losses import window_loss, zero_flow_loss
 
-#: the checkpoint's kind (agents.update_block.load_block refuses any other)
-KIND = BLOCK_KIND
-
 
 @dataclass(kw_only=True)
 class TrainBlockOptions(DeviceOptions, Progress):
@@ -298,7 +295,7 @@ def main(argv=None) -> int:
 def _save(path: Path, block, optimizer, curve, updates: int, seconds: float, args) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     recipe = {k: v for k, v in dataclasses.asdict(args).items() if k not in ("no_progress",)}
-    save_checkpoint(path, {"kind": KIND, "block": block.state_dict(), "block_config": block.config(),
+    save_checkpoint(path, {"kind": BLOCK_KIND, "block": block.state_dict(), "block_config": block.config(),
                            "iterations": args.iterations, "optimizer": optimizer.state_dict(), "curve": curve,
                            "updates": updates, "seconds": seconds, "recipe": json.dumps(recipe)})
 
